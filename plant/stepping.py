@@ -1,0 +1,275 @@
+"""The stepping plant: FMU-style (set inputs, ``do_step(t, h)``, read outputs, reset,
+get/set state) over the compiled dynamics, integrated with adaptive Dormand-Prince."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from . import dynamics as dyn
+from .tire import V_EPS_DEFAULT
+from .vehicle import Vehicle, default_vehicle
+
+
+class PlantError(ValueError):
+    """Bad input to the plant (the plant's state is left unchanged)."""
+
+
+def state_names(vehicle: Vehicle) -> list[str]:
+    """Names of the settable initial-state signals (``--initial name=value``)."""
+    w = vehicle.wheel_names
+    return (["x", "y", "phi", "vx", "vy", "r"] + [f"delta_{k}" for k in w]
+            + [f"omega_w_{k}" for k in w] + [f"omega_s_{k}" for k in w])
+
+
+def signal_names(vehicle: Vehicle) -> list[str]:
+    """Every signal of DESIGN.md's table, in output order (CSV columns, FMU outputs)."""
+    w = vehicle.wheel_names
+    names = ["x", "y", "phi", "vx", "vy", "r"]
+    names += [f"delta_{k}" for k in w]
+    names += [f"omega_w_{k}" for k in w]
+    names += [f"omega_s_{k}" for k in w]
+    names += [f"s_{k}" for k in w]
+    names += [f"alpha_{k}" for k in w]
+    names += [f"Fx_{k}" for k in w]
+    names += [f"Fy_{k}" for k in w]
+    names += [f"F_N_{k}" for k in w]
+    names += ["P_s", "P_alpha", "P_t", "W_s", "W_alpha", "W_t", "W_tw"]
+    return names
+
+
+def input_names(vehicle: Vehicle) -> list[str]:
+    w = vehicle.wheel_names
+    return [f"omega_w_{k}" for k in w] + [f"omega_s_{k}" for k in w]
+
+
+def parse_initial(text: str | None) -> dict[str, float]:
+    """Parse ``name=value,name=value`` into a dict (values must be finite numbers)."""
+    out: dict[str, float] = {}
+    if not text:
+        return out
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "=" not in part:
+            raise PlantError(f"--initial: expected name=value, got '{part}'")
+        k, v = (s.strip() for s in part.split("=", 1))
+        try:
+            val = float(v)
+        except ValueError:
+            raise PlantError(f"--initial: {k}: '{v}' is not a number") from None
+        if not math.isfinite(val):
+            raise PlantError(f"--initial: {k}: must be finite, got {v}")
+        out[k] = val
+    return out
+
+
+@dataclass(frozen=True)
+class PlantSnapshot:
+    """A copy of the plant's full state (``get_state``/``set_state``)."""
+
+    t: float
+    y: np.ndarray
+    omega_w: np.ndarray
+    omega_s: np.ndarray
+    h_next: float
+
+
+class Plant:
+    """The vehicle as a stepping model (FMU co-simulation semantics).
+
+    Parameters
+    ----------
+    vehicle : Vehicle, optional
+        Defaults to the paper's 2-axle vehicle.
+    initial : mapping, optional
+        Initial values by signal name (``x, y, phi, vx, vy, r, delta_ij``; with actuator
+        lags also the actual ``omega_w_ij``/``omega_s_ij``). Others start at 0.
+    rtol, atol : float
+        Tolerances of the Dormand-Prince integrator (default 1e-8, 1e-9).
+    v_eps : float
+        Regularisation speed of the slip definitions [m/s], see :mod:`plant.tire`.
+
+    Inputs (held over a step): ``omega_w`` (2n,) wheel speeds [rad/s] and ``omega_s``
+    (2n,) steering rates [rad/s]. Commands beyond the actuators' limits saturate at them
+    (``omega_w`` in [0, omega_w_max], ``omega_s`` in [omega_s_min, omega_s_max]); a
+    negative, non-finite or wrongly shaped command is refused with :class:`PlantError`.
+    """
+
+    def __init__(self, vehicle: Vehicle | None = None, initial: Mapping[str, float] | None = None,
+                 rtol: float = 1e-8, atol: float = 1e-9, v_eps: float = V_EPS_DEFAULT,
+                 max_substeps: int = 100000):
+        self.vehicle = vehicle or default_vehicle()
+        if not (rtol > 0 and atol > 0 and v_eps > 0):
+            raise PlantError("rtol, atol and v_eps must be > 0")
+        self.rtol, self.atol = float(rtol), float(atol)
+        self.max_substeps = int(max_substeps)
+        self._P, self._wx, self._wy = dyn.pack_params(self.vehicle, v_eps)
+        self.nw = self.vehicle.n_wheels
+        self._initial = dict(initial or {})
+        self._names = signal_names(self.vehicle)
+        self._index = {n: i for i, n in enumerate(self._names)}
+        self._check_initial(self._initial)
+        self._aux = np.zeros((self.nw, dyn.N_AUX))
+        self._stats = np.zeros(2, dtype=np.int64)
+        self.steps_accepted = 0
+        self.steps_rejected = 0
+        self.reset()
+
+    # ---- set-up ----------------------------------------------------------------------
+    def _check_initial(self, initial: Mapping[str, float]) -> None:
+        allowed = set(state_names(self.vehicle))
+        for k, v in initial.items():
+            if k not in allowed:
+                raise PlantError(f"initial: unknown signal '{k}' (settable: "
+                                 f"{', '.join(state_names(self.vehicle))})")
+            if not math.isfinite(float(v)):
+                raise PlantError(f"initial: {k} must be finite, got {v}")
+        lim = self.vehicle.limits
+        for k in self.vehicle.wheel_names:
+            d = float(initial.get(f"delta_{k}", 0.0))
+            if not lim.delta_min <= d <= lim.delta_max:
+                raise PlantError(f"initial: delta_{k} = {d} outside the steering limits "
+                                 f"[{lim.delta_min}, {lim.delta_max}]")
+            if float(initial.get(f"omega_w_{k}", 0.0)) < 0:
+                raise PlantError(f"initial: omega_w_{k} must be >= 0")
+
+    def reset(self, initial: Mapping[str, float] | None = None) -> None:
+        """Back to t = 0 at the initial state (the constructor's, or ``initial``)."""
+        if initial is not None:
+            initial = dict(initial)
+            self._check_initial(initial)
+            self._initial = initial
+        nw = self.nw
+        y = np.zeros(dyn.state_size(nw))
+        ini = self._initial
+        for i, k in enumerate(["x", "y", "phi", "vx", "vy", "r"]):
+            y[i] = float(ini.get(k, 0.0))
+        w = self.vehicle.wheel_names
+        for j, k in enumerate(w):
+            y[6 + j] = float(ini.get(f"delta_{k}", 0.0))
+            y[9 + nw + j] = float(ini.get(f"omega_w_{k}", 0.0))
+            y[9 + 2 * nw + j] = float(ini.get(f"omega_s_{k}", 0.0))
+        self._y = y
+        self.t = 0.0
+        self._u_w = np.array([float(ini.get(f"omega_w_{k}", 0.0)) for k in w])
+        self._u_s = np.zeros(nw)
+        self._h = 0.0
+        self.steps_accepted = 0
+        self.steps_rejected = 0
+        self._refresh()
+
+    # ---- inputs ----------------------------------------------------------------------
+    def set_inputs(self, omega_w, omega_s) -> None:
+        """Set the held commands: wheel speeds and steering rates, each shape (2n,)."""
+        w = np.array(omega_w, dtype=float).reshape(-1)
+        s = np.array(omega_s, dtype=float).reshape(-1)
+        if w.shape != (self.nw,) or s.shape != (self.nw,):
+            raise PlantError(f"inputs: expected {self.nw} wheel speeds and {self.nw} steering "
+                             f"rates, got {w.size} and {s.size}")
+        if not (np.all(np.isfinite(w)) and np.all(np.isfinite(s))):
+            raise PlantError("inputs: commands must be finite (got NaN or inf)")
+        if np.any(w < 0):
+            raise PlantError(f"inputs: omega_w must be >= 0 (wheel {self.vehicle.wheel_names[int(np.argmin(w))]}"
+                             f" got {w.min()})")
+        lim = self.vehicle.limits
+        self._u_w = np.minimum(w, lim.omega_w_max)
+        self._u_s = np.clip(s, lim.omega_s_min, lim.omega_s_max)
+        self._refresh()
+
+    @property
+    def inputs(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._u_w.copy(), self._u_s.copy()
+
+    # ---- stepping --------------------------------------------------------------------
+    def do_step(self, t: float, h: float) -> None:
+        """Advance from ``t`` (must equal the plant's time) by ``h`` > 0 seconds."""
+        if not (math.isfinite(h) and h > 0):
+            raise PlantError(f"do_step: step size must be finite and > 0, got {h}")
+        if not math.isfinite(t) or abs(t - self.t) > 1e-9 * max(1.0, abs(self.t)):
+            raise PlantError(f"do_step: t = {t} does not match the plant's time {self.t}")
+        y = self._y.copy()
+        h_next = dyn.integrate(y, self.t, self.t + h, self._u_w, self._u_s, self._P, self._wx,
+                               self._wy, self.rtol, self.atol, self._h, self.max_substeps,
+                               self._stats)
+        if self._stats[0] + self._stats[1] >= self.max_substeps or not np.all(np.isfinite(y)):
+            raise PlantError(f"do_step: integration failed at t = {self.t} (substep limit "
+                             f"{self.max_substeps} reached or non-finite state); state unchanged")
+        self._y = y
+        self._h = h_next
+        self.t = self.t + h
+        self.steps_accepted += int(self._stats[0])
+        self.steps_rejected += int(self._stats[1])
+        self._refresh()
+
+    def _refresh(self) -> None:
+        self._dy = dyn.outputs(self._y, self._u_w, self._u_s, self._P, self._wx, self._wy,
+                               self._aux)
+
+    # ---- outputs ---------------------------------------------------------------------
+    @property
+    def state_vector(self) -> np.ndarray:
+        """Copy of the raw state vector (layout in :mod:`plant.dynamics`)."""
+        return self._y.copy()
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self._y[0:3].copy()
+
+    @property
+    def delta(self) -> np.ndarray:
+        return self._y[6:6 + self.nw].copy()
+
+    def output_vector(self) -> np.ndarray:
+        """All signals, in the order of :func:`signal_names`."""
+        nw, y, a = self.nw, self._y, self._aux
+        iw = 6 + nw
+        W = y[iw:iw + 3]
+        P = a[:, dyn.AUX_PS:dyn.AUX_PT + 1].sum(axis=0)
+        return np.concatenate([
+            y[0:6], y[6:6 + nw], a[:, dyn.AUX_OMEGA_W], a[:, dyn.AUX_DDELTA],
+            a[:, dyn.AUX_S], a[:, dyn.AUX_ALPHA], a[:, dyn.AUX_FX], a[:, dyn.AUX_FY],
+            a[:, dyn.AUX_FN], P, W, [W.sum()],
+        ])
+
+    def outputs(self) -> dict[str, float]:
+        """All signals by name (``omega_w_ij``/``omega_s_ij`` are the actual rates)."""
+        return dict(zip(self._names, self.output_vector().tolist()))
+
+    def get(self, name: str) -> float:
+        try:
+            return float(self.output_vector()[self._index[name]])
+        except KeyError:
+            raise PlantError(f"unknown signal '{name}'") from None
+
+    @property
+    def signal_names(self) -> list[str]:
+        return list(self._names)
+
+    # ---- state save/restore ----------------------------------------------------------
+    def get_state(self) -> PlantSnapshot:
+        return PlantSnapshot(self.t, self._y.copy(), self._u_w.copy(), self._u_s.copy(), self._h)
+
+    def set_state(self, snap: PlantSnapshot) -> None:
+        if not isinstance(snap, PlantSnapshot) or snap.y.shape != self._y.shape:
+            raise PlantError("set_state: snapshot does not belong to this vehicle")
+        self.t = snap.t
+        self._y = snap.y.copy()
+        self._u_w = snap.omega_w.copy()
+        self._u_s = snap.omega_s.copy()
+        self._h = snap.h_next
+        self._refresh()
+
+    def state_message(self) -> dict:
+        """The state as DESIGN.md's ``state`` fields (without ``v``/``seq``)."""
+        y, nw = self._y, self.nw
+        iw = 6 + nw
+        return {
+            "t": self.t, "x": y[0], "y": y[1], "phi": y[2], "vx": y[3], "vy": y[4], "r": y[5],
+            "delta": y[6:6 + nw].tolist(), "omega_w": self._aux[:, dyn.AUX_OMEGA_W].tolist(),
+            "W_s": y[iw], "W_alpha": y[iw + 1], "W_t": y[iw + 2],
+        }

@@ -1,0 +1,131 @@
+"""Tire and wear models of the paper (eq. 9, 10, 13-16, Magic Formula f) and Dugoff's model.
+
+Every function is compiled with numba and written with elementwise numpy operations, so
+the same function serves one wheel (floats) and batches (arrays with any leading axes,
+broadcast against each other). The dynamics and the controller's rollouts call the same
+functions on scalars inside their kernels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# Regularisation speed of the slip definitions [m/s]; see slip_ratio / slip_angle.
+V_EPS_DEFAULT = 0.1
+
+
+@njit(cache=True)
+def magic_formula(xi, B, C, D, E):
+    """Pacejka Magic Formula, paper's unnumbered f after eq. (12).
+
+    ``f(xi) = D sin(C arctan(B xi - E (B xi - arctan(B xi))))``. ``xi`` is the slip
+    ratio s [-] or the slip angle alpha [rad]; ``D = mu F_N`` [N]. Odd in ``xi``.
+    """
+    Bx = B * xi
+    return D * np.sin(C * np.arctan(Bx - E * (Bx - np.arctan(Bx))))
+
+
+@njit(cache=True)
+def magic_formula_slope(xi, B, C, D, E):
+    """d f / d xi of :func:`magic_formula` (used by the linearly implicit predictor)."""
+    Bx = B * xi
+    at = np.arctan(Bx)
+    arg = Bx - E * (Bx - at)
+    darg = B * (1.0 - E) + E * B / (1.0 + Bx * Bx)
+    return D * np.cos(C * np.arctan(arg)) * C * darg / (1.0 + arg * arg)
+
+
+@njit(cache=True)
+def slip_angle(v_wx, v_wy, v_eps):
+    """Slip angle alpha_ij [rad], paper eq. (9).
+
+    Eq. (9) reads ``alpha = delta - arctan(v_By / v_Bx)``, which equals
+    ``-arctan(v_wy / v_wx)`` in the wheel frame W_ij. DEVIATION(eq. 9): we evaluate
+    ``-atan2(v_wy, sqrt(v_wx^2 + v_eps^2))``: the lateral force then opposes the lateral
+    velocity for forward *and* reversing wheels, a wheel moving sideways gets a finite
+    angle, and a wheel at rest gets alpha = 0 with a finite slope (no division by zero).
+    Above a few v_eps it is eq. (9) to within (v_eps / v_wx)^2 / 2.
+    """
+    return -np.arctan2(v_wy, np.sqrt(v_wx * v_wx + v_eps * v_eps))
+
+
+@njit(cache=True)
+def slip_ratio(omega_w, r_w, v_wx, v_eps):
+    """Slip ratio s_ij [-], paper eq. (10): ``(omega_w r_w - v_wx) / |v_wx|``.
+
+    DEVIATION(eq. 10): ``|v_wx|`` is replaced by ``sqrt(v_wx^2 + v_eps^2)`` so a wheel at
+    rest gives a finite slip (a spinning wheel on a standing vehicle saturates the force
+    instead of producing inf/NaN). For |v_wx| >> v_eps this is eq. (10).
+    """
+    return (omega_w * r_w - v_wx) / np.sqrt(v_wx * v_wx + v_eps * v_eps)
+
+
+@njit(cache=True)
+def wheel_velocity(vbx, vby, r, x_w, y_w, delta):
+    """Velocity of wheel ij in its own frame W_ij, paper eq. (6)-(8).
+
+    ``vbx, vby``: body velocity in B [m/s]; ``r``: yaw rate [rad/s]; ``(x_w, y_w)``:
+    wheel position in B [m]; ``delta``: steering angle [rad]. Returns ``(v_wx, v_wy)``.
+    """
+    vx_b = vbx - r * y_w  # eq. (6)
+    vy_b = vby + r * x_w  # eq. (7)
+    c = np.cos(delta)
+    s = np.sin(delta)
+    return c * vx_b + s * vy_b, -s * vx_b + c * vy_b  # eq. (8), R(delta)^T
+
+
+@njit(cache=True)
+def wear_power_slip(Fx, omega_w, r_w, v_wx):
+    """Slip-ratio wear power P_s,ij [W], paper eq. (13): |Fx (omega_w r_w - v_wx)|."""
+    return np.abs(Fx * (omega_w * r_w - v_wx))
+
+
+@njit(cache=True)
+def wear_power_angle(Fy, v_wy):
+    """Slip-angle wear power P_alpha,ij [W], paper eq. (14): |Fy v_wy|."""
+    return np.abs(Fy * v_wy)
+
+
+@njit(cache=True)
+def wear_power_steer(k_t, F_N, omega_s):
+    """Steering wear power P_t,ij [W], paper eq. (15): |k_t F_N omega_s|.
+
+    ``omega_s`` is the *actual* steering rate (0 for a wheel held at its stop).
+    """
+    return np.abs(k_t * F_N * omega_s)
+
+
+@njit(cache=True)
+def dugoff_forces(s, alpha, F_N, C_s, C_alpha, mu):
+    """Dugoff tire forces (Fx, Fy) [N] in W_ij, as used by the DH baseline (Du et al. 2024).
+
+    With the slip ratio s of eq. (10) and slip angle alpha (tan alpha clamped at
+    |alpha| <= 1.5 rad):
+
+        S      = sqrt((C_s s)^2 + (C_alpha tan alpha)^2)
+        lambda = mu F_N (1 + |s|) / (2 S)
+        f      = lambda (2 - lambda) if lambda < 1 else 1
+        Fx     = C_s s / (1 + |s|) f,   Fy = C_alpha tan(alpha) / (1 + |s|) f
+
+    The resultant never exceeds mu F_N. (|s| in place of Dugoff's braking-only s makes
+    driving and braking symmetric.)
+    """
+    a = np.minimum(np.maximum(alpha, -1.5), 1.5)
+    ta = np.tan(a)
+    one_s = 1.0 + np.abs(s)
+    S = np.sqrt((C_s * s) ** 2 + (C_alpha * ta) ** 2)
+    lam = mu * F_N * one_s / (2.0 * np.maximum(S, 1e-12))
+    f = 1.0 - np.maximum(1.0 - lam, 0.0) ** 2  # = lam (2 - lam) below 1, else 1
+    return C_s * s / one_s * f, C_alpha * ta / one_s * f
+
+
+def tire_forces(vehicle, s, alpha, F_N=None):
+    """Magic Formula forces (Fx, Fy) [N] for a :class:`plant.vehicle.Vehicle`, eq. (11), (12).
+
+    ``F_N`` defaults to the static load m g / (2n). Works on scalars and arrays.
+    """
+    FN = vehicle.normal_load if F_N is None else F_N
+    lo, la = vehicle.tire_longitudinal, vehicle.tire_lateral
+    return (magic_formula(s, lo.B, lo.C, lo.mu * FN, lo.E),
+            magic_formula(alpha, la.B, la.C, la.mu * FN, la.E))

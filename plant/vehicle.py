@@ -1,0 +1,332 @@
+"""Vehicle description: the TOML contract of DESIGN.md, loaded into a frozen, validated object.
+
+Indices follow the paper: axle ``i = 1..n`` from the front, side ``j = 1`` left (y > 0),
+``j = 2`` right. Every per-wheel array is ordered 11, 12, 21, 22, ..., n1, n2.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+G_ACCEL = 9.81  # m/s^2, as in DESIGN.md (F_N = m g / (2n))
+
+
+class VehicleError(ValueError):
+    """A vehicle description is malformed. The message names the offending field."""
+
+
+@dataclass(frozen=True)
+class MagicFormula:
+    """Coefficients of the Magic Formula f (paper, unnumbered, after eq. 12); D = mu * F_N."""
+
+    B: float  # stiffness factor [1/unit of slip]
+    C: float  # shape factor [-]
+    mu: float  # peak friction coefficient [-], D = mu * F_N
+    E: float  # curvature factor [-]
+
+
+@dataclass(frozen=True)
+class Dugoff:
+    """Dugoff tire coefficients, for the DH baseline (Du et al. 2024)."""
+
+    C_s: float  # N, longitudinal slip stiffness
+    C_alpha: float  # N/rad, cornering stiffness
+    mu: float  # -, friction coefficient
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Bounds of the paper's eq. (27)."""
+
+    omega_s_min: float  # rad/s
+    omega_s_max: float  # rad/s
+    omega_w_max: float  # rad/s (omega_w_min is 0)
+    delta_min: float  # rad
+    delta_max: float  # rad
+
+
+@dataclass(frozen=True)
+class PlantOptions:
+    """Plant-only realism the controller does not model (all off by default).
+
+    cg_height : m. Height of the centre of gravity; > 0 turns on quasi-static load
+        transfer (the paper's future work, its Assumption 2 dropped). 0 keeps
+        F_N = m g / (2n) on every wheel.
+    wheel_lag : s. Time constant of the wheel-speed tracker (first-order lag of the
+        actual wheel speed behind omega_w). 0 = ideal tracking, as the paper assumes.
+    steer_lag : s. Time constant of the steering-rate tracker. 0 = ideal.
+    """
+
+    cg_height: float = 0.0
+    wheel_lag: float = 0.0
+    steer_lag: float = 0.0
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    """A multi-axle swerve-drive vehicle (any number of axles n >= 1).
+
+    Units are SI; angles in radians. See ``docs/VEHICLE.md`` for the file format and the
+    sources of the built-in tire coefficients.
+    """
+
+    name: str
+    mass: float  # kg
+    yaw_inertia: float  # kg m^2
+    wheel_radius: float  # m
+    axle_x: tuple[float, ...]  # m, front first
+    half_track: float  # m
+    steer_loss_kt: float  # m, k_t of eq. 15
+    tire_longitudinal: MagicFormula
+    tire_lateral: MagicFormula
+    tire_dugoff: Dugoff
+    limits: Limits
+    plant: PlantOptions = field(default_factory=PlantOptions)
+
+    # ---- derived geometry -------------------------------------------------------------
+    @property
+    def n_axles(self) -> int:
+        return len(self.axle_x)
+
+    @property
+    def n_wheels(self) -> int:
+        return 2 * len(self.axle_x)
+
+    @property
+    def wheel_names(self) -> list[str]:
+        """Wheel suffixes in array order: ['11', '12', '21', '22', ...]."""
+        return [f"{i}{j}" for i in range(1, self.n_axles + 1) for j in (1, 2)]
+
+    @property
+    def wheel_x(self) -> np.ndarray:
+        """x_wi of every wheel, shape (2n,)."""
+        return np.repeat(np.asarray(self.axle_x, dtype=float), 2)
+
+    @property
+    def wheel_y(self) -> np.ndarray:
+        """y_wj of every wheel, shape (2n,): +half_track left (j=1), -half_track right."""
+        return np.tile(np.array([self.half_track, -self.half_track]), self.n_axles)
+
+    @property
+    def normal_load(self) -> float:
+        """F_N = m g / (2n), per wheel (paper's Assumption 2)."""
+        return self.mass * G_ACCEL / self.n_wheels
+
+    # ---- conversions ------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The description as plain data, with the TOML file's key layout."""
+        d = {
+            "name": self.name,
+            "mass": self.mass,
+            "yaw_inertia": self.yaw_inertia,
+            "wheel_radius": self.wheel_radius,
+            "axle_x": list(self.axle_x),
+            "half_track": self.half_track,
+            "steer_loss_kt": self.steer_loss_kt,
+            "tire": {
+                "longitudinal": dataclasses.asdict(self.tire_longitudinal),
+                "lateral": dataclasses.asdict(self.tire_lateral),
+                "dugoff": dataclasses.asdict(self.tire_dugoff),
+            },
+            "limits": dataclasses.asdict(self.limits),
+            "plant": dataclasses.asdict(self.plant),
+        }
+        return d
+
+    def replace(self, **changes: Any) -> "Vehicle":
+        """A validated copy with some top-level fields changed (e.g. ``mass=16000.0``)."""
+        d = self.to_dict()
+        for k, v in changes.items():
+            if k not in d:
+                raise VehicleError(f"unknown key '{k}'")
+            d[k] = list(v) if isinstance(v, tuple) else v
+        return vehicle_from_dict(d)
+
+
+# ---- loading and validation -------------------------------------------------------------
+_TOP_KEYS = {
+    "name", "mass", "yaw_inertia", "wheel_radius", "axle_x", "half_track", "steer_loss_kt",
+    "tire", "limits",
+}
+_OPTIONAL_TOP = {"plant"}
+_MF_KEYS = ("B", "C", "mu", "E")
+_DUGOFF_KEYS = ("C_s", "C_alpha", "mu")
+_LIMIT_KEYS = ("omega_s_min", "omega_s_max", "omega_w_max", "delta_min", "delta_max")
+_PLANT_KEYS = ("cg_height", "wheel_lag", "steer_lag")
+
+
+def _number(d: Mapping[str, Any], key: str, path: str, *, positive: bool = False,
+            nonneg: bool = False) -> float:
+    if key not in d:
+        raise VehicleError(f"{path}{key}: missing")
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise VehicleError(f"{path}{key}: expected a number, got {v!r}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise VehicleError(f"{path}{key}: must be finite, got {v}")
+    if positive and v <= 0:
+        raise VehicleError(f"{path}{key}: must be > 0, got {v}")
+    if nonneg and v < 0:
+        raise VehicleError(f"{path}{key}: must be >= 0, got {v}")
+    return v
+
+
+def _table(d: Mapping[str, Any], key: str, path: str, keys: tuple[str, ...]) -> dict:
+    if key not in d:
+        raise VehicleError(f"{path}{key}: missing table")
+    t = d[key]
+    if not isinstance(t, Mapping):
+        raise VehicleError(f"{path}{key}: expected a table")
+    unknown = sorted(set(t) - set(keys))
+    if unknown:
+        raise VehicleError(f"{path}{key}.{unknown[0]}: unknown key")
+    return dict(t)
+
+
+def vehicle_from_dict(d: Mapping[str, Any]) -> Vehicle:
+    """Build and validate a :class:`Vehicle` from the TOML layout (a nested mapping)."""
+    if not isinstance(d, Mapping):
+        raise VehicleError("vehicle description must be a table")
+    unknown = sorted(set(d) - _TOP_KEYS - _OPTIONAL_TOP)
+    if unknown:
+        raise VehicleError(f"{unknown[0]}: unknown key")
+    for k in sorted(_TOP_KEYS):
+        if k not in d:
+            raise VehicleError(f"{k}: missing")
+    name = d["name"]
+    if not isinstance(name, str) or not name:
+        raise VehicleError("name: expected a non-empty string")
+    mass = _number(d, "mass", "", positive=True)
+    yaw_inertia = _number(d, "yaw_inertia", "", positive=True)
+    wheel_radius = _number(d, "wheel_radius", "", positive=True)
+    half_track = _number(d, "half_track", "", positive=True)
+    kt = _number(d, "steer_loss_kt", "", nonneg=True)
+
+    ax = d["axle_x"]
+    if not isinstance(ax, (list, tuple)) or len(ax) == 0:
+        raise VehicleError("axle_x: expected a non-empty array of axle positions (n >= 1)")
+    axle_x = []
+    for k, v in enumerate(ax):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            raise VehicleError(f"axle_x[{k}]: expected a finite number, got {v!r}")
+        axle_x.append(float(v))
+    for k in range(1, len(axle_x)):
+        if not axle_x[k] < axle_x[k - 1]:
+            raise VehicleError(
+                f"axle_x[{k}]: axles must be listed front first with strictly decreasing x "
+                f"({axle_x[k - 1]} then {axle_x[k]})")
+
+    tire = d["tire"]
+    if not isinstance(tire, Mapping):
+        raise VehicleError("tire: expected a table")
+    unknown = sorted(set(tire) - {"longitudinal", "lateral", "dugoff"})
+    if unknown:
+        raise VehicleError(f"tire.{unknown[0]}: unknown key")
+    mfs = {}
+    for part in ("longitudinal", "lateral"):
+        t = _table(tire, part, "tire.", _MF_KEYS)
+        p = f"tire.{part}."
+        B = _number(t, "B", p, positive=True)
+        C = _number(t, "C", p, positive=True)
+        mu = _number(t, "mu", p, positive=True)
+        E = _number(t, "E", p)
+        if E > 1.0:
+            raise VehicleError(f"{p}E: must be <= 1 (the Magic Formula loses monotonic "
+                               f"rise for E > 1), got {E}")
+        mfs[part] = MagicFormula(B=B, C=C, mu=mu, E=E)
+    t = _table(tire, "dugoff", "tire.", _DUGOFF_KEYS)
+    dug = Dugoff(C_s=_number(t, "C_s", "tire.dugoff.", positive=True),
+                 C_alpha=_number(t, "C_alpha", "tire.dugoff.", positive=True),
+                 mu=_number(t, "mu", "tire.dugoff.", positive=True))
+
+    t = _table(d, "limits", "", _LIMIT_KEYS)
+    lim = {k: _number(t, k, "limits.") for k in _LIMIT_KEYS}
+    if lim["omega_s_min"] > lim["omega_s_max"]:
+        raise VehicleError(f"limits.omega_s_min: greater than limits.omega_s_max "
+                           f"({lim['omega_s_min']} > {lim['omega_s_max']})")
+    if lim["delta_min"] > lim["delta_max"]:
+        raise VehicleError(f"limits.delta_min: greater than limits.delta_max "
+                           f"({lim['delta_min']} > {lim['delta_max']})")
+    if lim["omega_w_max"] <= 0:
+        raise VehicleError(f"limits.omega_w_max: must be > 0, got {lim['omega_w_max']}")
+    if lim["omega_s_min"] > 0 or lim["omega_s_max"] < 0:
+        raise VehicleError("limits.omega_s_min: the steering-rate range must contain 0 "
+                           "(a wheel must be able to hold its angle)")
+    if lim["delta_min"] > 0 or lim["delta_max"] < 0:
+        raise VehicleError("limits.delta_min: the steering range must contain 0")
+    if lim["delta_min"] < -math.pi or lim["delta_max"] > math.pi:
+        raise VehicleError("limits.delta_max: steering limits must lie within [-pi, pi]")
+
+    if "plant" in d:
+        t = _table(d, "plant", "", _PLANT_KEYS)
+        po = PlantOptions(**{k: _number(t, k, "plant.", nonneg=True) for k in t})
+    else:
+        po = PlantOptions()
+
+    return Vehicle(
+        name=name, mass=mass, yaw_inertia=yaw_inertia, wheel_radius=wheel_radius,
+        axle_x=tuple(axle_x), half_track=half_track, steer_loss_kt=kt,
+        tire_longitudinal=mfs["longitudinal"], tire_lateral=mfs["lateral"],
+        tire_dugoff=dug, limits=Limits(**lim), plant=po,
+    )
+
+
+def load_vehicle(path: str | Path | None = None) -> Vehicle:
+    """Load a vehicle TOML file; ``None`` gives the built-in paper vehicle.
+
+    Raises :class:`VehicleError` naming the field for any malformed description, and
+    ``FileNotFoundError`` when the file does not exist.
+    """
+    if path is None:
+        text = resources.files("plant").joinpath("data/paper-2axle.toml").read_text()
+        where = "built-in paper-2axle"
+    else:
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"vehicle file not found: {p}")
+        text = p.read_text()
+        where = str(p)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise VehicleError(f"{where}: not valid TOML: {e}") from None
+    try:
+        return vehicle_from_dict(data)
+    except VehicleError as e:
+        raise VehicleError(f"{where}: {e}") from None
+
+
+def default_vehicle() -> Vehicle:
+    """The paper's 2-axle, 12 t vehicle (built in)."""
+    return load_vehicle(None)
+
+
+def n_axle_vehicle(n: int, spacing: float = 2.0, base: Vehicle | None = None,
+                   mass_per_axle: float | None = None) -> Vehicle:
+    """A vehicle like ``base`` with ``n`` axles evenly spaced about the centre of mass.
+
+    ``mass_per_axle`` (kg) scales the mass and yaw inertia with n (default: the base
+    vehicle's mass per axle), so each wheel carries the same load as on the base vehicle.
+    Used for scaling studies and tests of other axle counts.
+    """
+    if n < 1:
+        raise VehicleError("n_axles: must be >= 1")
+    base = base or default_vehicle()
+    mpa = mass_per_axle if mass_per_axle is not None else base.mass / base.n_axles
+    xs = [spacing * ((n - 1) / 2.0 - k) for k in range(n)]
+    mass = mpa * n
+    length = max(spacing * (n - 1), 2.0) + 1.0
+    width = 2 * base.half_track + 1.0
+    inertia = mass * (length ** 2 + width ** 2) / 12.0
+    d = base.to_dict()
+    d.update(name=f"{n}-axle", mass=mass, yaw_inertia=inertia, axle_x=xs)
+    return vehicle_from_dict(d)
