@@ -116,7 +116,11 @@ def dugoff_forces(s, alpha, F_N, C_s, C_alpha, mu):
     one_s = 1.0 + np.abs(s)
     S = np.sqrt((C_s * s) ** 2 + (C_alpha * ta) ** 2)
     lam = mu * F_N * one_s / (2.0 * np.maximum(S, 1e-12))
-    f = 1.0 - np.maximum(1.0 - lam, 0.0) ** 2  # = lam (2 - lam) below 1, else 1
+    # f = lam (2 - lam) below 1, else 1. Written with min(lam, 1) rather than
+    # 1 - max(1 - lam, 0)^2, which cancels catastrophically for small lam (large slips)
+    # and let the resultant exceed mu F_N by up to ~1e-9 relative.
+    lc = np.minimum(lam, 1.0)
+    f = lc * (2.0 - lc)
     return C_s * s / one_s * f, C_alpha * ta / one_s * f
 
 
