@@ -127,7 +127,11 @@ class Plant:
             if k not in allowed:
                 raise PlantError(f"initial: unknown signal '{k}' (settable: "
                                  f"{', '.join(state_names(self.vehicle))})")
-            if not math.isfinite(float(v)):
+            try:
+                fv = float(v)
+            except (TypeError, ValueError):
+                raise PlantError(f"initial: {k} must be a number, got {v!r}") from None
+            if not math.isfinite(fv):
                 raise PlantError(f"initial: {k} must be finite, got {v}")
         lim = self.vehicle.limits
         for k in self.vehicle.wheel_names:
@@ -166,8 +170,11 @@ class Plant:
     # ---- inputs ----------------------------------------------------------------------
     def set_inputs(self, omega_w, omega_s) -> None:
         """Set the held commands: wheel speeds and steering rates, each shape (2n,)."""
-        w = np.array(omega_w, dtype=float).reshape(-1)
-        s = np.array(omega_s, dtype=float).reshape(-1)
+        try:
+            w = np.array(omega_w, dtype=float).reshape(-1)
+            s = np.array(omega_s, dtype=float).reshape(-1)
+        except (TypeError, ValueError) as e:
+            raise PlantError(f"inputs: commands must be numbers ({e})") from None
         if w.shape != (self.nw,) or s.shape != (self.nw,):
             raise PlantError(f"inputs: expected {self.nw} wheel speeds and {self.nw} steering "
                              f"rates, got {w.size} and {s.size}")
