@@ -137,16 +137,19 @@ def initial_state(rv: RefVehicle, x=0.0, y=0.0, phi=0.0, vx=0.0, vy=0.0, r=0.0, 
 
 def simulate(rv: RefVehicle, z0, U_w, U_s, T=0.01, method="DOP853", rtol=1e-10, atol=1e-12,
              frame="global"):
-    """Hold row k of ``U_w, U_s`` (K, 2n) over [kT, (k+1)T], restarting solve_ivp each step.
+    """Hold row k of ``U_w, U_s`` (K, 2n) over [t_k, t_k+1], restarting solve_ivp each step.
 
-    Returns Z (K+1, 9+2n): the state at t = 0, T, ..., KT.
+    ``T`` is the step [s], a scalar or one per row (K,). Returns Z (K+1, 9+2n): the state
+    at t = 0, t_1, ..., t_K.
     """
     z = np.array(z0, dtype=float)
-    Z = np.empty((U_w.shape[0] + 1, z.size))
+    K = U_w.shape[0]
+    t = np.concatenate([[0.0], np.cumsum(np.broadcast_to(np.asarray(T, float), (K,)))])
+    Z = np.empty((K + 1, z.size))
     Z[0] = z
-    for k in range(U_w.shape[0]):
+    for k in range(K):
         uw, us = np.asarray(U_w[k], float), np.asarray(U_s[k], float)
-        sol = solve_ivp(lambda t, q: rhs(rv, q, uw, us, frame), (k * T, (k + 1) * T), z,
+        sol = solve_ivp(lambda _t, q: rhs(rv, q, uw, us, frame), (t[k], t[k + 1]), z,
                         method=method, rtol=rtol, atol=atol)
         if not sol.success:
             raise RuntimeError(f"reference integration failed at step {k}: {sol.message}")
@@ -163,12 +166,14 @@ def varied_inputs(rv: RefVehicle, K, seed, T=0.01, v_mean=6.0, delta_amp=0.35,
     offsets and per-step noise (so slips are non-zero); steering rates track a sinusoidal
     angle profile (front and rear axles opposite, as for a tight turn) plus noise and stay
     within ``+/-omega_s_max``. Since steering is a pure integrator, the angles reached are
-    exactly ``T * cumsum(U_s)``, kept within ``+/-(delta_amp + 0.15)`` rad.
+    exactly ``cumsum(T * U_s)``, kept within ``+/-(delta_amp + 0.15)`` rad. ``T`` is the
+    step [s], a scalar or one per row (K,).
     """
     rng = np.random.default_rng(seed)
     nw = rv.n_wheels
-    t = np.arange(K) * T
-    v_ref = v_mean * (1.0 + 0.5 * np.sin(2 * np.pi * t / 7.0))
+    Tk = np.broadcast_to(np.asarray(T, float), (K,))
+    t = np.concatenate([[0.0], np.cumsum(Tk)])  # t[k] is the start of row k
+    v_ref = v_mean * (1.0 + 0.5 * np.sin(2 * np.pi * t[:K] / 7.0))
     wheel_off = 1.0 + 0.02 * rng.standard_normal(nw)
     U_w = (v_ref[:, None] / rv.r_w) * wheel_off[None, :] * (1.0 + 0.01 * rng.standard_normal((K, nw)))
     U_w = np.maximum(U_w, 0.0)
@@ -178,10 +183,10 @@ def varied_inputs(rv: RefVehicle, K, seed, T=0.01, v_mean=6.0, delta_amp=0.35,
     delta = np.zeros(nw)
     U_s = np.empty((K, nw))
     for k in range(K):
-        target = delta_amp * (sign * np.sin(2 * np.pi * (k + 1) * T / 3.0)
-                              + 0.15 * np.sin(2 * np.pi * (k + 1) * T / 1.3 + phase))
-        w_s = (target - delta) / (5 * T) + 0.05 * rng.standard_normal(nw)
+        target = delta_amp * (sign * np.sin(2 * np.pi * t[k + 1] / 3.0)
+                              + 0.15 * np.sin(2 * np.pi * t[k + 1] / 1.3 + phase))
+        w_s = (target - delta) / (5 * Tk[k]) + 0.05 * rng.standard_normal(nw)
         w_s = np.clip(w_s, -omega_s_max, omega_s_max)
         U_s[k] = w_s
-        delta = delta + T * w_s
+        delta = delta + Tk[k] * w_s
     return U_w, U_s
