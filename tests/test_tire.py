@@ -150,8 +150,8 @@ def test_slip_ratio_hand_values():
     assert slip_ratio(0.0, 0.5, 5.0, V_EPS) == pytest.approx(-0.9998000599800071, rel=1e-12)
     # spinning on the spot: (2 * 0.5 - 0) / 0.1 = 10 (finite where eq. 10 divides by 0)
     assert slip_ratio(2.0, 0.5, 0.0, V_EPS) == pytest.approx(10.0, rel=1e-12)
-    # reversing at matching speed cannot happen (omega_w >= 0), reversing wheel at rest:
-    # (0 - (-3)) / sqrt(9.01) = 3 / 3.0016662 = 0.9994449
+    # a reversing wheel that does not turn (omega_w >= 0, so it cannot roll backwards):
+    # (0 - (-3)) / sqrt(9 + 0.01) = 3 / 3.0016662 = 0.9994449
     assert slip_ratio(0.0, 0.5, -3.0, V_EPS) == pytest.approx(3.0 / math.sqrt(9.01), rel=1e-12)
 
 
