@@ -1,0 +1,79 @@
+"""The paper's metrics (eq. 28-33) and solve-time percentiles.
+
+Units as the paper reports them: wear work in J, e_x and e_y in cm, e_phi in degrees;
+``e_bar`` is the plain mean of those three numbers (the paper's mixed units, eq. 32) and
+``Omega`` its two-branch balance index (eq. 33).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+METRIC_KEYS = ["W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar",
+               "Omega", "solve_ms", "steps"]
+
+
+def wrap_angle(a):
+    """Angle wrapped to (-pi, pi]."""
+    a = np.asarray(a, dtype=float)
+    return a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
+
+
+def omega_index(W_tw: float, e_bar: float) -> float:
+    """Performance Balance Index, paper eq. (33):
+    ``W_tw^0.5 e_bar^0.1`` if e_bar < 50, else ``W_tw^0.5 e_bar^0.5``."""
+    if W_tw < 0 or e_bar < 0:
+        raise ValueError("Omega: W_tw and e_bar must be >= 0")
+    return math.sqrt(W_tw) * e_bar ** (0.1 if e_bar < 50 else 0.5)
+
+
+def tracking_errors(pose: np.ndarray, ref_pose: np.ndarray) -> dict[str, float]:
+    """RMSE in x, y [cm] and heading [deg] (heading error wrapped), and e_bar (eq. 32)."""
+    pose = np.asarray(pose, dtype=float)
+    ref_pose = np.asarray(ref_pose, dtype=float)
+    ex = 100.0 * math.sqrt(np.mean((pose[:, 0] - ref_pose[:, 0]) ** 2))
+    ey = 100.0 * math.sqrt(np.mean((pose[:, 1] - ref_pose[:, 1]) ** 2))
+    ep = math.degrees(math.sqrt(np.mean(wrap_angle(pose[:, 2] - ref_pose[:, 2]) ** 2)))
+    return {"e_x_cm": ex, "e_y_cm": ey, "e_phi_deg": ep, "e_bar": (ex + ey + ep) / 3.0}
+
+
+def percentiles(values) -> dict[str, float]:
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return {"p50": float("nan"), "p99": float("nan"), "max": float("nan")}
+    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)),
+            "max": float(v.max())}
+
+
+def compute_metrics(pose, ref_pose, W_start, W_end, solve_ms=()) -> dict:
+    """All metrics of a run.
+
+    ``pose``/``ref_pose``: (N, 3) at the control instants; ``W_start``/``W_end``: the
+    plant's integrated wear work (W_s, W_alpha, W_t) at the start and end (eq. 28-30 are
+    the sampled sums of the powers; the plant integrates the powers exactly, which is
+    their limit). ``solve_ms``: solve times for the percentiles.
+    """
+    W = np.asarray(W_end, dtype=float) - np.asarray(W_start, dtype=float)
+    out = {"W_s": float(W[0]), "W_alpha": float(W[1]), "W_t": float(W[2])}
+    out["W_tw"] = out["W_s"] + out["W_alpha"] + out["W_t"]  # eq. (31)
+    out.update(tracking_errors(pose, ref_pose))
+    out["Omega"] = omega_index(out["W_tw"], out["e_bar"])
+    out["solve_ms"] = percentiles(solve_ms)
+    out["steps"] = int(len(pose))
+    return {k: out[k] for k in METRIC_KEYS}
+
+
+def format_table(m: dict, title: str = "") -> str:
+    """A small human-readable table of one run's metrics."""
+    lines = [title] if title else []
+    lines.append(f"  Omega      {m['Omega']:.4g}")
+    lines.append(f"  W_tw [J]   {m['W_tw']:.4g}   (W_s {m['W_s']:.3g}, W_alpha {m['W_alpha']:.3g}, "
+                 f"W_t {m['W_t']:.3g})")
+    lines.append(f"  e_bar      {m['e_bar']:.3f}   (e_x {m['e_x_cm']:.2f} cm, e_y {m['e_y_cm']:.2f} cm, "
+                 f"e_phi {m['e_phi_deg']:.2f} deg)")
+    sm = m["solve_ms"]
+    lines.append(f"  solve [ms] p50 {sm['p50']:.2f}  p99 {sm['p99']:.2f}  max {sm['max']:.2f}")
+    lines.append(f"  steps      {m['steps']}")
+    return "\n".join(lines)

@@ -1,0 +1,239 @@
+"""Prediction models behind one interface, and the MPC settings they share.
+
+``model.rollout(x0, ref, Z) -> Rollout(poses, wear, first_commands)`` predicts a batch of
+candidate decision vectors at once (layouts in :mod:`controller.rollout`). The four models
+differ only in how the state evolves; the policy (feed-forward + offsets), the cost and
+the optimiser are shared, which is the paper's "unified framework" for its baselines.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+from typing import NamedTuple
+
+import numpy as np
+
+from plant.dynamics import pack_params
+from plant.vehicle import Vehicle
+
+from . import rollout as _ro
+
+
+@dataclass(frozen=True)
+class MPCSettings:
+    """Settings of the tire-wear-aware MPC (paper Section 3.5) and of its annealer.
+
+    Horizon (see docs/CONTROLLER.md for why these defaults):
+      dt: prediction step [s] (5 control periods T = 0.01 s).
+      N_p: prediction horizon in steps (N_p * dt = 1.0 s: 9.7 m at 35 km/h).
+      blocks: move blocks in prediction steps; N_c = sum(blocks) (0.5 s), controls held
+        after N_c. 3 blocks x 4n offsets = 24 decision variables for 2 axles.
+    Cost (eq. 22-26):
+      Q: (Q_X [1/m^2], Q_Y [1/m^2], Q_phi [1/rad^2]).
+      L: (L_s, L_alpha, L_t) [1/kW^2]; applied only for method 'two' (NTWO: L = 0).
+      R: command regularisation shared by TWO and NTWO: (R_dw [1/(rad/s)^2],
+        R_dd [1/rad^2]) on changes of the offsets between blocks and against the previous
+        solution, (R_ow, R_od) on the offsets themselves.
+    Policy:
+      K_servo [1/s]: steering servo gain toward the target angle.
+      K_pos [1/s], K_phi [1/s], v_fb_max [m/s], r_fb_max [rad/s]: the feed-forward's
+        saturated pose feedback.
+      offset_w_max [rad/s], offset_d_max [rad]: box of the decision offsets.
+    Annealer:
+      chains, iterations: fixed budget (deterministic). deadline_ms: optional wall-clock
+        budget per solve (anytime). seed: the random generator's seed.
+      sigma_w [rad/s], sigma_d [rad]: initial proposal scales; sigma_final: their final
+        fraction; t_start, t_end: relative temperatures.
+    method: 'two' (the paper's, with wear) or 'ntwo' (L = 0).
+    model: 'mf' (paper), 'dugoff' (DH), 'kinematic', 'tct'.
+    threads: 1 = serial rollouts (default: predictable when the plant or other runs share
+      the cores); > 1 spreads the candidates over that many numba threads.
+    ff_cornering: add the steady cornering slip angle to the feed-forward (dynamic models).
+    """
+
+    method: str = "two"
+    model: str = "mf"
+    dt: float = 0.1
+    N_p: int = 10
+    blocks: tuple[int, ...] = (1, 2, 3)
+    Q: tuple[float, float, float] = (200.0, 200.0, 200.0)
+    L: tuple[float, float, float] = (0.02, 0.02, 0.02)
+    R: tuple[float, float, float, float] = (0.05, 20.0, 0.0, 0.0)
+    K_servo: float = 10.0
+    K_pos: float = 1.0
+    K_phi: float = 1.0
+    v_fb_max: float = 1.5
+    r_fb_max: float = 0.3
+    offset_w_max: float = 3.0
+    offset_d_max: float = 0.3
+    chains: int = 32
+    iterations: int = 30
+    deadline_ms: float | None = None
+    seed: int = 0
+    sigma_w: float = 0.3
+    sigma_d: float = 0.02
+    sigma_final: float = 0.1
+    t_start: float = 1e-2
+    t_end: float = 1e-4
+    threads: int = 1
+    ff_cornering: bool = True
+
+    def __post_init__(self):
+        bad = None
+        if self.method not in ("two", "ntwo"):
+            bad = f"method: expected 'two' or 'ntwo', got {self.method!r}"
+        elif self.model not in MODELS:
+            bad = f"model: expected one of {sorted(MODELS)}, got {self.model!r}"
+        elif not (self.dt > 0 and math.isfinite(self.dt)):
+            bad = f"dt: must be > 0, got {self.dt}"
+        elif self.N_p < 1:
+            bad = f"N_p: must be >= 1, got {self.N_p}"
+        elif not self.blocks or any(int(b) < 1 for b in self.blocks):
+            bad = f"blocks: need >= 1 block of >= 1 step, got {self.blocks}"
+        elif sum(self.blocks) > self.N_p:
+            bad = f"blocks: N_c = sum(blocks) = {sum(self.blocks)} exceeds N_p = {self.N_p}"
+        elif len(self.Q) != 3 or any(not (q >= 0 and math.isfinite(q)) for q in self.Q):
+            bad = f"Q: need 3 finite weights >= 0, got {self.Q}"
+        elif len(self.L) != 3 or any(not (q >= 0 and math.isfinite(q)) for q in self.L):
+            bad = f"L: need 3 finite weights >= 0, got {self.L}"
+        elif len(self.R) != 4 or any(not (q >= 0 and math.isfinite(q)) for q in self.R):
+            bad = f"R: need 4 finite weights >= 0, got {self.R}"
+        elif self.chains < 2 or self.iterations < 1:
+            bad = "chains must be >= 2 and iterations >= 1"
+        elif self.threads < 1:
+            bad = f"threads: must be >= 1, got {self.threads}"
+        elif self.deadline_ms is not None and not self.deadline_ms > 0:
+            bad = f"deadline_ms: must be > 0, got {self.deadline_ms}"
+        elif min(self.K_servo, self.offset_w_max, self.offset_d_max, self.sigma_w,
+                 self.sigma_d, self.sigma_final, self.t_start, self.t_end) <= 0:
+            bad = "K_servo, offsets, sigmas and temperatures must be > 0"
+        elif min(self.K_pos, self.K_phi, self.v_fb_max, self.r_fb_max) < 0:
+            bad = "feedback gains and limits must be >= 0"
+        if bad:
+            raise ValueError(f"MPCSettings.{bad}")
+        object.__setattr__(self, "blocks", tuple(int(b) for b in self.blocks))
+
+    @property
+    def N_c(self) -> int:
+        return sum(self.blocks)
+
+    @property
+    def effective_L(self) -> tuple[float, float, float]:
+        return tuple(self.L) if self.method == "two" else (0.0, 0.0, 0.0)
+
+    def with_(self, **kw) -> "MPCSettings":
+        return replace(self, **kw)
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in fields(cls)]
+
+
+class Rollout(NamedTuple):
+    poses: np.ndarray  # (B, N_p, 3) x, y, phi at steps 1..N_p
+    wear: np.ndarray  # (B, N_p, 3) P_s, P_alpha, P_t over steps 0..N_p-1 [W]
+    first_commands: np.ndarray  # (B, 2, 2n) omega_w, omega_s of step 0
+
+
+def pack_settings(vehicle: Vehicle, s: MPCSettings) -> np.ndarray:
+    lim, dg, la = vehicle.limits, vehicle.tire_dugoff, vehicle.tire_lateral
+    # cornering stiffness per wheel as each model sees it: MF slope at 0 is B C D
+    if s.model == "kinematic" or not s.ff_cornering:
+        k_alpha = 0.0
+    else:
+        c_alpha = dg.C_alpha if s.model == "dugoff" else la.B * la.C * la.mu * vehicle.normal_load
+        k_alpha = vehicle.mass / (vehicle.n_wheels * c_alpha)
+    S = np.array([s.dt, s.K_servo, s.K_pos, s.K_phi, s.v_fb_max, s.r_fb_max, lim.omega_w_max,
+                  lim.omega_s_min, lim.omega_s_max, lim.delta_min, lim.delta_max, dg.C_s,
+                  dg.C_alpha, dg.mu, k_alpha], dtype=np.float64)
+    assert S.size == _ro.N_SETTINGS
+    return S
+
+
+class PredictionModel:
+    """Base of the prediction models: a batch rollout over the shared policy."""
+
+    model_id: int = _ro.MODEL_MF
+    name: str = "mf"
+
+    def __init__(self, vehicle: Vehicle, settings: MPCSettings):
+        self.vehicle = vehicle
+        self.settings = settings
+        self.P, self.wx, self.wy = pack_params(vehicle)
+        self.S = pack_settings(vehicle, settings)
+        steps = []
+        for b, n in enumerate(settings.blocks):
+            steps += [b] * n
+        steps += [len(settings.blocks) - 1] * (settings.N_p - len(steps))
+        self.block = np.array(steps, dtype=np.int64)
+        self.n_wheels = vehicle.n_wheels
+        self.dim = len(settings.blocks) * 2 * vehicle.n_wheels
+
+    def allocate(self, batch: int) -> Rollout:
+        Np, nw = self.settings.N_p, self.n_wheels
+        return Rollout(np.empty((batch, Np, 3)), np.empty((batch, Np, 3)),
+                       np.empty((batch, 2, nw)))
+
+    def rollout(self, x0: np.ndarray, ref: np.ndarray, Z: np.ndarray,
+                out: Rollout | None = None) -> Rollout:
+        """Predict every row of ``Z`` (B, D) from ``x0`` against ``ref`` (N_p + 1, 6)."""
+        Z = np.ascontiguousarray(Z, dtype=np.float64)
+        if Z.ndim == 1:
+            Z = Z[None, :]
+        if Z.shape[1] != self.dim:
+            raise ValueError(f"rollout: decision vectors must have {self.dim} entries, got {Z.shape[1]}")
+        if ref.shape != (self.settings.N_p + 1, 6):
+            raise ValueError(f"rollout: reference must have shape ({self.settings.N_p + 1}, 6)")
+        out = out if out is not None and out.poses.shape[0] == Z.shape[0] else self.allocate(Z.shape[0])
+        fn = _ro.rollout_batch if self.settings.threads <= 1 else _ro.rollout_batch_parallel
+        fn(self.model_id, np.ascontiguousarray(x0, dtype=np.float64),
+                          np.ascontiguousarray(ref), Z, self.block, self.P, self.S, self.wx,
+                          self.wy, out.poses, out.wear, out.first_commands)
+        return out
+
+
+class MagicFormulaModel(PredictionModel):
+    """The paper's model (TWO/NTWO): rigid body eq. (17)-(21) with Magic Formula tires
+    (eq. 9-12) and the wear powers eq. (13)-(16), constant loads (Assumption 2)."""
+
+    model_id = _ro.MODEL_MF
+    name = "mf"
+
+
+class DugoffModel(PredictionModel):
+    """DH baseline (Du et al. 2024, "hierarchical coordinated control ... tire wear"):
+    the same rigid-body dynamics with the Dugoff tire model (:func:`plant.tire.dugoff_forces`)
+    in place of the Magic Formula. Simplification: linear stiffness up to a friction-circle
+    saturation; stiffnesses fixed at the file's values (they do not scale with load)."""
+
+    model_id = _ro.MODEL_DUGOFF
+    name = "dugoff"
+
+
+class KinematicModel(PredictionModel):
+    """Kinematic baseline (Zhang et al. 2016, rotation-centre-distance based steering):
+    the body twist is the rigid motion that best fits the commanded wheel velocities
+    ``omega_w r_w (cos delta, sin delta)`` (exactly one instantaneous centre when the
+    wheels are steered consistently). Simplifications: pure rolling, no slip and no tire
+    forces, velocity follows the commands instantly; the predicted slip wear is zero."""
+
+    model_id = _ro.MODEL_KINEMATIC
+    name = "kinematic"
+
+
+class TCTModel(PredictionModel):
+    """TCT baseline (Tang et al. 2024, all-wheel-steering multi-axle vehicle): lateral and
+    yaw dynamics only, with Magic Formula lateral forces; the longitudinal speed is held at
+    the reference speed (no longitudinal tire forces, no longitudinal dynamics)."""
+
+    model_id = _ro.MODEL_TCT
+    name = "tct"
+
+
+MODELS = {"mf": MagicFormulaModel, "dugoff": DugoffModel, "kinematic": KinematicModel,
+          "tct": TCTModel}
+
+
+def make_model(vehicle: Vehicle, settings: MPCSettings) -> PredictionModel:
+    return MODELS[settings.model](vehicle, settings)

@@ -1,0 +1,174 @@
+"""The tire-wear-aware MPC: ``MPC.step(state, reference) -> Command``.
+
+Knows nothing of processes or transport: it takes a state mapping (the fields of
+DESIGN.md's ``state`` message) and a :class:`controller.reference.Reference`, and returns
+wheel-speed and steering-rate commands inside the bounds of eq. (27).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Mapping
+
+import numba
+import numpy as np
+
+from plant.vehicle import Vehicle
+
+from . import rollout as _ro
+from .annealer import anneal
+from .models import MPCSettings, make_model
+from .reference import Reference
+
+T_CONTROL = 0.01  # s, the paper's control period
+
+
+class ControllerError(ValueError):
+    """Bad input to the controller (its state is left unchanged)."""
+
+
+@dataclass(frozen=True)
+class Command:
+    omega_w: np.ndarray  # (2n,) rad/s, in [0, omega_w_max]
+    omega_s: np.ndarray  # (2n,) rad/s, in [omega_s_min, omega_s_max]
+    solve_ms: float  # wall time of the solve
+    cost: float  # best cost found
+    iterations: int  # annealing iterations run
+
+
+class MPC:
+    """Simulated-annealing MPC over a batch prediction model.
+
+    Parameters
+    ----------
+    vehicle : the vehicle description (its limits bound every command).
+    settings : :class:`MPCSettings` (method 'two' or 'ntwo', model, horizon, budgets).
+    reference : optional default reference for :meth:`step`.
+    period : control period T [s] (the time a command is held by the plant).
+    """
+
+    def __init__(self, vehicle: Vehicle, settings: MPCSettings | None = None,
+                 reference: Reference | None = None, period: float = T_CONTROL):
+        self.vehicle = vehicle
+        self.settings = settings or MPCSettings()
+        self.reference = reference
+        if not period > 0:
+            raise ControllerError("period must be > 0")
+        self.period = float(period)
+        self.model = make_model(vehicle, self.settings)
+        s = self.settings
+        nw = vehicle.n_wheels
+        self.nw = nw
+        nb = len(s.blocks)
+        self.lower = np.tile(np.r_[np.full(nw, -s.offset_w_max), np.full(nw, -s.offset_d_max)], nb)
+        self.upper = -self.lower
+        self.sigma = np.tile(np.r_[np.full(nw, s.sigma_w), np.full(nw, s.sigma_d)], nb)
+        self.Q = np.array(s.Q, dtype=float)
+        self.L = np.array(s.effective_L, dtype=float)
+        self.R = np.array(s.R, dtype=float)
+        self._buf = self.model.allocate(s.chains)
+        self._costs = np.empty(s.chains)
+        self.reset()
+
+    # ---- state -------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the warm start and reseed (same seed -> same commands)."""
+        self.rng = np.random.default_rng(self.settings.seed)
+        self.z = np.zeros(self.model.dim)
+        self.solve_times_ms: list[float] = []
+
+    def set_reference(self, reference: Reference) -> None:
+        if not isinstance(reference, Reference):
+            raise ControllerError("set_reference: expected a Reference")
+        self.reference = reference
+
+    def _state_vector(self, state: Mapping) -> tuple[float, np.ndarray]:
+        try:
+            t = float(state["t"])
+            base = [float(state[k]) for k in ("x", "y", "phi", "vx", "vy", "r")]
+            delta = np.asarray(state["delta"], dtype=float).reshape(-1)
+        except KeyError as e:
+            raise ControllerError(f"state: missing field {e.args[0]!r}") from None
+        except (TypeError, ValueError):
+            raise ControllerError("state: fields must be numbers (delta a list)") from None
+        if delta.size != self.nw:
+            raise ControllerError(f"state: delta must have {self.nw} entries, got {delta.size}")
+        x0 = np.r_[base, delta]
+        if not (math.isfinite(t) and np.all(np.isfinite(x0))):
+            raise ControllerError("state: NaN or inf in the state")
+        return t, x0
+
+    # ---- the step ----------------------------------------------------------------------
+    def step(self, state: Mapping, reference: Reference | None = None) -> Command:
+        """One MPC solve: commands to hold over the next control period."""
+        t0 = time.perf_counter()
+        ref = reference if reference is not None else self.reference
+        if ref is None:
+            raise ControllerError("step: no reference (pass one or call set_reference)")
+        t, x0 = self._state_vector(state)
+        s = self.settings
+        times = t + s.dt * np.arange(s.N_p + 1)
+        R = np.ascontiguousarray(ref.sample(times))
+        if s.threads > 1:
+            numba.set_num_threads(min(s.threads, numba.config.NUMBA_NUM_THREADS))
+        buf, costs, model = self._buf, self._costs, self.model
+        zprev = self.z[: 2 * self.nw].copy()
+
+        def cost(Z):
+            model.rollout(x0, R, Z, out=buf)
+            _ro.batch_cost(buf.poses, buf.wear, R, Z, zprev, self.Q, self.L, self.R, self.nw, costs)
+            return costs
+
+        warm = self._shifted(self.z)
+        deadline = None if s.deadline_ms is None else s.deadline_ms / 1000.0 - (time.perf_counter() - t0)
+        res = anneal(cost, warm, self.lower, self.upper, self.sigma, self.rng, chains=s.chains,
+                     iterations=s.iterations, deadline_s=deadline, sigma_final=s.sigma_final,
+                     t_start=s.t_start, t_end=s.t_end)
+        self.z = res.x
+        om_w, om_s = self.commands_for(x0, R[0], res.x)
+        ms = (time.perf_counter() - t0) * 1000.0
+        self.solve_times_ms.append(ms)
+        return Command(om_w, om_s, ms, res.cost, res.iterations)
+
+    def commands_for(self, x0: np.ndarray, ref0: np.ndarray, z: np.ndarray):
+        """The policy's commands at state ``x0`` over one control period T (bounded)."""
+        om_w = np.empty(self.nw)
+        om_s = np.empty(self.nw)
+        _ro.commands_from_policy(x0[:3].copy(), x0[6:].copy(), ref0, z, 0, self.nw,
+                                 self.model.P, self.model.S, self.model.wx, self.model.wy,
+                                 self.period, om_w, om_s)
+        return om_w, om_s
+
+    def _shifted(self, z: np.ndarray) -> np.ndarray:
+        """Warm start: the previous solution shifted by one control period T.
+
+        Blocks are piecewise constant in time; moving the horizon by T < block length
+        moves a fraction T / len_b of block b+1 into block b (linear blend), the last
+        block is held.
+        """
+        s, nw = self.settings, self.nw
+        nb = len(s.blocks)
+        Zb = z.reshape(nb, 2 * nw)
+        out = Zb.copy()
+        for b in range(nb - 1):
+            f = min(self.period / (s.blocks[b] * s.dt), 1.0)
+            out[b] = (1 - f) * Zb[b] + f * Zb[b + 1]
+        return out.reshape(-1)
+
+    def warmup(self, state: Mapping | None = None) -> float:
+        """Compile the kernels (first call) with a throw-away solve; returns its seconds.
+        The warm start and random stream are reset afterwards."""
+        t0 = time.perf_counter()
+        ref = self.reference
+        if ref is None:
+            from .reference import case1_curve
+            ref = case1_curve(15.0)
+        st = dict(state) if state is not None else {
+            "t": 0.0, **{k: v for k, v in ref.initial_state(self.vehicle).items()
+                         if not k.startswith("delta")},
+            "delta": [0.0] * self.nw}
+        self.step(st, ref)
+        self.reset()
+        return time.perf_counter() - t0

@@ -1,0 +1,304 @@
+"""Reference trajectories: the paper's Case 1 (winding road) and Case 2 (straight line with
+a 60 degree initial heading error), any ``t,x,y,phi`` CSV, and paths driven at a speed
+profile given in km/h.
+
+A :class:`Reference` is sampled at arbitrary times and returns the pose ``x, y, phi`` and
+the velocity ``vx, vy`` (in G) and yaw rate ``r`` the controller's feed-forward uses.
+Times beyond the end hold the final pose with zero velocity.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+KMH = 1.0 / 3.6
+
+
+class ReferenceError(ValueError):
+    """A malformed trajectory or speed profile (the message names the problem)."""
+
+
+class SpeedProfile:
+    """Speed over time, piecewise linear between ``(t [s], v [km/h])`` breakpoints.
+
+    ``SpeedProfile.parse("15")`` is a constant 15 km/h; ``"0:5,10:15,20:15"`` ramps from
+    5 km/h at t = 0 to 15 km/h at t = 10 s and holds. Speeds must be >= 0.
+    """
+
+    def __init__(self, points: Sequence[tuple[float, float]]):
+        pts = [(float(t), float(v)) for t, v in points]
+        if not pts:
+            raise ReferenceError("speed profile: no points")
+        for t, v in pts:
+            if not (math.isfinite(t) and math.isfinite(v)):
+                raise ReferenceError("speed profile: values must be finite")
+            if v < 0:
+                raise ReferenceError(f"speed profile: speed must be >= 0 km/h, got {v}")
+        ts = [p[0] for p in pts]
+        if any(b <= a for a, b in zip(ts, ts[1:])):
+            raise ReferenceError("speed profile: times must increase strictly")
+        self.t = np.array(ts)
+        self.v = np.array([p[1] for p in pts]) * KMH  # m/s
+
+    @classmethod
+    def parse(cls, text: str | float) -> "SpeedProfile":
+        if isinstance(text, (int, float)):
+            return cls([(0.0, float(text))])
+        text = str(text).strip()
+        if ":" not in text:
+            try:
+                v = float(text)
+            except ValueError:
+                raise ReferenceError(f"speed: '{text}' is not a number of km/h") from None
+            return cls([(0.0, v)])
+        pts = []
+        for part in text.split(","):
+            try:
+                t, v = part.split(":")
+                pts.append((float(t), float(v)))
+            except ValueError:
+                raise ReferenceError(f"speed profile: expected t:kmh pairs, got '{part}'") from None
+        return cls(pts)
+
+    def speed(self, t):
+        return np.interp(t, self.t, self.v)
+
+    def distance(self, t):
+        """Distance travelled by time t [m] (exact integral of the piecewise-linear speed)."""
+        t = np.asarray(t, dtype=float)
+        tk = np.concatenate([[min(0.0, self.t[0])], self.t])
+        vk = np.concatenate([[self.v[0]], self.v])
+        seg = np.concatenate([[0.0], np.cumsum(0.5 * (vk[1:] + vk[:-1]) * np.diff(tk))])
+        i = np.clip(np.searchsorted(tk, t, side="right") - 1, 0, len(tk) - 1)
+        v_t = self.speed(t)
+        return seg[i] + 0.5 * (vk[i] + v_t) * (t - tk[i])
+
+
+@dataclass
+class Reference:
+    """A time-parametrised trajectory, tabulated densely (interpolated linearly).
+
+    Arrays ``t, x, y, phi, vx, vy, r`` of equal length; ``phi`` unwrapped.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    phi: np.ndarray
+    vx: np.ndarray
+    vy: np.ndarray
+    r: np.ndarray
+    name: str = "trajectory"
+
+    def __post_init__(self):
+        n = len(self.t)
+        for k in ("x", "y", "phi", "vx", "vy", "r"):
+            a = np.asarray(getattr(self, k), dtype=float)
+            if a.shape != (n,):
+                raise ReferenceError(f"reference: {k} must have the length of t ({n})")
+            if not np.all(np.isfinite(a)):
+                raise ReferenceError(f"reference: {k} contains NaN or inf")
+            setattr(self, k, a)
+        self.t = np.asarray(self.t, dtype=float)
+        if n < 2 or np.any(np.diff(self.t) <= 0) or not np.all(np.isfinite(self.t)):
+            raise ReferenceError("reference: t must have >= 2 finite, strictly increasing values")
+        self._table = np.stack([self.x, self.y, self.phi, self.vx, self.vy, self.r], axis=1)
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1] - self.t[0])
+
+    def sample(self, times) -> np.ndarray:
+        """Rows ``(x, y, phi, vx, vy, r)`` at ``times`` (shape (..., 6)). Beyond the end:
+        the final pose, standing still."""
+        times = np.asarray(times, dtype=float)
+        tt = self.t
+        idx = np.clip(np.searchsorted(tt, times, side="right") - 1, 0, len(tt) - 2)
+        w = np.clip((times - tt[idx]) / (tt[idx + 1] - tt[idx]), 0.0, 1.0)[..., None]
+        out = self._table[idx] * (1 - w) + self._table[idx + 1] * w
+        after = times > tt[-1]
+        if np.any(after):
+            out[after] = self._table[-1]
+            out[after, 3:] = 0.0
+        return out
+
+    def initial_state(self, vehicle) -> dict[str, float]:
+        """The plant state that starts exactly on the reference at t[0], moving with it,
+        every wheel steered kinematically (pure rolling)."""
+        x, y, phi, vx, vy, r = self.sample(self.t[0])
+        st = {"x": x, "y": y, "phi": phi, "vx": vx, "vy": vy, "r": r}
+        c, s = math.cos(phi), math.sin(phi)
+        ub, vb = c * vx + s * vy, -s * vx + c * vy
+        lim = vehicle.limits
+        for k, xw, yw in zip(vehicle.wheel_names, vehicle.wheel_x, vehicle.wheel_y):
+            wvx, wvy = ub - r * yw, vb + r * xw
+            d = math.atan2(wvy, wvx) if math.hypot(wvx, wvy) > 1e-9 else 0.0
+            st[f"delta_{k}"] = min(max(d, lim.delta_min), lim.delta_max)
+        return {k: float(v) for k, v in st.items()}
+
+    def to_csv(self, path: str | Path) -> None:
+        with Path(path).open("w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["t", "x", "y", "phi"])
+            for row in zip(self.t, self.x, self.y, self.phi):
+                w.writerow([repr(float(v)) for v in row])
+
+    def to_message(self) -> dict:
+        """As DESIGN.md's ``reference`` payload (t, x, y, phi arrays)."""
+        return {"t": self.t.tolist(), "x": self.x.tolist(), "y": self.y.tolist(),
+                "phi": self.phi.tolist()}
+
+
+def from_samples(t, x, y, phi, name: str = "trajectory") -> Reference:
+    """A reference from ``t, x, y, phi`` samples; velocities by finite differences
+    (second order, ``numpy.gradient``) of x, y and the unwrapped heading."""
+    t = np.asarray(t, dtype=float)
+    for k, a in (("t", t), ("x", x), ("y", y), ("phi", phi)):
+        a = np.asarray(a, dtype=float)
+        if a.ndim != 1 or a.size != t.size:
+            raise ReferenceError(f"reference: {k} must be a 1-d array as long as t")
+        if not np.all(np.isfinite(a)):
+            raise ReferenceError(f"reference: {k} contains NaN or inf")
+    if t.size < 3:
+        raise ReferenceError("reference: needs at least 3 samples")
+    if np.any(np.diff(t) <= 0):
+        raise ReferenceError("reference: t must increase strictly")
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    phi = np.unwrap(np.asarray(phi, float))
+    return Reference(t, x, y, phi, np.gradient(x, t), np.gradient(y, t), np.gradient(phi, t),
+                     name=name)
+
+
+def from_csv(path: str | Path) -> Reference:
+    """Read a ``t,x,y,phi`` CSV (header required; phi in rad). Errors name the line."""
+    path = Path(path)
+    if not path.is_file():
+        raise ReferenceError(f"{path}: no such file")
+    rows = []
+    with path.open(newline="") as f:
+        rd = csv.reader(f)
+        try:
+            header = [h.strip() for h in next(rd)]
+        except StopIteration:
+            raise ReferenceError(f"{path}: empty file") from None
+        miss = [c for c in ("t", "x", "y", "phi") if c not in header]
+        if miss:
+            raise ReferenceError(f"{path}:1: missing column(s) {', '.join(miss)}")
+        idx = [header.index(c) for c in ("t", "x", "y", "phi")]
+        for ln, row in enumerate(rd, start=2):
+            if not row:
+                continue
+            try:
+                vals = [float(row[i]) for i in idx]
+            except (ValueError, IndexError):
+                raise ReferenceError(f"{path}:{ln}: expected numbers in t, x, y, phi") from None
+            if not all(math.isfinite(v) for v in vals):
+                raise ReferenceError(f"{path}:{ln}: values must be finite")
+            if rows and vals[0] <= rows[-1][0]:
+                raise ReferenceError(f"{path}:{ln}: t must increase strictly")
+            rows.append(vals)
+    if len(rows) < 3:
+        raise ReferenceError(f"{path}: needs at least 3 rows")
+    a = np.array(rows)
+    return from_samples(a[:, 0], a[:, 1], a[:, 2], a[:, 3], name=path.stem)
+
+
+def path_reference(path_xy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], length: float,
+                   speed: SpeedProfile, dt: float = 0.01, ds: float = 0.02,
+                   name: str = "path", duration: float | None = None) -> Reference:
+    """Drive a parametric path ``u -> (x(u), y(u))``, u in [0, length] (roughly arc length),
+    at a speed profile. The path is re-parametrised by true arc length; heading is the
+    tangent, yaw rate ``v * curvature``. The trajectory ends at the path's end (or at
+    ``duration``)."""
+    if length <= 0:
+        raise ReferenceError("path length must be > 0")
+    u = np.linspace(0.0, length, int(math.ceil(length / ds)) + 1)
+    px, py = path_xy(u)
+    seg = np.hypot(np.diff(px), np.diff(py))
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    dx = np.gradient(px, s)
+    dy = np.gradient(py, s)
+    heading = np.unwrap(np.arctan2(dy, dx))
+    kappa = np.gradient(heading, s)
+    total = s[-1]
+    if duration is None:
+        # time to reach the end of the path
+        tt = np.arange(0.0, 1e5, 0.05)
+        dist = speed.distance(tt)
+        if dist[-1] < total:
+            raise ReferenceError("speed profile never reaches the end of the path")
+        duration = float(tt[np.searchsorted(dist, total)])
+    t = np.arange(0.0, duration + dt / 2, dt)
+    st = np.minimum(speed.distance(t), total)
+    v = speed.speed(t) * (speed.distance(t) < total)
+    hx = np.interp(st, s, heading)
+    return Reference(t, np.interp(st, s, px), np.interp(st, s, py), hx, v * np.cos(hx),
+                     v * np.sin(hx), v * np.interp(st, s, kappa), name=name)
+
+
+# ---- the paper's cases ------------------------------------------------------------------
+CASE1_AMPLITUDE = 4.0  # m
+CASE1_WAVELENGTH = 60.0  # m
+CASE1_LENGTH = 150.0  # m of x
+
+
+def case1_curve(speed_kmh: float | str | SpeedProfile = 15.0, duration: float | None = None) -> Reference:
+    """Case 1: a winding road ``y = A sin(2 pi x / lambda)``, A = 4 m, lambda = 60 m, over
+    x in [0, 150] m (2.5 periods).
+
+    The paper's figure of the path is missing; we choose a winding road whose curvature is
+    feasible for the steering limits: the tightest radius is lambda^2 / (4 pi^2 A) = 22.8 m,
+    i.e. kinematic steering angles of atan(3 / 22.8) = 7.5 deg at the axles, and a lateral
+    acceleration of 4.1 m/s^2 at 35 km/h (within mu g = 7.8 m/s^2).
+    """
+    sp = speed_kmh if isinstance(speed_kmh, SpeedProfile) else SpeedProfile.parse(speed_kmh)
+    k = 2 * math.pi / CASE1_WAVELENGTH
+
+    def path(u):
+        return u, CASE1_AMPLITUDE * np.sin(k * u)
+
+    return path_reference(path, CASE1_LENGTH, sp, name="case1-curve", duration=duration)
+
+
+CASE2_HEADING_ERROR = math.radians(60.0)
+
+
+def case2_line(speed_kmh: float | str | SpeedProfile = 10.0, duration: float = 20.0) -> Reference:
+    """Case 2: a straight line along +x from the origin, driven at the speed profile. The
+    vehicle starts at the origin with its heading 60 degrees off the line (see
+    :func:`case2_initial_state`)."""
+    sp = speed_kmh if isinstance(speed_kmh, SpeedProfile) else SpeedProfile.parse(speed_kmh)
+    t = np.arange(0.0, duration + 0.005, 0.01)
+    v = sp.speed(t)
+    return Reference(t, sp.distance(t), np.zeros_like(t), np.zeros_like(t), v,
+                     np.zeros_like(t), np.zeros_like(t), name="case2-line")
+
+
+def case2_initial_state(reference: Reference, vehicle) -> dict[str, float]:
+    """Case 2's start: on the line's origin, heading 60 degrees off it, moving along its own
+    heading at the reference speed with the wheels straight (pure rolling)."""
+    st = reference.initial_state(vehicle)
+    v = math.hypot(st["vx"], st["vy"])
+    phi = CASE2_HEADING_ERROR
+    st.update(phi=phi, vx=v * math.cos(phi), vy=v * math.sin(phi), r=0.0)
+    for k in vehicle.wheel_names:
+        st[f"delta_{k}"] = 0.0
+    return st
+
+
+def make_case(case: str, speed_kmh=None, duration: float | None = None):
+    """``(reference, initial_state_fn)`` for ``case`` in {'curve', 'line'}."""
+    if case in ("curve", "case1"):
+        ref = case1_curve(15.0 if speed_kmh is None else speed_kmh, duration=duration)
+        return ref, ref.initial_state
+    if case in ("line", "case2"):
+        ref = case2_line(10.0 if speed_kmh is None else speed_kmh,
+                         duration=20.0 if duration is None else duration)
+        return ref, lambda veh: case2_initial_state(ref, veh)
+    raise ReferenceError(f"unknown case '{case}' (expected curve or line)")
