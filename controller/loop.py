@@ -86,21 +86,25 @@ def closed_loop(plant, mpc: MPC, reference: Reference, duration: float, period: 
         from tqdm import tqdm
         bar = tqdm(total=n, unit="step", desc=f"{reference.name} {mpc.settings.method}",
                    file=sys.stderr, leave=False)
-    t = plant.t
+    t0 = plant.t
     for k in range(n):
+        # t_k = t0 + k T exactly (DESIGN.md: t = seq * T, so time never drifts and a run
+        # over Zenoh sees bit-identical times)
+        t = t0 + k * period
         st = plant.state_message()
+        st["t"] = t
         cmd = mpc.step(st, reference)
-        log.append(st, reference.sample(st["t"]), cmd)
+        log.append(st, reference.sample(t), cmd)
         if on_step is not None:
             on_step(k, st, cmd)
         plant.set_inputs(cmd.omega_w, cmd.omega_s)
-        plant.do_step(t, period)
-        t = plant.t
+        plant.do_step(plant.t, period)
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
     st = plant.state_message()
+    st["t"] = t0 + n * period
     log.W_final = (st.get("W_s", 0.0), st.get("W_alpha", 0.0), st.get("W_t", 0.0))
     log.final_state = st
     return log
