@@ -9,9 +9,10 @@
 
 and runs ``python -m pythonfmu build -f msagv_slave_<hash>.py -d OUTDIR <the two others>``
 in a subprocess (pythonfmu imports and instantiates the slave to write the model
-description, which compiles the plant's numba kernels and leaves modules and ``sys.path``
-entries behind: a subprocess keeps them out of the caller). The finished ``.fmu`` is then
-moved to the requested path.
+description, which imports the bundled plant and leaves modules and ``sys.path`` entries
+behind: a subprocess keeps them out of the caller). While building, the slave takes the
+outputs' start values from the variable table (computed here by the native plant)
+instead of compiling the kernels. The finished ``.fmu`` is moved to the requested path.
 
 ``<hash>`` is a digest of the slave and plant sources: the plant is bundled under its own
 name so an FMU never picks up a ``plant`` package the host happens to have imported (or a
@@ -25,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -185,8 +187,10 @@ def build_fmu(out: str | Path, vehicle: Vehicle | None = None, *, prefix: str = 
             raise FmuBuildError(f"initial: {e}") from None
         cmd = [sys.executable, "-m", "pythonfmu", "build", "-f", str(script), "-d", str(dest),
                *[str(p) for p in project]]
+        env = dict(os.environ, **{slave_mod.BUILD_ENV: f"msagv_plant_{h}"})
         try:
-            r = subprocess.run(cmd, cwd=td, capture_output=True, text=True, timeout=timeout)
+            r = subprocess.run(cmd, cwd=td, env=env, capture_output=True, text=True,
+                               timeout=timeout)
         except subprocess.TimeoutExpired:
             raise FmuBuildError(f"pythonfmu build did not finish within {timeout:g} s") from None
         built = dest / f"{MODEL_NAME}.fmu"

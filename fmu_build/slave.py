@@ -27,11 +27,18 @@ Semantics:
   cannot be written (a read-only unpack directory) and ``NUMBA_CACHE_DIR`` is not set,
   the bundled kernels cache into a fresh temporary directory instead, so the FMU still
   loads (it compiles on first use either way: about 3 s).
+* A non-Python importer (the FMU's binary started Python: ``sys.orig_argv == []``):
+  numba imports scipy when it is installed, and scipy's bundled libgfortran then aborts
+  the importer at process exit ("free(): corrupted unsorted chunks") after pythonfmu has
+  finalized the interpreter. The plant needs no BLAS, so in that case scipy is hidden from
+  numba while the plant is imported and first compiled (numba then runs without BLAS),
+  unless ``MSAGV_FMU_ALLOW_SCIPY=1``. In a Python host nothing is hidden.
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import copy
 import importlib
 import json
@@ -50,6 +57,7 @@ from pythonfmu.variables import Real, ScalarVariable
 
 CONFIG_FILE = "msagv_fmu.json"
 CONFIG_FORMAT = 1
+BUILD_ENV = "MSAGV_FMU_BUILDING"  # set by fmu_build.build to the bundled package's name
 
 
 class _Real(Real):
@@ -109,6 +117,25 @@ def _import_plant(name: str, resources: Path):
         numba_config.CACHE_DIR = old
 
 
+def _embedded() -> bool:
+    """Whether Python was started by the FMU's binary (a non-Python importer)."""
+    return getattr(sys, "orig_argv", None) == []
+
+
+@contextlib.contextmanager
+def _scipy_hidden_if_embedded():
+    """Hide scipy from numba in an interpreter the FMU started (see the module doc)."""
+    hide = (_embedded() and "numba" not in sys.modules and "scipy" not in sys.modules
+            and os.environ.get("MSAGV_FMU_ALLOW_SCIPY") != "1")
+    if hide:
+        sys.modules["scipy"] = None  # import scipy -> ImportError: numba goes without it
+    try:
+        yield
+    finally:
+        if hide and sys.modules.get("scipy", 0) is None:
+            del sys.modules["scipy"]
+
+
 class MsagvPlant(Fmi2Slave):
     """The stepping plant (``plant.Plant``) behind the FMI 2.0 co-simulation interface."""
 
@@ -119,7 +146,18 @@ class MsagvPlant(Fmi2Slave):
         if cfg.get("format") != CONFIG_FORMAT:
             raise RuntimeError(f"{CONFIG_FILE}: unsupported format {cfg.get('format')!r}")
         self._cfg = cfg
-        self._pk = _import_plant(cfg["plant_package"], res)
+        # pythonfmu instantiates the slave once while building, to write the model
+        # description: import the bundled plant then (a missing module fails the build),
+        # but take the outputs' start values from the table (the native plant's) instead
+        # of compiling the kernels
+        building = os.environ.get(BUILD_ENV) == cfg["plant_package"]
+        with _scipy_hidden_if_embedded():
+            self._pk = _import_plant(cfg["plant_package"], res)
+            vehicle = self._pk.vehicle_from_dict(cfg["vehicle"])
+            if not building:
+                # compile every kernel now, not in the first doStep (numba picks BLAS here)
+                warm = self._pk.Plant(vehicle)
+                warm.do_step(0.0, 1e-3)
         self.author = "msagv"
         self.version = cfg.get("version")
         self.description = cfg["description"]
@@ -132,6 +170,7 @@ class MsagvPlant(Fmi2Slave):
         self._u: list[float] = []
         self._u_is_wheel: list[bool] = []
         self._out_keys: list[str] = []
+        self._out_start: list[float] = []
         self._bad_inputs: dict[int, str] = {}
         self._pending: list[str] = []
         self._inputs_dirty = True
@@ -140,6 +179,11 @@ class MsagvPlant(Fmi2Slave):
         self._start_time = 0.0
         for v in self._table:
             self._register(v)
+        if building:
+            self._plant = None
+            self._y = list(self._out_start)
+            self._inputs_dirty = False
+            return
         self._plant = self._make_plant()
         self._out_index = [self._plant.signal_names.index(k) for k in self._out_keys]
         self._y = [0.0] * len(self._out_keys)
@@ -162,6 +206,7 @@ class MsagvPlant(Fmi2Slave):
         elif role == "output":
             j = len(self._out_keys)
             self._out_keys.append(v["key"])
+            self._out_start.append(float(v["start"]))
             var = _Real(name, getter=lambda j=j: self._output(j),
                         setter=lambda x, n=name: self._reject(f"{n} is an output; not set"),
                         **kw)
