@@ -514,3 +514,78 @@ def test_non_python_importer_needs_libpython_preloaded(fmu2, tmp_path):
     for _ in range(50):
         p.do_step(p.t, 0.01)
     assert abs(float(r.stdout.strip()) - p.outputs()["vx"]) <= TOL
+
+
+# ---- slave semantics through fmpy, in this process (the bundled plant has its own name) ----
+@pytest.fixture
+def slave(fmu2):
+    """A raw fmpy FMU2Slave of the default FMU, initialized, with a log of its messages."""
+    from fmpy import extract, read_model_description
+    from fmpy.fmi2 import FMU2Slave
+    import shutil
+
+    md = read_model_description(str(fmu2))
+    d = extract(str(fmu2))
+    f = FMU2Slave(guid=md.guid, unzipDirectory=d, modelIdentifier="MsagvPlant", instanceName="s")
+    f.instantiate(loggingOn=True)
+    f.setupExperiment(startTime=0.0)
+    f.enterInitializationMode()
+    f.exitInitializationMode()
+    f.vr = {v.name: v.valueReference for v in md.modelVariables}
+    yield f
+    f.terminate()
+    f.freeInstance()
+    shutil.rmtree(d, ignore_errors=True)
+
+
+def _set_inputs(f, w, s):
+    wheels = ("11", "12", "21", "22")
+    f.setReal([f.vr[f"omega_w_{k}"] for k in wheels] + [f.vr[f"omega_s_{k}"] for k in wheels],
+              list(w) + list(s))
+
+
+def test_tunable_vehicle_value_takes_effect_at_the_next_step(slave):
+    """mass changed at t = 0.5 s: the FMU continues from its state with the new vehicle."""
+    U = varied_inputs(4, 100, seed=6)
+    v1 = default_vehicle()
+    v2 = v1.replace(mass=20000.0)
+    p = Plant(v1)
+    for k in range(100):
+        if k == 50:
+            slave.setReal([slave.vr["mass"]], [20000.0])
+            q = Plant(v2)
+            q.set_state(p.get_state())
+            p = q
+        _set_inputs(slave, U[k, :4], U[k, 4:])
+        p.set_inputs(U[k, :4], U[k, 4:])
+        slave.doStep(k * 0.01, 0.01)
+        p.do_step(p.t, 0.01)
+    names = p.signal_names
+    from fmu_build.variables import output_name
+
+    got = slave.getReal([slave.vr[output_name(n)] for n in names])
+    assert np.abs(np.array(got) - p.output_vector()).max() <= TOL
+    assert slave.getReal([slave.vr["F_N_11"]])[0] == pytest.approx(20000.0 * 9.81 / 4)
+
+
+def test_rejected_values_fail_the_next_step_and_the_instance_survives(slave):
+    from fmpy.fmi1 import FMICallException
+
+    _set_inputs(slave, [2.0, -1.0, 2.0, 2.0], [0.0] * 4)     # negative wheel speed
+    with pytest.raises(FMICallException):
+        slave.doStep(0.0, 0.01)
+    _set_inputs(slave, [2.0] * 4, [0.0] * 4)                 # fixed again: steps again
+    slave.doStep(0.0, 0.01)
+    slave.setReal([slave.vr["vx_0"]], [3.0])                 # fixed parameter after init
+    with pytest.raises(FMICallException):
+        slave.doStep(0.01, 0.01)
+    slave.doStep(0.01, 0.01)                                 # reported once, then ignored
+    assert slave.getReal([slave.vr["vx_0"]]) == [0.0]
+    slave.setReal([slave.vr["mass"]], [-5.0])                # tunable, but invalid
+    with pytest.raises(FMICallException):
+        slave.doStep(0.02, 0.01)
+    slave.setReal([slave.vr["mass"]], [12000.0])
+    slave.doStep(0.02, 0.01)
+    with pytest.raises(FMICallException):                    # not where the FMU's time is
+        slave.doStep(0.5, 0.01)
+    assert slave.getReal([slave.vr["vx"]])[0] > 0
