@@ -56,12 +56,35 @@ def build_main(argv: list[str]) -> int:
 
 
 # ---- msagv fmu simulate: hook for the closed loop --------------------------------------
+def add_fmu_args(ap: argparse.ArgumentParser) -> None:
+    """The options that choose an FMU as the plant (for ``msagv fmu simulate`` and the
+    bridge): the FMU, a name mapping file and parameter values."""
+    ap.add_argument("fmu", metavar="FILE.fmu", help="an FMI 2.0 co-simulation FMU")
+    ap.add_argument("--map", metavar="FILE", dest="fmu_map",
+                    help="name mapping (TOML: [map] our_name = \"their_name\", optional "
+                         "prefix); see docs/FMU.md")
+    ap.add_argument("--param", metavar="name=value,...", dest="fmu_params",
+                    help="FMU parameters by our names, e.g. mass=16000,tire_lateral_mu=0.6")
+
+
+def fmu_plant_from_args(a: argparse.Namespace, vehicle=None, initial=None):
+    """An :class:`fmu_build.host.FmuPlant` from :func:`add_fmu_args`' options. ``vehicle``
+    None: the FMU's own (ours) -- a foreign FMU needs it given."""
+    from plant.stepping import parse_initial
+
+    from .host import FmuPlant
+
+    params = parse_initial(a.fmu_params)  # the same name=value,... syntax and checks
+    return FmuPlant(a.fmu, vehicle, mapping=a.fmu_map, parameters=params, initial=initial)
+
+
 def simulate_main(argv: list[str]) -> int:
     """``msagv fmu simulate``: the closed loop (controller.loop) against an FMU plant.
 
     Not wired yet: the closed loop takes any object with the Plant interface, and
-    :class:`fmu_build.host.FmuPlant` is one, so wiring is ``FmuPlant(fmu, mapping=...)``
-    passed where ``msagv run`` passes its ``Plant``.
+    :class:`fmu_build.host.FmuPlant` is one, so wiring is: the ``msagv run`` options plus
+    :func:`add_fmu_args`, and :func:`fmu_plant_from_args` where ``msagv run`` builds its
+    ``Plant``.
     """
     if importlib.util.find_spec("controller.loop") is None:
         raise SystemExit("msagv fmu simulate: needs the controller (not yet wired)")

@@ -25,6 +25,7 @@ fields; a parameter the FMU lacks cannot be set (asking to is an error).
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 import tomllib
@@ -98,8 +99,6 @@ def read_fmu_config(fmu_path: str | Path) -> dict | None:
     for an FMU not built by ``msagv fmu build``."""
     try:
         with zipfile.ZipFile(fmu_path) as z:
-            import json
-
             return json.loads(z.read(f"resources/{CONFIG_FILE}"))
     except KeyError:
         return None
@@ -176,8 +175,12 @@ class FmuPlant:
         self._unzip = self._unpack(unpack_dir)
         self._fmu = None
         self.t = 0.0
-        self._instantiate(instance_name)
-        self._initialize()
+        try:
+            self._instantiate(instance_name)
+            self._initialize()
+        except BaseException:
+            self.close()
+            raise
 
     # ---- set-up ----------------------------------------------------------------------
     @staticmethod

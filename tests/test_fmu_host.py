@@ -423,3 +423,21 @@ def test_closed_loop_runs_unchanged_on_the_fmu(fmu_prefixed, tmp_path):
     assert fmu["x"] > 1.0
     for k in ("x", "y", "phi", "vx", "vy", "r", "W_s", "W_alpha", "W_t"):
         assert abs(float(fmu[k]) - float(native[k])) <= 1e-9, k
+
+
+def test_cli_options_make_an_fmu_plant(fmu_prefixed, tmp_path):
+    """fmu_build.cli.add_fmu_args / fmu_plant_from_args: FILE.fmu --map FILE --param ..."""
+    import argparse
+
+    from fmu_build.cli import add_fmu_args, fmu_plant_from_args
+
+    m = tmp_path / "map.toml"
+    m.write_text(f'prefix = "{PREFIX}"\n')
+    ap = argparse.ArgumentParser()
+    add_fmu_args(ap)
+    a = ap.parse_args([str(fmu_prefixed), "--map", str(m), "--param", "mass=15000,rtol=1e-9"])
+    with fmu_plant_from_args(a, initial={"vx": 1.0}) as f:
+        assert f.vehicle.mass == 15000.0 and f.state_message()["vx"] == 1.0
+    a = ap.parse_args([str(fmu_prefixed), "--param", "mass=15000"])
+    with pytest.raises(FmuHostError, match="omega_w_11"):
+        fmu_plant_from_args(a)
