@@ -57,8 +57,8 @@ class MPCSettings:
     dt: float = 0.1
     N_p: int = 10
     blocks: tuple[int, ...] = (1, 2, 3)
-    Q: tuple[float, float, float] = (200.0, 200.0, 200.0)
-    L: tuple[float, float, float] = (0.02, 0.02, 0.02)
+    Q: tuple[float, float, float] = (200.0, 200.0, 1000.0)
+    L: tuple[float, float, float] = (0.02, 0.01, 0.02)
     R: tuple[float, float, float, float] = (0.05, 20.0, 0.0, 0.0)
     K_servo: float = 10.0
     K_pos: float = 1.0

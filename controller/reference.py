@@ -95,6 +95,9 @@ class Reference:
     vy: np.ndarray
     r: np.ndarray
     name: str = "trajectory"
+    #: the run length the case is defined by [s]; the table may extend beyond it so the
+    #: horizon never sees the trajectory's end (None: the whole table)
+    nominal_duration: float | None = None
 
     def __post_init__(self):
         n = len(self.t)
@@ -112,6 +115,9 @@ class Reference:
 
     @property
     def duration(self) -> float:
+        """The run length: ``nominal_duration`` if set, else the table's span."""
+        if self.nominal_duration is not None:
+            return float(self.nominal_duration)
         return float(self.t[-1] - self.t[0])
 
     def sample(self, times) -> np.ndarray:
@@ -211,14 +217,16 @@ def from_csv(path: str | Path) -> Reference:
 
 def path_reference(path_xy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], length: float,
                    speed: SpeedProfile, dt: float = 0.01, ds: float = 0.02,
-                   name: str = "path", duration: float | None = None) -> Reference:
+                   name: str = "path", duration: float | None = None,
+                   tail: float = 0.0) -> Reference:
     """Drive a parametric path ``u -> (x(u), y(u))``, u in [0, length] (roughly arc length),
     at a speed profile. The path is re-parametrised by true arc length; heading is the
     tangent, yaw rate ``v * curvature``. The trajectory ends at the path's end (or at
-    ``duration``)."""
+    ``duration``). ``tail`` [m] extends the path beyond ``length`` (same formula) so that a
+    run of the nominal duration never has the trajectory's end inside its horizon."""
     if length <= 0:
         raise ReferenceError("path length must be > 0")
-    u = np.linspace(0.0, length, int(math.ceil(length / ds)) + 1)
+    u = np.linspace(0.0, length + tail, int(math.ceil((length + tail) / ds)) + 1)
     px, py = path_xy(u)
     seg = np.hypot(np.diff(px), np.diff(py))
     s = np.concatenate([[0.0], np.cumsum(seg)])
@@ -227,19 +235,22 @@ def path_reference(path_xy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]
     heading = np.unwrap(np.arctan2(dy, dx))
     kappa = np.gradient(heading, s)
     total = s[-1]
+    nominal = s[np.searchsorted(u, length)]  # arc length at u = length
+    tt = np.arange(0.0, 1e5, 0.01)
+    dist = speed.distance(tt)
     if duration is None:
-        # time to reach the end of the path
-        tt = np.arange(0.0, 1e5, 0.05)
-        dist = speed.distance(tt)
-        if dist[-1] < total:
+        # time to reach the end of the nominal path
+        if dist[-1] < nominal:
             raise ReferenceError("speed profile never reaches the end of the path")
-        duration = float(tt[np.searchsorted(dist, total)])
-    t = np.arange(0.0, duration + dt / 2, dt)
+        duration = float(tt[np.searchsorted(dist, nominal)])
+    t_table = float(tt[min(np.searchsorted(dist, total), len(tt) - 1)])
+    t = np.arange(0.0, max(duration, t_table) + dt / 2, dt)
     st = np.minimum(speed.distance(t), total)
     v = speed.speed(t) * (speed.distance(t) < total)
     hx = np.interp(st, s, heading)
     return Reference(t, np.interp(st, s, px), np.interp(st, s, py), hx, v * np.cos(hx),
-                     v * np.sin(hx), v * np.interp(st, s, kappa), name=name)
+                     v * np.sin(hx), v * np.interp(st, s, kappa), name=name,
+                     nominal_duration=duration)
 
 
 # ---- the paper's cases ------------------------------------------------------------------
@@ -263,7 +274,9 @@ def case1_curve(speed_kmh: float | str | SpeedProfile = 15.0, duration: float | 
     def path(u):
         return u, CASE1_AMPLITUDE * np.sin(k * u)
 
-    return path_reference(path, CASE1_LENGTH, sp, name="case1-curve", duration=duration)
+    # 20 m of tail: the horizon (1 s, <= 10 m at 35 km/h) never sees the end
+    return path_reference(path, CASE1_LENGTH, sp, name="case1-curve", duration=duration,
+                          tail=20.0)
 
 
 CASE2_HEADING_ERROR = math.radians(60.0)
@@ -274,10 +287,11 @@ def case2_line(speed_kmh: float | str | SpeedProfile = 10.0, duration: float = 2
     vehicle starts at the origin with its heading 60 degrees off the line (see
     :func:`case2_initial_state`)."""
     sp = speed_kmh if isinstance(speed_kmh, SpeedProfile) else SpeedProfile.parse(speed_kmh)
-    t = np.arange(0.0, duration + 0.005, 0.01)
+    t = np.arange(0.0, duration + 5.0 + 0.005, 0.01)  # 5 s beyond the run: see case1_curve
     v = sp.speed(t)
     return Reference(t, sp.distance(t), np.zeros_like(t), np.zeros_like(t), v,
-                     np.zeros_like(t), np.zeros_like(t), name="case2-line")
+                     np.zeros_like(t), np.zeros_like(t), name="case2-line",
+                     nominal_duration=duration)
 
 
 def case2_initial_state(reference: Reference, vehicle) -> dict[str, float]:
