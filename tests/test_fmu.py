@@ -334,6 +334,9 @@ def test_fmpy_matches_native_20s(work, fmu2):
     col = {n: i for i, n in enumerate(names)}
     assert S_nat[:, col["omega_w_11"]].max() == default_vehicle().limits.omega_w_max
     assert np.abs(S_nat[:, col["s_11"]]).max() > 0.1
+    lim = default_vehicle().limits  # and steered into both stops
+    deltas = S_nat[:, [col[f"delta_{w}"] for w in ("11", "12", "21", "22")]]
+    assert deltas.min() == lim.delta_min and deltas.max() == lim.delta_max
     print(f"\nmax |FMU - native| over 20 s, all {len(names)} outputs: {worst:.3g}")
 
 
