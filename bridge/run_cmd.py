@@ -78,9 +78,13 @@ def settings_from_args(a) -> MPCSettings:
     return MPCSettings(**kw)
 
 
-def scenario_from_args(a, default_case: str = "curve"):
-    """``(vehicle, reference, initial_state)`` from the case/vehicle options."""
-    vehicle = load_vehicle(a.vehicle)
+def scenario_from_args(a, default_case: str = "curve", vehicle=None):
+    """``(vehicle, reference, initial_state)`` from the case/vehicle options.
+
+    ``vehicle``: use this vehicle instead of loading ``--vehicle`` (e.g. the one inside an
+    FMU, or the one a plant serves as its params); ``--mass`` still applies.
+    """
+    vehicle = load_vehicle(a.vehicle) if vehicle is None else vehicle
     if a.mass is not None:
         vehicle = vehicle.replace(mass=a.mass)
     if a.trajectory:
@@ -139,8 +143,16 @@ def plot_run(log, reference, path, title: str = "") -> None:
     plt.close(fig)
 
 
-def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="msagv run", description=__doc__.splitlines()[0])
+def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
+    """``msagv run`` (``fmu=False``) and ``msagv fmu simulate`` (``fmu=True``: the same
+    closed loop with fmpy stepping an FMU as the plant)."""
+    desc = (__doc__.splitlines()[0] if not fmu else
+            "Closed loop with fmpy stepping an FMU (set inputs, doStep 0.01 s, get outputs) "
+            "and the MPC in the same process; the same metrics as msagv run.")
+    ap = argparse.ArgumentParser(prog=prog, description=desc)
+    if fmu:
+        from fmu_build.cli import add_fmu_args
+        add_fmu_args(ap)
     add_case_args(ap)
     add_mpc_args(ap)
     ap.add_argument("--json", action="store_true", help="print the metrics as one JSON object")
@@ -153,18 +165,32 @@ def main(argv: list[str]) -> int:
     from controller.mpc import MPC
     from plant.stepping import Plant
 
+    errors: tuple = (VehicleError, ReferenceError, PlantError, ValueError, FileNotFoundError)
+    plant = None
     try:
         settings = settings_from_args(a)
-        vehicle, ref, initial = scenario_from_args(a)
-        plant = Plant(vehicle, initial=initial)
+        if fmu:
+            from fmu_build.cli import fmu_plant_from_args
+            from fmu_build.host import FmuHostError
+            errors = errors + (FmuHostError,)
+            given = load_vehicle(a.vehicle) if a.vehicle else None
+            plant = fmu_plant_from_args(a, given)
+            vehicle, ref, initial = scenario_from_args(a, vehicle=plant.vehicle)
+            plant.reset(initial)
+        else:
+            vehicle, ref, initial = scenario_from_args(a)
+            plant = Plant(vehicle, initial=initial)
         duration = a.duration if a.duration is not None else ref.duration
         if not duration > 0:
             raise ValueError("--duration must be > 0")
         mpc = MPC(vehicle, settings, ref)
         log = closed_loop(plant, mpc, ref, duration, progress=a.progress)
-    except (VehicleError, ReferenceError, PlantError, ValueError, FileNotFoundError) as e:
-        print(f"msagv run: {e}", file=sys.stderr)
+    except errors as e:
+        print(f"{prog}: {e}", file=sys.stderr)
         return 2
+    finally:
+        if fmu and plant is not None:
+            plant.close()
     m = log.metrics()
     if a.log:
         log.to_csv(a.log)
@@ -173,8 +199,8 @@ def main(argv: list[str]) -> int:
     if a.json:
         print(json.dumps(m))
     else:
-        print(format_table(m, f"{ref.name}, {settings.method.upper()} ({settings.model}), "
-                              f"{vehicle.name} {vehicle.mass:g} kg"))
+        where = f"FMU {Path(a.fmu).name}" if fmu else f"{vehicle.name} {vehicle.mass:g} kg"
+        print(format_table(m, f"{ref.name}, {settings.method.upper()} ({settings.model}), {where}"))
         if a.plot:
             print(f"  plot       {Path(a.plot)}")
     return 0

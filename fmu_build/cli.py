@@ -79,19 +79,9 @@ def fmu_plant_from_args(a: argparse.Namespace, vehicle=None, initial=None):
 
 
 def simulate_main(argv: list[str]) -> int:
-    """``msagv fmu simulate``: the closed loop (controller.loop) against an FMU plant.
+    """``msagv fmu simulate FILE.fmu [msagv run's options]``: the closed loop with fmpy
+    stepping the FMU (through :class:`fmu_build.host.FmuPlant`) and the MPC in the same
+    process; the same metrics as ``msagv run`` (the loop and options are msagv run's)."""
+    from bridge.run_cmd import main as run_main
 
-    Not wired yet: the closed loop takes any object with the Plant interface, and
-    :class:`fmu_build.host.FmuPlant` is one, so wiring is: the ``msagv run`` options plus
-    :func:`add_fmu_args`, and :func:`fmu_plant_from_args` where ``msagv run`` builds its
-    ``Plant``.
-    """
-    if importlib.util.find_spec("controller.loop") is None:
-        raise SystemExit("msagv fmu simulate: needs the controller (not yet wired)")
-    return _simulate_closed_loop(argv)
-
-
-def _simulate_closed_loop(argv: list[str]) -> int:
-    """To be written by the closed loop's owner (see :func:`simulate_main`)."""
-    raise SystemExit("msagv fmu simulate: controller.loop exists but is not wired to "
-                     "fmu_build.host.FmuPlant yet (fmu_build.cli._simulate_closed_loop)")
+    return run_main(argv, prog="msagv fmu simulate", fmu=True)
