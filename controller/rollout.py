@@ -56,13 +56,13 @@ N_SETTINGS = 15
 THETA = 0.5
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _wrap(a):
     """Angle wrapped to (-pi, pi]."""
     return a - 2.0 * math.pi * math.ceil((a - math.pi) / (2.0 * math.pi))
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, error_model="numpy")
 def commands_from_policy(x, delta, refk, z, base, nw, P, S, wx, wy, dt,
                          om_w, om_s):
     """Wheel-speed and steering-rate commands of the policy at one state (eq. 27 bounds).
@@ -145,7 +145,7 @@ def commands_from_policy(x, delta, refk, z, base, nw, P, S, wx, wy, dt,
         om_s[k] = ws
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _solve3(A, b, out):
     """Solve the 3x3 system A out = b by Cramer's rule (A well conditioned here)."""
     a, bb, c = A[0, 0], A[0, 1], A[0, 2]
@@ -157,7 +157,7 @@ def _solve3(A, b, out):
     out[2] = (a * (e * b[2] - b[1] * h) - bb * (d * b[2] - b[1] * g) + b[0] * (d * h - e * g)) / det
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, error_model="numpy")
 def _mf_and_slope(xi, B, C, D, E):
     """Magic Formula value and slope sharing their transcendental terms (same maths as
     plant.tire.magic_formula / magic_formula_slope)."""
@@ -168,7 +168,7 @@ def _mf_and_slope(xi, B, C, D, E):
     return D * math.sin(ca), D * math.cos(ca) * C * darg / (1.0 + arg * arg)
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, error_model="numpy")
 def _tire_wheel(model, vwx, vwy, omw, FN, P, S, out):
     """Forces and their velocity Jacobian for one wheel in W_ij.
 
@@ -210,7 +210,7 @@ def _tire_wheel(model, vwx, vwy, omw, FN, P, S, out):
     out[7] = al
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, error_model="numpy")
 def _simulate(model, x0, ref, z, block, P, S, wx, wy, poses, wear, cmds):
     """Predict one candidate over the horizon; fills poses (N_p, 3), wear (N_p, 3) and the
     first step's commands ``cmds`` (2, 2n)."""
@@ -391,7 +391,7 @@ def _simulate(model, x0, ref, z, block, P, S, wx, wy, poses, wear, cmds):
         wear[k, 2] = pt
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def rollout_batch(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
     """Predict every candidate row of ``Z``; writes ``poses``, ``wear`` (B, N_p, 3) and the
     first commands ``cmds`` (B, 2, 2n). Serial: predictable on a shared 2-core machine."""
@@ -408,7 +408,7 @@ def rollout_batch_parallel(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, 
         _simulate(model, x0, ref, Z[b], block, P, S, wx, wy, poses[b], wear[b], cmds[b])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def batch_cost(poses, wear, ref, Z, zprev, Q, L, R, nw, costs):
     """Cost of each candidate (paper eq. 22-26) plus the shared command regularisation.
 
