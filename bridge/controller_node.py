@@ -1,0 +1,449 @@
+"""``msagv controller``: the MPC as a Zenoh process.
+
+Gets the vehicle from the plant's ``msagv/{id}/params`` queryable (or ``--vehicle FILE``),
+answers every ``state`` with a ``cmd`` naming the state it answers, takes new references on
+``msagv/{id}/reference``, declares ``msagv/{id}/alive/controller`` once its MPC is warm, and
+stops commanding while the plant's token ``msagv/{id}/alive/plant`` is gone (it never sends
+a command for a state older than ``--max-age-ms``).
+
+Determinism (lockstep): the MPC is warmed up (kernels compiled) and then reset, and it is
+reset again at every state with ``seq = 0`` (a new plant run), exactly as
+:func:`controller.loop.closed_loop` does, so a lockstep run over Zenoh gives the commands of
+``msagv run`` in-process with the same options and seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+
+from . import messages as M
+from .plant_node import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, percentiles_ms, setup_logging
+from .presence import Presence
+from .session import Keys
+
+log = logging.getLogger("msagv.controller")
+
+REALTIME_DEADLINE_MS = 7.0  # solve budget used against a realtime plant unless --deadline-ms
+
+
+class ControllerRunError(RuntimeError):
+    """The controller cannot go on (no plant, the plant gone with --on-plant-loss exit)."""
+
+
+@dataclasses.dataclass
+class ControllerConfig:
+    """How the controller process runs.
+
+    max_age_ms : never send a command for a state received longer ago than this [ms]
+        (None: no limit; the default against a realtime plant is its staleness bound).
+    on_plant_loss : 'wait' for the plant to come back, or 'exit' (code 3).
+    exit_at_end : exit (code 0) after a state with ``end = true``.
+    """
+
+    max_age_ms: float | None = None
+    on_plant_loss: str = "wait"
+    exit_at_end: bool = False
+
+
+@dataclasses.dataclass
+class ControllerStats:
+    answered: int = 0
+    skipped: int = 0  # states superseded by a newer one before they were solved
+    duplicates: int = 0
+    new_runs: int = 0
+    dropped_stale: int = 0  # solved but too old to send
+    ignored_no_plant: int = 0  # states while the plant's token was gone
+    references: int = 0
+    ends: int = 0
+    solve_ms: list = dataclasses.field(default_factory=list)
+
+
+class ControllerNode:
+    """The controller process's logic. ``session`` None: a test feeds :meth:`handle_state`
+    and reads :attr:`sent`."""
+
+    def __init__(self, mpc, keys: Keys, cfg: ControllerConfig, session=None, recorder=None):
+        self.mpc = mpc
+        self.nw = mpc.vehicle.n_wheels
+        self.keys = keys
+        self.cfg = cfg
+        self.session = session
+        self.rec = recorder
+        self.rej = M.Rejections(f"controller {keys.id}", log)
+        self.stats = ControllerStats()
+        self.stop = threading.Event()
+        self._event = threading.Event()
+        self._lock = threading.Lock()
+        self._pending = None  # (state dict, rx_perf)
+        self._pending_ref = None  # decoded reference message
+        self._last_seq: int | None = None
+        self._cmd_seq = 0
+        self.plant_present = session is None
+        self.plant_seen = session is None
+        self.sent: list[bytes] = []
+        self.exit_reason: str | None = None
+        self._pub = None
+        self._decls: list = []
+        self._token = None
+
+    # ---- transport ---------------------------------------------------------------------
+    def open(self) -> None:
+        import zenoh
+
+        s, k = self.session, self.keys
+        self._decls.append(Presence(s, k.alive_plant, self._on_plant_change))
+        self._pub = s.declare_publisher(k.cmd, express=True, priority=zenoh.Priority.REAL_TIME,
+                                        congestion_control=zenoh.CongestionControl.BLOCK,
+                                        encoding=zenoh.Encoding(M.CONTENT_TYPE))
+        self._decls.append(s.declare_subscriber(
+            k.state, lambda smp: self.handle_state(smp.payload.to_bytes(), time.perf_counter())))
+        self._decls.append(s.declare_subscriber(
+            k.reference, lambda smp: self.handle_reference(smp.payload.to_bytes())))
+        # the token last: a plant that sees it finds our subscriber declared
+        self._token = s.liveliness().declare_token(k.alive_controller)
+
+    def close(self) -> None:
+        for obj in [self._token] + self._decls + [self._pub]:
+            if obj is not None:
+                try:
+                    obj.close() if isinstance(obj, Presence) else obj.undeclare()
+                except Exception:
+                    pass
+        self._token, self._decls, self._pub = None, [], None
+
+    def _on_plant_change(self, present: bool) -> None:
+        self.plant_present = present
+        if present:
+            self.plant_seen = True
+            log.info("plant %s present", self.keys.id)
+        else:
+            with self._lock:
+                self._pending = None  # never answer a state of a plant that is gone
+            log.warning("plant %s gone (liveliness token lost): not commanding%s", self.keys.id,
+                        "" if self.cfg.on_plant_loss == "exit" else "; waiting for it to return")
+        if self.rec is not None:
+            self.rec.event("plant_alive", present=present)
+        self._event.set()
+
+    # ---- incoming ----------------------------------------------------------------------
+    def handle_state(self, payload: bytes, rx_perf: float) -> dict | None:
+        """Validate a state; the newest valid one is solved next. Returns it, or None."""
+        key = self.keys.state
+        try:
+            st = M.decode_state(payload, self.nw)
+        except M.MessageError as e:
+            self.rej.add(e, key)
+            if self.rec is not None:
+                self.rec.message("rx", key, payload, why=e.reason)
+            return None
+        if self.rec is not None:
+            self.rec.message("rx", key, payload)
+        if not self.plant_present:
+            self.stats.ignored_no_plant += 1
+            return None
+        with self._lock:
+            if self._pending is not None:
+                self.stats.skipped += 1
+            self._pending = (st, rx_perf)
+        self._event.set()
+        return st
+
+    def handle_reference(self, payload: bytes) -> dict | None:
+        key = self.keys.reference
+        try:
+            m = M.decode_reference(payload)
+            from controller.reference import ReferenceError, from_samples
+
+            try:  # checked here, so a bad one is rejected on arrival
+                from_samples(m["t"], m["x"], m["y"], m["phi"])
+            except ReferenceError as e:
+                raise M.MessageError(M.BAD_VALUE, str(e)) from None
+        except M.MessageError as e:
+            self.rej.add(e, key)
+            if self.rec is not None:
+                self.rec.message("rx", key, payload, why=e.reason)
+            return None
+        if self.rec is not None:
+            self.rec.message("rx", key, payload)
+        with self._lock:
+            self._pending_ref = m
+        self._event.set()
+        return m
+
+    # ---- the loop ----------------------------------------------------------------------
+    def run(self) -> dict:
+        """Answer states until stopped (or the end, or the plant's loss, as configured)."""
+        while not self.stop.is_set():
+            if self.cfg.on_plant_loss == "exit" and self.plant_seen and not self.plant_present:
+                self.exit_reason = "plant gone"
+                raise ControllerRunError(
+                    f"plant '{self.keys.id}' gone (its liveliness token {self.keys.alive_plant} "
+                    f"disappeared); exiting (--on-plant-loss exit)")
+            self._event.wait(0.05)
+            self._event.clear()
+            with self._lock:
+                item, self._pending = self._pending, None
+            if item is None:
+                if self.rec is not None:
+                    self.rec.maybe_flush()
+                continue
+            if self.step(*item) == "end" and self.cfg.exit_at_end:
+                self.exit_reason = "end of run"
+                break
+            if self.rec is not None:
+                self.rec.maybe_flush()
+        if self.exit_reason is None:
+            self.exit_reason = "stopped"
+        return self.summary()
+
+    def step(self, st: dict, rx_perf: float) -> str:
+        """Solve for one state and send the command. Returns 'sent', 'end', 'duplicate',
+        'stale' or 'no plant'."""
+        seq = st["seq"]
+        last = self._last_seq
+        if last is not None and seq == last:
+            self.stats.duplicates += 1
+            return "duplicate"
+        if seq == 0 or (last is not None and seq < last):
+            # a new plant run: forget the warm start and reseed, as closed_loop does
+            self.mpc.reset()
+            self.stats.new_runs += 1
+            if last is not None:
+                log.info("new plant run (state seq %d after %d): MPC reset", seq, last)
+            if self.rec is not None:
+                self.rec.event("new_run", seq=seq)
+        self._last_seq = seq
+        if st.get("end"):
+            self.stats.ends += 1
+            log.info("end of the run at t = %.2f s (state %d)", st["t"], seq)
+            return "end"
+        with self._lock:
+            ref_msg, self._pending_ref = self._pending_ref, None
+        if ref_msg is not None:
+            self._set_reference(ref_msg, st["t"])
+        cmd = self.mpc.step(st)
+        self.stats.solve_ms.append(cmd.solve_ms)
+        if self.cfg.max_age_ms is not None and \
+                (time.perf_counter() - rx_perf) * 1000.0 > self.cfg.max_age_ms:
+            self.stats.dropped_stale += 1
+            return "stale"
+        if not self.plant_present:
+            self.stats.ignored_no_plant += 1
+            return "no plant"
+        payload = M.encode_cmd(self._cmd_seq, st["t"], seq, cmd.omega_w, cmd.omega_s,
+                               solve_ms=cmd.solve_ms, cost=cmd.cost)
+        self._cmd_seq += 1
+        if self._pub is not None:
+            self._pub.put(payload)
+        else:
+            self.sent.append(payload)
+        if self.rec is not None:
+            self.rec.message("tx", self.keys.cmd, payload)
+        self.stats.answered += 1
+        return "sent"
+
+    def _set_reference(self, m: dict, t_now: float) -> None:
+        from controller.reference import from_samples
+
+        t = np.asarray(m["t"], dtype=float)
+        if m.get("relative"):
+            t = t + t_now
+        ref = from_samples(t, m["x"], m["y"], m["phi"], name=m.get("name", "bus-reference"))
+        self.mpc.set_reference(ref)
+        self.stats.references += 1
+        log.info("new reference '%s' (%d samples, t %.2f..%.2f s) from t = %.2f s", ref.name,
+                 len(t), t[0], t[-1], t_now)
+        if self.rec is not None:
+            self.rec.event("reference", t=t_now, name=ref.name)
+
+    def summary(self) -> dict:
+        s = self.stats
+        return {"role": "controller", "id": self.keys.id, "answered": s.answered,
+                "solve_ms": percentiles_ms(np.asarray(s.solve_ms) / 1000.0),
+                "skipped": s.skipped, "duplicates": s.duplicates, "new_runs": s.new_runs,
+                "dropped_stale": s.dropped_stale, "ignored_no_plant": s.ignored_no_plant,
+                "references": s.references, "ends": s.ends, "rejected": self.rej.summary(),
+                "exit_reason": self.exit_reason,
+                "settings": dataclasses.asdict(self.mpc.settings)}
+
+
+# ---- command line -----------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from .run_cmd import add_case_args, add_mpc_args
+    from .session import add_session_args
+
+    ap = argparse.ArgumentParser(
+        prog="msagv controller",
+        description="The MPC as a Zenoh process: answers each state with a command.")
+    add_case_args(ap)
+    add_mpc_args(ap)
+    ap.add_argument("--wait", type=float, default=60.0, metavar="S",
+                    help="wait this long for the plant's params at start, 0 = forever "
+                         "(default 60; not needed with --vehicle)")
+    ap.add_argument("--max-age-ms", type=float, metavar="MS",
+                    help="never send a command for a state older than this (default: "
+                         "50 against a realtime plant, none in lockstep)")
+    ap.add_argument("--on-plant-loss", choices=["wait", "exit"], default="wait",
+                    help="when the plant's token disappears: wait for it (default) or exit 3")
+    ap.add_argument("--exit-at-end", action="store_true",
+                    help="exit after the plant's last state (end = true)")
+    ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
+    ap.add_argument("--json", action="store_true", help="print the summary as JSON at exit")
+    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
+    add_session_args(ap)
+    return ap
+
+
+def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> dict:
+    """The plant's params (validated), retrying until ``wait_s`` (0: forever)."""
+    t0 = time.monotonic()
+    told = False
+    last_err = None
+    while not stop.is_set():
+        try:
+            for reply in session.get(keys.params, timeout=1.0):
+                if reply.ok is None:
+                    last_err = f"error reply: {reply.err.payload.to_bytes()[:200]!r}"
+                    continue
+                try:
+                    return M.decode_params(reply.ok.payload.to_bytes())
+                except M.MessageError as e:
+                    last_err = f"bad params reply: {e}"
+                    log.warning("%s", last_err)
+        except Exception as e:
+            last_err = str(e)
+        if wait_s and time.monotonic() - t0 > wait_s:
+            raise ControllerRunError(
+                f"no plant answered on {keys.params} within {wait_s:g} s"
+                f"{' (' + last_err + ')' if last_err else ''}; start msagv plant --id {keys.id} "
+                f"with matching --connect/--listen, or give --vehicle FILE")
+        if not told:
+            log.info("waiting for the plant's params on %s", keys.params)
+            told = True
+        stop.wait(0.1)
+    raise ControllerRunError("stopped while waiting for the plant's params")
+
+
+def main(argv: list[str]) -> int:
+    from controller.mpc import MPC
+    from controller.reference import ReferenceError
+    from plant.stepping import PlantError
+    from plant.vehicle import VehicleError, load_vehicle, vehicle_from_dict
+
+    from .recording import Recorder
+    from .run_cmd import scenario_from_args, settings_from_args
+    from .session import SessionError, open_session, options_from_args
+
+    ap = build_parser()
+    a = ap.parse_args(argv)
+    setup_logging("msagv controller", a.id, a.quiet)
+    if a.rt_priority:
+        from .session import set_realtime_priority
+
+        why = set_realtime_priority(a.rt_priority)
+        if why:
+            log.warning("%s", why)
+    if a.initial is not None:
+        print("msagv controller: --initial applies to msagv plant", file=sys.stderr)
+        return EXIT_USAGE
+    if a.duration is not None:
+        print("msagv controller: --duration applies to msagv plant", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        opts = options_from_args(a)
+        keys = Keys(opts.id)
+        settings = settings_from_args(a)
+        if a.vehicle:
+            load_vehicle(a.vehicle)  # a bad file fails before any network
+    except (VehicleError, ValueError, FileNotFoundError) as e:
+        print(f"msagv controller: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    stop = threading.Event()
+    rec = None
+    node = None
+    rc = EXIT_OK
+    summary: dict = {"role": "controller", "id": keys.id}
+    try:
+        with open_session(opts, "controller") as session:
+            sig = StopOnSignal(stop)
+            sig.install()
+            period, run_mode, vehicle = 0.01, None, None
+            try:
+                if not a.vehicle:
+                    p = fetch_params(session, keys, a.wait, stop)
+                    try:
+                        vehicle = vehicle_from_dict(p["vehicle"])
+                    except VehicleError as e:
+                        raise ControllerRunError(f"the plant's params: vehicle: {e}") from None
+                    period, run_mode = p["period"], p["run_mode"]
+                    log.info("plant params: %s, %d wheels, T = %g s, %s", vehicle.name,
+                             vehicle.n_wheels, period, run_mode)
+                vehicle, ref, _ = scenario_from_args(a, vehicle=vehicle)
+            except (VehicleError, ReferenceError, PlantError, FileNotFoundError, ValueError) as e:
+                print(f"msagv controller: {e}", file=sys.stderr)
+                return EXIT_USAGE
+            if run_mode == "realtime" and a.deadline_ms is None:
+                settings = settings.with_(deadline_ms=REALTIME_DEADLINE_MS)
+                log.info("realtime plant: solve budget %g ms (--deadline-ms)", REALTIME_DEADLINE_MS)
+            max_age = a.max_age_ms if a.max_age_ms is not None else (
+                50.0 if run_mode == "realtime" else None)
+            mpc = MPC(vehicle, settings, ref, period=period)
+            t0 = time.perf_counter()
+            # compiling cannot be interrupted from Python: let SIGTERM act at once meanwhile
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            mpc.warmup()  # compiles, then resets the warm start and the RNG
+            sig.install()
+            if stop.is_set():
+                return EXIT_OK
+            log.info("MPC warm (%.2f s): %s %s, seed %d", time.perf_counter() - t0,
+                     settings.method, settings.model, settings.seed)
+            if a.record:
+                rec = Recorder(a.record, {
+                    "role": "controller", "id": keys.id, "vehicle": vehicle.to_dict(),
+                    "period": period, "run_mode": run_mode,
+                    "reference": dict(ref.to_message(), name=ref.name),
+                    "settings": dataclasses.asdict(settings), "argv": list(argv)})
+            node = ControllerNode(mpc, keys, ControllerConfig(max_age, a.on_plant_loss,
+                                                              a.exit_at_end),
+                                  session=session, recorder=rec)
+            node.stop = stop
+            node.open()
+            log.info("controller ready on %s", keys.state)
+            try:
+                node.run()
+            finally:
+                node.close()
+    except ControllerRunError as e:
+        if stop.is_set():
+            rc = EXIT_OK
+        else:
+            print(f"msagv controller: {e}", file=sys.stderr)
+            rc = EXIT_RUNTIME
+    except SessionError as e:
+        print(f"msagv controller: {e}", file=sys.stderr)
+        rc = EXIT_USAGE
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if node is not None:
+            summary = node.summary()
+        if rec is not None:
+            rec.close(summary)
+    if a.json:
+        print(json.dumps(summary), flush=True)
+    elif node is not None:
+        sm = summary["solve_ms"]
+        print(f"controller {keys.id}: answered {summary['answered']}, skipped "
+              f"{summary['skipped']}, rejected {summary['rejected']['total']}, solve p50 "
+              f"{(sm['p50'] or 0):.2f} p99 {(sm['p99'] or 0):.2f} ms ({summary['exit_reason']})",
+              file=sys.stderr)
+    return rc

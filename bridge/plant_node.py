@@ -1,0 +1,678 @@
+"""``msagv plant``: the stepping plant (or a hosted FMU) as a Zenoh process.
+
+Publishes ``msagv/{id}/state`` every control period, applies commands from
+``msagv/{id}/cmd``, serves the vehicle description on the queryable ``msagv/{id}/params``
+and declares the liveliness token ``msagv/{id}/alive/plant``. Two stepping modes
+(docs/PROTOCOL.md, "Modes"):
+
+* ``--run-mode lockstep`` (default): publish state k, step when the command answering
+  ``state_seq = k`` arrives. Deterministic and as fast as the controller answers; a run
+  matches ``msagv run`` in-process. No command within ``--timeout`` ends the run with an
+  error (exit 3).
+* ``--run-mode realtime``: step on the wall clock at 1/T with the newest valid command. A
+  command older than ``--stale-ms`` (default 50 ms), or the controller's liveliness token
+  gone, puts the plant in its safe behaviour (steering held, wheels ramped down at
+  ``--safe-decel``) until fresh commands return. Missed periods (overruns) are counted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import messages as M
+from .presence import Presence
+from .session import Keys
+
+log = logging.getLogger("msagv.plant")
+
+EXIT_OK, EXIT_USAGE, EXIT_RUNTIME = 0, 2, 3
+
+
+class PlantRunError(RuntimeError):
+    """The run cannot go on (no controller, a lockstep timeout, a failed step)."""
+
+
+@dataclass
+class PlantConfig:
+    """How the plant process runs.
+
+    run_mode : 'lockstep' or 'realtime'.
+    period : control period T [s]; state k has t = k T exactly.
+    steps : periods to run; the last state (seq = steps) carries ``end = true``.
+    timeout_s : lockstep: the longest wait for a command answering the current state;
+        realtime: for the first command (answering state 0). Exceeded: the run ends (exit 3).
+    wait_s : how long to wait for the controller's liveliness token at start (0: forever).
+    stale_ms : realtime: a command answering a state older than this [ms of vehicle time,
+        which runs with the wall clock] is stale and the plant goes safe.
+    safe_decel : realtime safe behaviour: wheel-speed ramp-down [m/s^2 at the rim].
+    linger_s : after the end state, how long to keep the session open (the last messages
+        are delivered, late commands still counted) before closing.
+    """
+
+    run_mode: str = "lockstep"
+    period: float = 0.01
+    steps: int = 100
+    timeout_s: float = 10.0
+    wait_s: float = 60.0
+    stale_ms: float = 50.0
+    safe_decel: float = 2.0
+    linger_s: float = 0.2
+
+    def __post_init__(self):
+        if self.run_mode not in M.RUN_MODES:
+            raise ValueError(f"run mode: expected lockstep or realtime, got '{self.run_mode}'")
+        if not (self.period > 0 and math.isfinite(self.period)):
+            raise ValueError(f"--period must be > 0, got {self.period}")
+        if self.steps < 1:
+            raise ValueError("--duration must be at least one period")
+        if not self.timeout_s > 0:
+            raise ValueError(f"--timeout must be > 0, got {self.timeout_s}")
+        if not self.wait_s >= 0:
+            raise ValueError(f"--wait must be >= 0, got {self.wait_s}")
+        if not self.stale_ms > 0:
+            raise ValueError(f"--stale-ms must be > 0, got {self.stale_ms}")
+        if not self.safe_decel > 0:
+            raise ValueError(f"--safe-decel must be > 0, got {self.safe_decel}")
+
+
+def percentiles_ms(values_s) -> dict:
+    v = np.asarray(values_s, dtype=float) * 1000.0
+    if v.size == 0:
+        return {"p50": None, "p99": None, "max": None, "n": 0}
+    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)),
+            "max": float(v.max()), "n": int(v.size)}
+
+
+@dataclass
+class _Cmd:
+    state_seq: int
+    seq: int
+    omega_w: list
+    omega_s: list
+    rx_perf: float
+
+
+@dataclass
+class PlantStats:
+    accepted: int = 0
+    stale: int = 0  # valid but older than the newest accepted (out of order)
+    duplicate: int = 0
+    late: int = 0  # realtime: periods stepped without the command answering their state
+    cmd_seq_gaps: int = 0
+    safe_events: int = 0
+    safe_periods: int = 0
+    resumes: int = 0
+    missed_periods: int = 0
+    clock_resyncs: int = 0
+    controller_losses: int = 0
+    latency_s: list = field(default_factory=list)  # state published -> command received, - solve
+    roundtrip_s: list = field(default_factory=list)  # state published -> command received
+    lateness_s: list = field(default_factory=list)  # state publication - its nominal time
+    pub_intervals_s: list = field(default_factory=list)
+
+
+class PlantNode:
+    """The plant process's logic; transport through ``session`` (None: a test drives
+    :meth:`handle_cmd` and reads :attr:`published`)."""
+
+    def __init__(self, plant, keys: Keys, cfg: PlantConfig, session=None, recorder=None,
+                 reference_msg: dict | None = None):
+        self.plant = plant
+        self.vehicle = plant.vehicle
+        self.nw = self.vehicle.n_wheels
+        self.keys = keys
+        self.cfg = cfg
+        self.session = session
+        self.rec = recorder
+        self.rej = M.Rejections(f"plant {keys.id}", log)
+        self.stats = PlantStats()
+        self.seq = -1  # newest published state
+        self._pub_perf: OrderedDict[int, float] = OrderedDict()
+        self._answered: set[int] = set()
+        self._newest: _Cmd | None = None
+        self._last_cmd_seq: int | None = None
+        self._lock = threading.Lock()
+        self._cmd_event = threading.Event()
+        self._ctl_event = threading.Event()
+        self.stop = threading.Event()
+        self.controller_present = False
+        self._ctl_generation = 0
+        self.safe = False
+        self.published: list[bytes] = []  # only without a session (tests)
+        self.error: str | None = None
+        self.final_state: dict | None = None
+        self._params = M.encode_params(keys.id, self.vehicle.to_dict(), cfg.period, cfg.run_mode,
+                                       self.nw)
+        self._pub = None
+        self._decls = []
+        self._token = None
+        self.ramp = cfg.safe_decel / self.vehicle.wheel_radius  # rad/s^2
+
+    # ---- transport ---------------------------------------------------------------------
+    def open(self) -> None:
+        """Declare the publisher, subscribers, queryable, then the liveliness token (last:
+        a controller that sees the token finds everything else declared)."""
+        import zenoh
+
+        s, k = self.session, self.keys
+        self._pub = s.declare_publisher(k.state, express=True, priority=zenoh.Priority.REAL_TIME,
+                                        congestion_control=zenoh.CongestionControl.BLOCK,
+                                        encoding=zenoh.Encoding(M.CONTENT_TYPE))
+        self._decls.append(s.declare_subscriber(k.cmd, self._on_cmd_sample))
+        self._decls.append(s.declare_queryable(k.params, self._on_params_query))
+        if self.rec is not None:
+            self._decls.append(s.declare_subscriber(k.reference, self._on_reference_sample))
+        self._decls.append(Presence(s, k.alive_controller, self._on_ctl_change))
+        self._token = s.liveliness().declare_token(k.alive_plant)
+
+    def close(self) -> None:
+        for obj in [self._token] + self._decls + [self._pub]:
+            if obj is not None:
+                try:
+                    obj.close() if isinstance(obj, Presence) else obj.undeclare()
+                except Exception:
+                    pass
+        self._token, self._decls, self._pub = None, [], None
+
+    def _on_params_query(self, query) -> None:
+        try:
+            query.reply(self.keys.params, self._params, encoding=M.CONTENT_TYPE)
+        except Exception as e:  # a vanished querier: nothing to do
+            log.debug("params reply failed: %s", e)
+
+    def _on_reference_sample(self, sample) -> None:
+        if self.rec is not None:
+            self.rec.message("rx", self.keys.reference, sample.payload.to_bytes())
+
+    def _on_ctl_change(self, present: bool) -> None:
+        with self._lock:
+            was = self.controller_present
+            self.controller_present = present
+            if present and not was:
+                self._ctl_generation += 1
+        if present != was:
+            if present:
+                log.info("controller %s present", self.keys.id)
+            else:
+                self.stats.controller_losses += 1
+                log.warning("controller %s gone (liveliness token lost)", self.keys.id)
+            if self.rec is not None:
+                self.rec.event("controller_alive", present=present)
+        self._ctl_event.set()
+
+    def _on_cmd_sample(self, sample) -> None:
+        self.handle_cmd(sample.payload.to_bytes(), time.perf_counter(), time.time())
+
+    # ---- commands ----------------------------------------------------------------------
+    def handle_cmd(self, payload: bytes, rx_perf: float, rx_wall: float | None = None) -> dict | None:
+        """Validate one command; the newest valid one is kept for the next step. Returns
+        the decoded command, or None if rejected or ignored (stale/duplicate)."""
+        key = self.keys.cmd
+        try:
+            c = M.decode_cmd(payload, self.nw)
+            with self._lock:
+                newest_pub = self.seq
+            j = c["state_seq"]
+            if j > newest_pub:
+                raise M.MessageError(M.UNKNOWN_STATE, f"state_seq {j} was never published "
+                                                      f"(newest state is {newest_pub})")
+            if abs(c["t"] - j * self.cfg.period) > 1e-6:
+                raise M.MessageError(M.T_MISMATCH, f"t = {c['t']} but state {j} has t = "
+                                                   f"{j * self.cfg.period}")
+        except M.MessageError as e:
+            self.rej.add(e, key)
+            if self.rec is not None:
+                self.rec.message("rx", key, payload, rx_wall, why=e.reason)
+            return None
+        if self.rec is not None:
+            self.rec.message("rx", key, payload, rx_wall)
+        with self._lock:
+            n = self._newest
+            if n is not None and j < n.state_seq:
+                self.stats.stale += 1
+                self._answered.add(j)
+                return None
+            if n is not None and j == n.state_seq:
+                self.stats.duplicate += 1
+                return None
+            if self._last_cmd_seq is not None and c["seq"] > self._last_cmd_seq + 1:
+                self.stats.cmd_seq_gaps += c["seq"] - self._last_cmd_seq - 1
+            self._last_cmd_seq = c["seq"]
+            self._newest = _Cmd(j, c["seq"], c["omega_w"], c["omega_s"], rx_perf)
+            self._answered.add(j)
+            self.stats.accepted += 1
+            tp = self._pub_perf.get(j)
+        if tp is not None:
+            rt = rx_perf - tp
+            self.stats.roundtrip_s.append(rt)
+            if "solve_ms" in c:
+                self.stats.latency_s.append(rt - c["solve_ms"] / 1000.0)
+        self._cmd_event.set()
+        return c
+
+    # ---- state -------------------------------------------------------------------------
+    def publish_state(self, seq: int, end: bool = False) -> None:
+        st = self.plant.state_message()
+        st["t"] = seq * self.cfg.period  # t = seq T exactly (DESIGN.md: time never drifts)
+        payload = M.encode_state(seq, st, safe=self.safe if self.cfg.run_mode == "realtime" else None,
+                                 end=True if end else None)
+        now = time.perf_counter()
+        with self._lock:
+            self.seq = seq
+            self._pub_perf[seq] = now
+            while len(self._pub_perf) > 4096:
+                self._pub_perf.popitem(last=False)
+        if self._pub is not None:
+            self._pub.put(payload)
+        else:
+            self.published.append(payload)
+        if self.rec is not None:
+            self.rec.message("tx", self.keys.state, payload)
+        if end:
+            self.final_state = st
+
+    def _apply(self, omega_w, omega_s) -> None:
+        from plant.stepping import PlantError
+
+        try:
+            self.plant.set_inputs(omega_w, omega_s)
+            self.plant.do_step(self.plant.t, self.cfg.period)
+        except PlantError as e:
+            raise PlantRunError(f"step at t = {self.plant.t:.2f} s failed: {e}") from None
+
+    # ---- waiting for the controller ----------------------------------------------------
+    def _wait_controller(self) -> None:
+        """Block until the controller's token is present and it subscribes to our state."""
+        t0 = time.monotonic()
+        waited_msg = False
+        while not self.stop.is_set():
+            matched = self._pub is None or self._pub.matching_status.matching
+            if self.controller_present and matched:
+                return
+            if not waited_msg and time.monotonic() - t0 > 1.0:
+                log.info("waiting for a controller on %s (up to %s)", self.keys.cmd,
+                         f"{self.cfg.wait_s:g} s" if self.cfg.wait_s else "forever")
+                waited_msg = True
+            if self.cfg.wait_s and time.monotonic() - t0 > self.cfg.wait_s:
+                raise PlantRunError(f"no controller for vehicle '{self.keys.id}' within "
+                                    f"{self.cfg.wait_s:g} s (no liveliness token on "
+                                    f"{self.keys.alive_controller}); start msagv controller "
+                                    f"--id {self.keys.id} with matching --connect/--listen")
+            self._ctl_event.wait(0.02)
+            self._ctl_event.clear()
+
+    def _wait_answer(self, k: int, timeout_s: float) -> _Cmd | None:
+        """Lockstep: wait for the command answering state k. A controller that (re)appears
+        meanwhile is sent state k again. None if stopped."""
+        t0 = time.monotonic()
+        gen = self._ctl_generation
+        while True:
+            with self._lock:
+                n = self._newest
+            if n is not None and n.state_seq == k:
+                return n
+            if self.stop.is_set():
+                return None
+            if time.monotonic() - t0 > timeout_s:
+                who = "present" if self.controller_present else "gone"
+                raise PlantRunError(f"lockstep: no command answering state {k} (t = "
+                                    f"{k * self.cfg.period:.2f} s) within {timeout_s:g} s "
+                                    f"(controller token {who}); ending the run")
+            if self._ctl_generation != gen and self.controller_present:
+                gen = self._ctl_generation
+                m0 = time.monotonic()
+                while (self._pub is not None and not self._pub.matching_status.matching
+                       and time.monotonic() - m0 < 1.0):
+                    time.sleep(0.005)
+                log.info("controller (re)appeared: sending state %d again", k)
+                self.publish_state(k)
+            self._cmd_event.wait(0.05)
+            self._cmd_event.clear()
+
+    # ---- runs --------------------------------------------------------------------------
+    def run(self) -> dict:
+        """Run to the end (or until :attr:`stop`); returns the summary. Raises
+        PlantRunError on a timeout or a failed step."""
+        try:
+            self._wait_controller()
+            if not self.stop.is_set():
+                if self.cfg.run_mode == "lockstep":
+                    self._run_lockstep()
+                else:
+                    self._run_realtime()
+        except PlantRunError as e:
+            self.error = str(e)
+            raise
+        finally:
+            if self.final_state is None:
+                st = self.plant.state_message()
+                st["t"] = max(self.seq, 0) * self.cfg.period
+                self.final_state = st
+        return self.summary()
+
+    def _run_lockstep(self) -> None:
+        cfg = self.cfg
+        self.publish_state(0)
+        for k in range(cfg.steps):
+            c = self._wait_answer(k, cfg.timeout_s)
+            if c is None:
+                return
+            self._apply(c.omega_w, c.omega_s)
+            self.publish_state(k + 1, end=k + 1 == cfg.steps)
+            if self.rec is not None:
+                self.rec.maybe_flush()
+        self._linger()
+
+    def _run_realtime(self) -> None:
+        cfg, T, st = self.cfg, self.cfg.period, self.stats
+        stale_s = cfg.stale_ms / 1000.0
+        self.publish_state(0)
+        # the clock starts with the first command (the controller is warm by then)
+        t0 = time.monotonic()
+        while True:
+            with self._lock:
+                n = self._newest
+            if n is not None and n.state_seq == 0:
+                break
+            if self.stop.is_set():
+                return
+            if time.monotonic() - t0 > cfg.timeout_s:
+                raise PlantRunError(f"realtime: no command answering state 0 within "
+                                    f"{cfg.timeout_s:g} s; ending the run")
+            self._cmd_event.wait(0.05)
+            self._cmd_event.clear()
+        w0 = time.perf_counter()
+        last_pub = w0
+        for k in range(cfg.steps):
+            target = w0 + (k + 1) * T
+            now = time.perf_counter()
+            if target - now > 0:
+                time.sleep(target - now)
+            elif now - target > 10 * T:  # stalled (e.g. the machine froze): re-anchor
+                st.clock_resyncs += 1
+                w0 += (now - target)
+                target = now
+            if self.stop.is_set():
+                return
+            with self._lock:
+                n = self._newest
+                present = self.controller_present
+            age = (k - n.state_seq) * T
+            fresh = present and age <= stale_s + 1e-9
+            if fresh:
+                if self.safe:
+                    self.safe = False
+                    st.resumes += 1
+                    log.warning("resumed normal operation at t = %.2f s (fresh command for "
+                                "state %d)", k * T, n.state_seq)
+                    if self.rec is not None:
+                        self.rec.event("safe", on=False, t=k * T)
+                if n.state_seq != k:
+                    st.late += 1
+                u_w, u_s = n.omega_w, n.omega_s
+            else:
+                if not self.safe:
+                    self.safe = True
+                    st.safe_events += 1
+                    why = ("controller token lost" if not present else
+                           f"newest command answers state {n.state_seq}, {age * 1000:.0f} ms old "
+                           f"(bound {cfg.stale_ms:g} ms)")
+                    log.warning("SAFE at t = %.2f s: %s; holding steering, ramping the wheels "
+                                "down at %g m/s^2", k * T, why, cfg.safe_decel)
+                    if self.rec is not None:
+                        self.rec.event("safe", on=True, t=k * T, why=why)
+                st.safe_periods += 1
+                held_w, _ = self.plant.inputs
+                u_w = np.maximum(np.asarray(held_w) - self.ramp * T, 0.0)
+                u_s = np.zeros(self.nw)
+            self._apply(u_w, u_s)
+            self.publish_state(k + 1, end=k + 1 == cfg.steps)
+            done = time.perf_counter()
+            st.lateness_s.append(done - target)
+            st.pub_intervals_s.append(done - last_pub)
+            last_pub = done
+            if done - target > T:
+                st.missed_periods += 1
+            if self.rec is not None:
+                self.rec.maybe_flush()
+        self._linger()
+
+    def _linger(self) -> None:
+        self.stop.wait(self.cfg.linger_s)
+
+    # ---- results -----------------------------------------------------------------------
+    def summary(self) -> dict:
+        st, T = self.stats, self.cfg.period
+        steps_done = max(self.seq, 0)
+        with self._lock:
+            answered = set(self._answered)
+        lost = sum(1 for j in range(steps_done) if j not in answered)
+        jit = [abs(d - T) for d in st.pub_intervals_s]
+        fs = self.final_state or {}
+        return {
+            "role": "plant", "id": self.keys.id, "run_mode": self.cfg.run_mode,
+            "period": T, "steps": steps_done, "t_end": steps_done * T,
+            "completed": steps_done == self.cfg.steps and self.error is None,
+            "error": self.error,
+            "missed_periods": st.missed_periods, "clock_resyncs": st.clock_resyncs,
+            "latency_ms": percentiles_ms(st.latency_s),
+            "roundtrip_ms": percentiles_ms(st.roundtrip_s),
+            "lateness_ms": percentiles_ms(st.lateness_s),
+            "period_jitter_ms": percentiles_ms(jit),
+            "commands": {"accepted": st.accepted, "stale": st.stale, "duplicate": st.duplicate,
+                         "late": st.late, "lost": lost, "seq_gaps": st.cmd_seq_gaps},
+            "safe": {"events": st.safe_events, "periods": st.safe_periods, "resumes": st.resumes},
+            "controller_losses": st.controller_losses,
+            "rejected": self.rej.summary(),
+            "final_state": {k: fs[k] for k in ("t", "x", "y", "phi", "vx", "vy", "r", "W_s",
+                                               "W_alpha", "W_t") if k in fs},
+        }
+
+
+# ---- command line -----------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from .run_cmd import add_case_args
+    from .session import add_session_args
+
+    ap = argparse.ArgumentParser(
+        prog="msagv plant",
+        description="The plant as a Zenoh process (state out, commands in, params queryable, "
+                    "liveliness token). 'msagv plant replay' is the open-loop CSV replay.")
+    ap.add_argument("--run-mode", choices=list(M.RUN_MODES), default="lockstep",
+                    help="lockstep: step when the command for the current state arrives "
+                         "(deterministic); realtime: step on the wall clock at 1/T "
+                         "(default lockstep)")
+    add_case_args(ap)
+    ap.add_argument("--from-rest", action="store_true",
+                    help="start at rest at the origin (+ --initial), as 'plant replay', "
+                         "instead of on the reference")
+    ap.add_argument("--fmu", metavar="FILE", help="host this FMI 2.0 co-simulation FMU "
+                                                  "instead of the built-in plant")
+    ap.add_argument("--map", metavar="FILE", help="with --fmu: the variable-name mapping file")
+    ap.add_argument("--period", type=float, default=0.01, help="control period T [s] (0.01)")
+    ap.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                    help="lockstep: longest wait for a command; realtime: for the first one "
+                         "(default 10)")
+    ap.add_argument("--wait", type=float, default=60.0, metavar="S",
+                    help="wait this long for a controller at start, 0 = forever (default 60)")
+    ap.add_argument("--stale-ms", type=float, default=50.0,
+                    help="realtime: a command older than this puts the plant in its safe "
+                         "behaviour (default 50)")
+    ap.add_argument("--safe-decel", type=float, default=2.0, metavar="M/S2",
+                    help="realtime safe behaviour: wheel ramp-down at the rim (default 2)")
+    ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
+    ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
+    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
+    add_session_args(ap)
+    return ap
+
+
+def setup_logging(prog: str, vid: str, quiet: bool) -> None:
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, stream=sys.stderr,
+                        format=f"{prog} [{vid}] %(levelname)s: %(message)s", force=True)
+
+
+class StopOnSignal:
+    """SIGINT/SIGTERM set ``event`` (the loops check it at least every 50 ms) instead of
+    killing the process, so recordings are closed and tokens undeclared."""
+
+    def __init__(self, event: threading.Event):
+        self.event = event
+        self.signum: int | None = None
+
+    def install(self) -> None:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, self._handler)
+
+    def _handler(self, signum, frame) -> None:
+        if self.event.is_set():  # a second signal: stop at once
+            raise KeyboardInterrupt
+        self.signum = signum
+        self.event.set()
+
+
+def make_plant(a):
+    """``(plant, vehicle, reference, initial)`` from the options (built-in or FMU)."""
+    from plant.stepping import Plant, parse_initial
+    from plant.vehicle import load_vehicle
+
+    from .run_cmd import scenario_from_args
+
+    if a.map and not a.fmu:
+        raise ValueError("--map applies to --fmu")
+    if a.fmu:
+        from fmu_build.host import FmuPlant
+
+        given = load_vehicle(a.vehicle) if a.vehicle else None
+        params = {"mass": a.mass} if a.mass is not None else None
+        fp = FmuPlant(a.fmu, given, mapping=a.map, parameters=params)
+        try:
+            vehicle, ref, initial = scenario_from_args(a, vehicle=fp.vehicle)
+            if a.from_rest:
+                initial = parse_initial(a.initial)
+            fp.reset(initial)
+        except Exception:
+            fp.close()
+            raise
+        return fp, vehicle, ref, initial
+    vehicle, ref, initial = scenario_from_args(a)
+    if a.from_rest:
+        initial = parse_initial(a.initial)
+    return Plant(vehicle, initial=initial), vehicle, ref, initial
+
+
+def main(argv: list[str]) -> int:
+    from controller.reference import ReferenceError
+    from plant.stepping import PlantError
+    from plant.vehicle import VehicleError
+
+    from .recording import Recorder
+    from .session import SessionError, open_session, options_from_args
+
+    a = build_parser().parse_args(argv)
+    setup_logging("msagv plant", a.id, a.quiet)
+    if a.rt_priority:
+        from .session import set_realtime_priority
+
+        why = set_realtime_priority(a.rt_priority)
+        if why:
+            log.warning("%s", why)
+    stop = threading.Event()
+    sig = StopOnSignal(stop)
+    sig.install()
+    try:
+        from fmu_build.host import FmuHostError
+    except ImportError:  # pragma: no cover
+        FmuHostError = RuntimeError
+    try:
+        opts = options_from_args(a)
+        keys = Keys(opts.id)
+        plant, vehicle, ref, initial = make_plant(a)
+        duration = a.duration if a.duration is not None else ref.duration
+        cfg = PlantConfig(run_mode=a.run_mode, period=a.period,
+                          steps=int(round(duration / a.period)) if duration > 0 else 0,
+                          timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
+                          safe_decel=a.safe_decel)
+    except (VehicleError, ReferenceError, PlantError, ValueError, FileNotFoundError,
+            FmuHostError) as e:
+        print(f"msagv plant: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    rec = None
+    if a.record:
+        try:
+            rec = Recorder(a.record, {
+                "role": "plant", "id": keys.id, "vehicle": vehicle.to_dict(),
+                "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
+                "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
+                "fmu": a.fmu, "argv": list(argv)})
+        except OSError as e:
+            print(f"msagv plant: --record: {e}", file=sys.stderr)
+            return EXIT_USAGE
+    node = PlantNode(plant, keys, cfg, recorder=rec)
+    node.stop = stop
+    rc = EXIT_OK
+    try:
+        with open_session(opts, "plant") as session:
+            node.session = session
+            node.open()
+            log.info("%s plant ready: %s, %d steps of %g s, %s", cfg.run_mode, vehicle.name,
+                     cfg.steps, cfg.period, ref.name)
+            try:
+                node.run()
+            except PlantRunError as e:
+                log.error("%s", e)
+                rc = EXIT_RUNTIME
+            finally:
+                node.close()
+    except SessionError as e:
+        print(f"msagv plant: {e}", file=sys.stderr)
+        node.error = str(e)
+        rc = EXIT_USAGE
+    except KeyboardInterrupt:
+        node.error = "interrupted"
+    finally:
+        summary = node.summary()
+        if sig.signum is not None:
+            summary["stopped_by"] = signal.Signals(sig.signum).name
+            log.info("stopped by %s", summary["stopped_by"])
+        if rec is not None:
+            rec.close(summary)
+        if hasattr(plant, "close"):
+            plant.close()
+    _report(summary, a.json)
+    return rc
+
+
+def _report(s: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(s), flush=True)
+        return
+    c, r = s["commands"], s["rejected"]
+    lines = [f"plant {s['id']}: {s['run_mode']}, {s['steps']} steps ({s['t_end']:.2f} s)"
+             f"{'' if s['completed'] else ' (incomplete)'}",
+             f"  commands   accepted {c['accepted']}, late {c['late']}, lost {c['lost']}, "
+             f"stale {c['stale']}, duplicate {c['duplicate']}",
+             f"  rejected   {r['total']} {r['by_reason'] if r['total'] else ''}"]
+    lat = s["latency_ms"]
+    if lat["n"]:
+        lines.append(f"  latency    p50 {lat['p50']:.3f} ms  p99 {lat['p99']:.3f} ms  "
+                     f"max {lat['max']:.3f} ms (state -> command, without the solve)")
+    if s["run_mode"] == "realtime":
+        j = s["period_jitter_ms"]
+        lines.append(f"  periods    missed {s['missed_periods']}, jitter p50 "
+                     f"{(j['p50'] or 0):.3f} p99 {(j['p99'] or 0):.3f} max {(j['max'] or 0):.3f} ms")
+        sf = s["safe"]
+        lines.append(f"  safe       events {sf['events']}, periods {sf['periods']}, "
+                     f"resumes {sf['resumes']}")
+    print("\n".join(lines), file=sys.stderr, flush=True)
