@@ -336,8 +336,9 @@ def test_short_closed_loop_curve_tracks(method):
     assert m["W_tw"] > 0
 
 
-def test_short_closed_loop_line_converges():
-    log, plant = _run("line", 10.0, 6.0)
+@pytest.mark.parametrize("method", ["ntwo", "two"])
+def test_short_closed_loop_line_converges(method):
+    log, plant = _run("line", 10.0, 6.0, method=method)
     st = plant.state_message()
     ref = case2_line(10.0)
     x, y, phi = ref.sample(6.0)[:3]
