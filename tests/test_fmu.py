@@ -283,18 +283,6 @@ def test_fmu_help_and_unknown_subcommand(capsys):
     assert msagv(["fmu", "frobnicate"]) == 2
 
 
-def test_simulate_hook_without_controller(monkeypatch):
-    import importlib.util
-
-    from fmu_build import cli
-
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec",
-                        lambda name, *a: None if name == "controller.loop" else real(name, *a))
-    with pytest.raises(SystemExit, match="needs the controller"):
-        cli.main(["simulate"])
-
-
 # ---- the FMU stepped by fmpy vs the native plant ------------------------------------------
 def test_fmpy_matches_native_2s(fmpy_runs):
     names, S = fmpy_runs["names_0"], fmpy_runs["S_0"]
