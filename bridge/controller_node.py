@@ -15,6 +15,7 @@ reset again at every state with ``seq = 0`` (a new plant run), exactly as
 from __future__ import annotations
 
 import argparse
+import gc
 import dataclasses
 import json
 import logging
@@ -213,8 +214,9 @@ class ControllerNode:
         if last is not None and seq == last:
             self.stats.duplicates += 1
             return "duplicate"
-        if seq == 0 or (last is not None and seq < last):
-            # a new plant run: forget the warm start and reseed, as closed_loop does
+        if last is None or seq == 0 or seq < last:
+            # a new plant run (or the first state seen): forget the warm start and reseed,
+            # as closed_loop does after its warm-up
             self.mpc.reset()
             self.stats.new_runs += 1
             if last is not None:
@@ -419,6 +421,10 @@ def main(argv: list[str]) -> int:
             node.open()
             log.info("controller ready on %s", keys.state)
             try:
+                # everything allocated so far (numba, numpy, the model) leaves the garbage
+                # collector's view: a full collection would otherwise stall a period
+                gc.collect()
+                gc.freeze()
                 node.run()
             finally:
                 node.close()

@@ -18,9 +18,11 @@ and declares the liveliness token ``msagv/{id}/alive/plant``. Two stepping modes
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -629,6 +631,10 @@ def main(argv: list[str]) -> int:
             log.info("%s plant ready: %s, %d steps of %g s, %s", cfg.run_mode, vehicle.name,
                      cfg.steps, cfg.period, ref.name)
             try:
+                # everything allocated so far (numba, numpy, the model) leaves the garbage
+                # collector's view: a full collection would otherwise stall a period
+                gc.collect()
+                gc.freeze()
                 node.run()
             except PlantRunError as e:
                 log.error("%s", e)
@@ -651,6 +657,14 @@ def main(argv: list[str]) -> int:
         if hasattr(plant, "close"):
             plant.close()
     _report(summary, a.json)
+    if a.fmu:
+        # Everything is flushed and closed: leave without the interpreter's and the shared
+        # libraries' exit handlers. A pythonfmu binary and Zenoh's static destructors in one
+        # process intermittently aborted at exit ('corrupted double-linked list', in
+        # zenoh_shm's cleanup) after a complete, correct run.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
     return rc
 
 
