@@ -1,0 +1,336 @@
+"""``msagv experiment case1|case2|case3|pareto``: the paper's Section 4 and the Pareto front.
+
+* ``case1``: the Case 1 curve, 12 t, 35/25/15/5 km/h, all five methods (paper Table 1).
+* ``case2``: the straight line, 12 t, 10 km/h, heading 60 degrees off at the start
+  (Table 2).
+* ``case3``: the Case 1 curve at 30 km/h, 8/12/16/20 t (Table 3, Omega against load).
+* ``pareto``: on the Case 1 curve at 15 and 35 km/h, TWO with its wear weights L scaled
+  against NTWO with its command regularisation scaled (the only other lever that lowers
+  wear), the three baselines as points: does the wear term buy less wear at the same
+  accuracy than smoothing the commands does?
+
+The five methods (paper Section 4.2) share one MPC, annealer, plant and every setting
+except: NTWO = Magic Formula model, L = 0; TWO = Magic Formula model with L; Kinematic, DH
+and TCT = their own prediction model with L = 0 (their sources have no wear term).
+
+Runs go in parallel over the cores (``--jobs``), with a progress bar, and resume: a
+finished run is stored under ``OUT/runs/`` keyed by a hash of its whole configuration and
+is not redone (``--force`` redoes it). Outputs in ``OUT`` (default ``runs/<experiment>``):
+``table.md``/``table.csv`` in the paper's layout (best per group and column in bold,
+second underlined), ``summary.json`` (rows, the issue's targets, timings),
+``trajectories.png``, ``errors.png``, ``omega_vs_speed.png`` (Case 1) or
+``omega_vs_load.png`` (Case 3); for ``pareto``: ``pareto.md``, ``pareto.csv``,
+``pareto.json``, ``pareto.png``. ``--json`` prints the table (or the fronts) as data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+from .experiments_runs import METHODS, RunSpec, run_all
+
+EXPERIMENTS = ("case1", "case2", "case3", "pareto")
+CASE1_SPEEDS = (35.0, 25.0, 15.0, 5.0)  # km/h, the paper's row order
+CASE2_SPEED = 10.0
+CASE3_SPEED = 30.0
+CASE3_MASSES_T = (8.0, 12.0, 16.0, 20.0)
+PARETO_SPEEDS = (15.0, 35.0)
+# TWO: L = scale x the default L. NTWO-smooth: (R_dw, R_dd) = scale x their defaults (the
+# smoothing of the offsets between blocks and solves). NTWO-ridge: (R_ow, R_od) = scale x
+# RIDGE_BASE (pulls the offsets toward the kinematic feed-forward). See docs/RESULTS.md.
+TWO_SCALES = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+SMOOTH_SCALES = (0.0, 1.0, 4.0, 16.0, 64.0, 256.0)
+RIDGE_SCALES = (0.0, 1.0, 4.0, 16.0, 64.0, 256.0)
+RIDGE_BASE = (0.05, 20.0)  # (R_ow [1/(rad/s)^2], R_od [1/rad^2]): the default R_dw, R_dd
+
+
+def _kmh(v: float) -> str:
+    return f"{v:g} km/h"
+
+
+def _tonnes(m: float) -> str:
+    return f"{m:g} t"
+
+
+def _methods(selected):
+    names = list(METHODS) if not selected else list(selected)
+    bad = [m for m in names if m not in METHODS]
+    if bad:
+        raise ValueError(f"--methods: unknown method(s) {', '.join(bad)} (known: {', '.join(METHODS)})")
+    return [m for m in METHODS if m in names]  # the paper's order
+
+
+def case_specs(experiment: str, *, speeds=None, masses_t=None, methods=None,
+               duration=None, vehicle=None) -> list[RunSpec]:
+    """The runs of ``case1``, ``case2`` or ``case3`` in the paper's table order."""
+    ms = _methods(methods)
+    specs = []
+    if experiment == "case1":
+        for v in (speeds or CASE1_SPEEDS):
+            specs += [RunSpec(m, _kmh(v), "curve", float(v), 12000.0, dict(METHODS[m]), duration,
+                              vehicle) for m in ms]
+    elif experiment == "case2":
+        for v in (speeds or (CASE2_SPEED,)):
+            specs += [RunSpec(m, _kmh(v), "line", float(v), 12000.0, dict(METHODS[m]), duration,
+                              vehicle) for m in ms]
+    elif experiment == "case3":
+        v = float((speeds or (CASE3_SPEED,))[0])
+        for t in (masses_t or CASE3_MASSES_T):
+            specs += [RunSpec(m, _tonnes(t), "curve", v, 1000.0 * float(t), dict(METHODS[m]),
+                              duration, vehicle) for m in ms]
+    else:
+        raise ValueError(f"unknown experiment '{experiment}'")
+    return specs
+
+
+def pareto_specs(*, speeds=None, duration=None, vehicle=None, two_scales=TWO_SCALES,
+                 smooth_scales=SMOOTH_SCALES, ridge_scales=RIDGE_SCALES,
+                 baselines=("Kinematic", "DH", "TCT")) -> list[RunSpec]:
+    """TWO with L scaled, NTWO with (R_dw, R_dd) and with (R_ow, R_od) scaled, baselines."""
+    from controller.models import MPCSettings
+
+    d = MPCSettings()
+    specs = []
+    for v in (speeds or PARETO_SPEEDS):
+        g = _kmh(v)
+        for s in two_scales:
+            L = [s * x for x in d.L]
+            specs.append(RunSpec(f"TWO L x{s:g}", g, "curve", float(v), 12000.0,
+                                 {"model": "mf", "method": "two", "L": L}, duration, vehicle,
+                                 {"family": "TWO", "scale": s, "lever": "L"}))
+        for s in smooth_scales:
+            R = [s * d.R[0], s * d.R[1], d.R[2], d.R[3]]
+            specs.append(RunSpec(f"NTWO R_dw,R_dd x{s:g}", g, "curve", float(v), 12000.0,
+                                 {"model": "mf", "method": "ntwo", "R": R}, duration, vehicle,
+                                 {"family": "NTWO-smooth", "scale": s, "lever": "R_dw, R_dd"}))
+        for s in ridge_scales:
+            R = [d.R[0], d.R[1], d.R[2] + s * RIDGE_BASE[0], d.R[3] + s * RIDGE_BASE[1]]
+            specs.append(RunSpec(f"NTWO R_ow,R_od x{s:g}", g, "curve", float(v), 12000.0,
+                                 {"model": "mf", "method": "ntwo", "R": R}, duration, vehicle,
+                                 {"family": "NTWO-ridge", "scale": s, "lever": "R_ow, R_od"}))
+        for m in baselines:
+            specs.append(RunSpec(m, g, "curve", float(v), 12000.0, dict(METHODS[m]), duration,
+                                 vehicle, {"family": "baseline"}))
+    return specs
+
+
+# ---- reports ----------------------------------------------------------------------------------
+def _group_value(group: str) -> float:
+    return float(group.split()[0])
+
+
+def report_case(experiment: str, results: list[dict], out: Path, run_summary: dict) -> dict:
+    from .experiments_paper import paper_table
+    from .experiments_report import (check_targets, markdown_table, plot_errors, plot_omega,
+                                     plot_trajectories, table_rows, targets_markdown, write_csv)
+
+    rows = table_rows(results)
+    speed_of = (lambda g: CASE3_SPEED) if experiment == "case3" else _group_value
+    if experiment == "case3" and results:
+        sp = results[0]["spec"]["speed_kmh"]
+        speed_of = lambda g: sp  # noqa: E731
+    targets = check_targets(experiment, rows, speed_of)
+    paper = paper_table(experiment)
+    titles = {"case1": "Case 1 (curve, 12 t)", "case2": "Case 2 (line, 12 t, 60 deg off)",
+              "case3": f"Case 3 (curve, {results[0]['spec']['speed_kmh']:g} km/h)" if results else "Case 3"}
+    title = titles[experiment]
+    md = [f"# {title}\n", markdown_table(rows), "\n## Against the paper (paper rows in italics)\n",
+          markdown_table(rows, paper), "\n## Targets\n", targets_markdown(targets)]
+    (out / "table.md").write_text("\n".join(md))
+    write_csv(rows, out / "table.csv")
+    figures = []
+    if any(r["status"] == "ok" for r in results):
+        plot_trajectories(results, out, out / "trajectories.png", title)
+        plot_errors(results, out, out / "errors.png", title)
+        figures += ["trajectories.png", "errors.png"]
+        if experiment == "case1":
+            plot_omega(rows, _group_value, "speed [km/h]", out / "omega_vs_speed.png",
+                       "Case 1: performance balance index against speed")
+            figures.append("omega_vs_speed.png")
+        elif experiment == "case3":
+            plot_omega(rows, _group_value, "gross vehicle weight [t]", out / "omega_vs_load.png",
+                       "Case 3: performance balance index against load")
+            figures.append("omega_vs_load.png")
+    summary = {"experiment": experiment, "columns": list(rows[0]["metrics"]) if rows else [],
+               "rows": rows, "targets": targets, "runs": run_summary, "figures": figures,
+               "out": str(out)}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def report_pareto(results: list[dict], out: Path, run_summary: dict) -> dict:
+    from .experiments_report import fmt, lower_front, plot_pareto, wear_at
+
+    fronts: dict[str, dict] = {}
+    for r in results:
+        sp = r["spec"]["group"]
+        fr = fronts.setdefault(sp, {"families": {}, "baselines": {}, "lever": {}})
+        tags = r["spec"]["tags"]
+        m = r.get("metrics") or {}
+        point = {"label": r["spec"]["label"], "status": r["status"], "error": r.get("error"),
+                 "W_tw": m.get("W_tw"), "e_bar": m.get("e_bar"), "Omega": m.get("Omega"),
+                 "W_s": m.get("W_s"), "W_alpha": m.get("W_alpha"), "W_t": m.get("W_t"),
+                 "key": r["key"]}
+        if tags.get("family") == "baseline":
+            fr["baselines"][r["spec"]["label"]] = point
+        else:
+            point["scale"] = tags["scale"]
+            for k in ("L", "R"):
+                if k in r["spec"]["settings"]:
+                    point[k] = list(r["spec"]["settings"][k])
+            fr["families"].setdefault(tags["family"], []).append(point)
+            fr["lever"][tags["family"]] = tags["lever"]
+    lines = ["# Pareto fronts: wear against accuracy (Case 1 curve, 12 t)\n"]
+    csv_rows = []
+    for sp, fr in fronts.items():
+        two = [(p["e_bar"], p["W_tw"]) for p in fr["families"].get("TWO", []) if p["status"] == "ok"]
+        front = lower_front(two)
+        fr["two_front"] = [{"e_bar": e, "W_tw": w} for e, w in front]
+        comp = []
+        for fam, pts in fr["families"].items():
+            if fam == "TWO":
+                continue
+            for p in sorted(pts, key=lambda q: q["scale"]):
+                if p["status"] != "ok":
+                    continue
+                w2 = wear_at(front, p["e_bar"])
+                comp.append({"family": fam, "scale": p["scale"], "e_bar": p["e_bar"],
+                             "W_tw": p["W_tw"], "W_tw_TWO_same_e_bar": w2,
+                             "ratio": None if w2 is None else w2 / p["W_tw"]})
+        fr["comparison"] = comp
+        lines.append(f"\n## {sp}\n")
+        lines.append("| family | lever | scale | W_tw (J) | e_bar | Omega |")
+        lines.append("|---|---|---:|---:|---:|---:|")
+        for fam, pts in fr["families"].items():
+            for p in sorted(pts, key=lambda q: q["scale"]):
+                lines.append(f"| {fam} | {fr['lever'][fam]} | x{p['scale']:g} | "
+                             f"{fmt('W_tw', p['W_tw'])} | {fmt('e_bar', p['e_bar'])} | "
+                             f"{fmt('Omega', p['Omega'])} |")
+                csv_rows.append([sp, fam, fr["lever"][fam], p["scale"], p["W_tw"], p["e_bar"],
+                                 p["Omega"], p["status"]])
+        for name, p in fr["baselines"].items():
+            lines.append(f"| {name} | (baseline) | | {fmt('W_tw', p['W_tw'])} | "
+                         f"{fmt('e_bar', p['e_bar'])} | {fmt('Omega', p['Omega'])} |")
+            csv_rows.append([sp, name, "", "", p["W_tw"], p["e_bar"], p["Omega"], p["status"]])
+        lines.append(f"\nTWO's front (non-dominated points): "
+                     + ", ".join(f"({e:.2f}, {fmt('W_tw', w)})" for e, w in front))
+        lines.append("\n| NTWO point | e_bar | W_tw NTWO (J) | W_tw TWO at same e_bar (J) | TWO / NTWO |")
+        lines.append("|---|---:|---:|---:|---:|")
+        for c in comp:
+            w2 = c["W_tw_TWO_same_e_bar"]
+            two_w = fmt("W_tw", w2) if w2 is not None else "outside TWO's range"
+            ratio = "" if c["ratio"] is None else f"{c['ratio']:.3f}"
+            lines.append(f"| {c['family']} x{c['scale']:g} | {c['e_bar']:.2f} | "
+                         f"{fmt('W_tw', c['W_tw'])} | {two_w} | {ratio} |")
+    (out / "pareto.md").write_text("\n".join(lines) + "\n")
+    import csv
+
+    with (out / "pareto.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["speed", "family", "lever", "scale", "W_tw", "e_bar", "Omega", "status"])
+        w.writerows(csv_rows)
+    figures = []
+    if any(r["status"] == "ok" for r in results):
+        plot_pareto(fronts, out / "pareto.png")
+        figures.append("pareto.png")
+    summary = {"experiment": "pareto", "fronts": fronts, "runs": run_summary,
+               "figures": figures, "out": str(out)}
+    (out / "pareto.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+# ---- entry point ------------------------------------------------------------------------------
+def _floats(text: str | None, name: str):
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"{name}: expected comma-separated numbers, got '{text}'") from None
+    if not vals or any(not (math.isfinite(v) and v >= 0) for v in vals):
+        raise ValueError(f"{name}: expected finite numbers >= 0, got '{text}'")
+    return vals
+
+
+def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None = None,
+                   force: bool = False, progress: bool = True, duration: float | None = None,
+                   speeds=None, masses_t=None, methods=None, vehicle: str | None = None,
+                   two_scales=None, smooth_scales=None, ridge_scales=None) -> dict:
+    """Run (or resume) one experiment and write its outputs; returns its summary."""
+    if name not in EXPERIMENTS:
+        raise ValueError(f"unknown experiment '{name}' (expected {', '.join(EXPERIMENTS)})")
+    if duration is not None and not duration > 0:
+        raise ValueError("--duration must be > 0")
+    out = Path(out) if out is not None else Path("runs") / name
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    if name == "pareto":
+        kw = {k: v for k, v in (("two_scales", two_scales), ("smooth_scales", smooth_scales),
+                                ("ridge_scales", ridge_scales)) if v is not None}
+        if methods:
+            kw["baselines"] = [m for m in _methods(methods) if m in ("Kinematic", "DH", "TCT")]
+        specs = pareto_specs(speeds=speeds, duration=duration, vehicle=vehicle, **kw)
+    else:
+        specs = case_specs(name, speeds=speeds, masses_t=masses_t, methods=methods,
+                           duration=duration, vehicle=vehicle)
+    results, summ = run_all(specs, out, jobs=jobs, force=force, progress=progress, desc=name)
+    summ["total_wall_s"] = time.perf_counter() - t0
+    summ["jobs"] = int(jobs or os.cpu_count() or 1)
+    if name == "pareto":
+        return report_pareto(results, out, summ)
+    return report_case(name, results, out, summ)
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="msagv experiment", description=__doc__.splitlines()[0])
+    ap.add_argument("experiment", choices=EXPERIMENTS)
+    ap.add_argument("--out", metavar="DIR", help="output directory (default runs/<experiment>)")
+    ap.add_argument("--jobs", type=int, metavar="N", help="parallel runs (default: all cores)")
+    ap.add_argument("--json", action="store_true", help="print the table (pareto: the fronts) as JSON")
+    ap.add_argument("--duration", type=float, metavar="S",
+                    help="shorten every run to S seconds of vehicle time (default: the whole reference)")
+    ap.add_argument("--speeds", metavar="KMH,...", help="subset/override of the speeds")
+    ap.add_argument("--masses", metavar="T,...", help="case3: loads in tonnes (default 8,12,16,20)")
+    ap.add_argument("--methods", metavar="NAME,...",
+                    help=f"subset of {','.join(METHODS)} (pareto: of the baselines)")
+    ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
+    ap.add_argument("--force", action="store_true", help="redo runs even if finished")
+    ap.add_argument("--two-scales", metavar="S,...", help="pareto: factors on TWO's L")
+    ap.add_argument("--smooth-scales", metavar="S,...", help="pareto: factors on NTWO's R_dw, R_dd")
+    ap.add_argument("--ridge-scales", metavar="S,...", help="pareto: factors of NTWO's R_ow, R_od")
+    ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
+                    help="progress bar over finished runs on stderr (default on)")
+    a = ap.parse_args(argv)
+    try:
+        if a.jobs is not None and a.jobs < 1:
+            raise ValueError("--jobs must be >= 1")
+        methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
+        summary = run_experiment(
+            a.experiment, a.out, jobs=a.jobs, force=a.force, progress=a.progress,
+            duration=a.duration, speeds=_floats(a.speeds, "--speeds"),
+            masses_t=_floats(a.masses, "--masses"), methods=methods, vehicle=a.vehicle,
+            two_scales=_floats(a.two_scales, "--two-scales"),
+            smooth_scales=_floats(a.smooth_scales, "--smooth-scales"),
+            ridge_scales=_floats(a.ridge_scales, "--ridge-scales"))
+    except (ValueError, FileNotFoundError) as e:
+        print(f"msagv experiment: {e}", file=sys.stderr)
+        return 2
+    out = Path(summary["out"])
+    r = summary["runs"]
+    print(f"msagv experiment {a.experiment}: {r['runs']} runs ({r['executed']} run now, "
+          f"{r['reused']} reused, {r['failed']} failed) in {r['total_wall_s']:.1f} s; "
+          f"outputs in {out}", file=sys.stderr)
+    if a.json:
+        print(json.dumps(summary))
+    elif a.experiment == "pareto":
+        print((out / "pareto.md").read_text())
+    else:
+        print((out / "table.md").read_text())
+    return 0

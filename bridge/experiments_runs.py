@@ -1,0 +1,273 @@
+"""Runs of the experiments: one closed-loop run per configuration, cached on disk under a
+hash of that configuration, executed in parallel over the machine's cores.
+
+A run is ``Plant(vehicle, initial) + MPC(vehicle, settings, reference) + closed_loop`` at
+T = 0.01 s, with the annealer's fixed iteration budget and seed, so it is deterministic: the
+same configuration gives the same numbers, and a finished run never needs redoing.
+
+On disk, under ``OUT/runs/``: ``<key>.json`` (the configuration, the metrics of eq. 28-33,
+wall and CPU time, status) and ``<key>.csv`` (the per-step log of
+:meth:`controller.loop.RunLog.to_csv`). The JSON is written last and atomically, so its
+presence means the run finished; an interrupted experiment resumes where it stopped.
+
+The key hashes everything that determines the result: the case, speed, mass and duration,
+the vehicle description, *all* MPC settings (resolved against the current defaults, so a
+change of a default weight reruns the affected runs) and a digest of the source of
+``controller/`` and ``plant/`` (so a code change does too).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+SCHEMA = 1  # bump when the meaning of a stored result changes
+PERIOD = 0.01  # s, the paper's control period T
+
+# The five methods of the paper's Section 4.2, in its table order. The baselines use their
+# own prediction model with the wear weight L = 0 (their source papers have no wear term);
+# every other setting is the same for all five.
+METHODS: dict[str, dict] = {
+    "Kinematic": {"model": "kinematic", "method": "ntwo"},
+    "DH": {"model": "dugoff", "method": "ntwo"},
+    "TCT": {"model": "tct", "method": "ntwo"},
+    "NTWO": {"model": "mf", "method": "ntwo"},
+    "TWO": {"model": "mf", "method": "two"},
+}
+
+
+@dataclass
+class RunSpec:
+    """One closed-loop run of an experiment.
+
+    label : the row's method name (``TWO``, or ``TWO L x0.5`` on a Pareto front).
+    group : the row group (``35 km/h``, ``12 t``).
+    case : ``curve`` (Case 1) or ``line`` (Case 2).
+    speed_kmh : reference speed [km/h].
+    mass_kg : gross vehicle weight [kg]; None keeps the vehicle file's.
+    settings : MPCSettings fields that differ from the defaults.
+    duration : vehicle time [s]; None runs the whole reference.
+    vehicle : vehicle TOML path; None is the built-in paper vehicle.
+    tags : free data carried into the result (Pareto family and scale).
+    """
+
+    label: str
+    group: str
+    case: str
+    speed_kmh: float
+    mass_kg: float | None = None
+    settings: dict = field(default_factory=dict)
+    duration: float | None = None
+    vehicle: str | None = None
+    tags: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RunSpec":
+        return cls(**d)
+
+    def estimated_steps(self) -> int:
+        """Control periods this run will take (for scheduling the longest first)."""
+        if self.duration is not None:
+            return int(self.duration / PERIOD)
+        if self.case == "line":
+            return int(20.0 / PERIOD)
+        return int(150.0 / (max(self.speed_kmh, 0.1) / 3.6) / PERIOD)
+
+
+def code_digest() -> str:
+    """SHA-256 over the source of controller/ and plant/ (and the built-in vehicle)."""
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha256()
+    files = sorted(list((root / "controller").glob("*.py")) + list((root / "plant").glob("*.py"))
+                   + list((root / "plant" / "data").glob("*.toml")))
+    for p in files:
+        h.update(p.relative_to(root).as_posix().encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def build_vehicle(spec: RunSpec):
+    from plant.vehicle import load_vehicle
+
+    vehicle = load_vehicle(spec.vehicle)
+    if spec.mass_kg is not None:
+        vehicle = vehicle.replace(mass=float(spec.mass_kg))
+    return vehicle
+
+
+def build_settings(spec: RunSpec):
+    from controller.models import MPCSettings
+
+    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in spec.settings.items()}
+    kw.setdefault("threads", 1)  # one core per run: the runs themselves are parallel
+    return MPCSettings(**kw)
+
+
+def config_of(spec: RunSpec, digest: str | None = None) -> dict:
+    """Everything that determines the run's result (the content of its key)."""
+    s = build_settings(spec)
+    return {
+        "schema": SCHEMA,
+        "case": spec.case,
+        "speed_kmh": float(spec.speed_kmh),
+        "duration": None if spec.duration is None else float(spec.duration),
+        "period": PERIOD,
+        "vehicle": build_vehicle(spec).to_dict(),
+        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
+        "code": digest or code_digest(),
+    }
+
+
+def run_key(spec: RunSpec, digest: str | None = None) -> str:
+    blob = json.dumps(config_of(spec, digest), sort_keys=True, default=repr)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def execute(spec_d: dict, out_dir: str, key: str) -> dict:
+    """Run one configuration and store it (worker side). Errors of the simulation itself
+    (a diverging plant, refused commands) are stored as a failed run: they are as
+    deterministic as a result."""
+    from controller.loop import closed_loop
+    from controller.mpc import MPC
+    from controller.reference import make_case
+    from plant.stepping import Plant
+
+    spec = RunSpec.from_dict(spec_d)
+    runs = Path(out_dir) / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = {"key": key, "spec": spec.to_dict(), "status": "ok", "error": None, "metrics": None}
+    try:
+        vehicle = build_vehicle(spec)
+        settings = build_settings(spec)
+        ref, init = make_case(spec.case, spec.speed_kmh)
+        duration = ref.duration if spec.duration is None else min(spec.duration, ref.duration)
+        plant = Plant(vehicle, initial=init(vehicle))
+        mpc = MPC(vehicle, settings, ref)
+        log = closed_loop(plant, mpc, ref, duration, period=PERIOD, progress=False)
+        tmp = runs / f"{key}.csv.tmp{os.getpid()}"
+        log.to_csv(tmp)
+        os.replace(tmp, runs / f"{key}.csv")
+        m = log.metrics()
+        res["metrics"] = m
+        res["duration"] = duration
+        res["log"] = f"runs/{key}.csv"
+    except Exception as e:  # noqa: BLE001 - stored and reported, never hidden
+        res["status"] = "failed"
+        res["error"] = f"{type(e).__name__}: {e}"
+    res["wall_s"] = time.perf_counter() - t0
+    res["cpu_s"] = time.process_time() - c0
+    res["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
+    res["config"] = config_of(spec)
+    _atomic_write(runs / f"{key}.json", json.dumps(res, indent=1, sort_keys=True))
+    return res
+
+
+def _worker_init() -> None:
+    # each worker is one single-threaded run; the parallelism is across runs
+    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(k, "1")
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except Exception:  # noqa: BLE001 - numba missing or already configured
+        pass
+
+
+def load_result(out_dir: Path, key: str) -> dict | None:
+    p = Path(out_dir) / "runs" / f"{key}.json"
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None  # a damaged result is redone
+
+
+def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
+            force: bool = False, progress: bool = True, desc: str = "runs") -> tuple[list[dict], dict]:
+    """Run every spec not already finished under ``out_dir`` (all of them with ``force``).
+
+    Returns the results in the order of ``specs`` and a summary
+    ``{"runs", "reused", "executed", "failed", "wall_s"}``. With ``jobs`` > 1 (default: the
+    machine's cores) the runs go to a process pool, longest first; progress is a bar over
+    finished runs on stderr.
+    """
+    out_dir = Path(out_dir)
+    (out_dir / "runs").mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    digest = code_digest()
+    keys = [run_key(s, digest) for s in specs]
+    results: dict[str, dict] = {}
+    todo: dict[str, RunSpec] = {}
+    for s, k in zip(specs, keys):
+        if k in results or k in todo:
+            continue
+        old = None if force else load_result(out_dir, k)
+        if old is not None:
+            results[k] = old
+        else:
+            todo[k] = s
+    reused = len(results)
+    order = sorted(todo, key=lambda k: -todo[k].estimated_steps())
+    jobs = max(1, int(jobs or os.cpu_count() or 1))
+    bar = None
+    if progress and order:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(order), desc=desc, unit="run", file=sys.stderr, dynamic_ncols=True)
+
+    def done(res):
+        results[res["key"]] = res
+        if bar is not None:
+            bar.set_postfix_str(f"{res['spec']['label']} {res['spec']['group']}", refresh=False)
+            bar.update(1)
+
+    if order and (jobs == 1 or len(order) == 1):
+        _worker_init()
+        for k in order:
+            done(execute(todo[k].to_dict(), str(out_dir), k))
+    elif order:
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")  # fresh interpreters: no inherited numba/thread state
+        with ProcessPoolExecutor(max_workers=min(jobs, len(order)), mp_context=ctx,
+                                 initializer=_worker_init) as pool:
+            pending = {pool.submit(execute, todo[k].to_dict(), str(out_dir), k) for k in order}
+            try:
+                while pending:
+                    fin, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for f in fin:
+                        done(f.result())
+            except BaseException:
+                for f in pending:
+                    f.cancel()
+                raise
+    if bar is not None:
+        bar.close()
+    out = [results[k] for k in keys]
+    failed = sum(1 for k in set(keys) if results[k]["status"] != "ok")
+    summary = {"runs": len(set(keys)), "reused": reused, "executed": len(order),
+               "failed": failed, "wall_s": time.perf_counter() - t0}
+    return out, summary
+
+
+def finite(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
