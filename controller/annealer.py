@@ -24,6 +24,7 @@ compiled rollout, not into Python. Design choices (see docs/CONTROLLER.md):
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -79,8 +80,8 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
     evals = chains
     acc = 0
     done = 0
-    log_sf = np.log(sigma_final)
-    log_tr = np.log(t_end / t_start)
+    log_sf = math.log(sigma_final)
+    log_tr = math.log(t_end / t_start)
     denom = max(iterations - 1, 1)
     n_restart = max(chains // 4, 1)
     for it in range(iterations):
@@ -92,12 +93,12 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
         else:
             frac = it / denom
         frac = min(frac, 1.0)
-        step = sigma * np.exp(log_sf * frac)
+        step = sigma * math.exp(log_sf * frac)
         Xp = X + step * noise[it + 1]
         np.clip(Xp, lower, upper, out=Xp)
         Jp = np.asarray(cost(Xp), dtype=float)
         evals += chains
-        temp = max(best_J, 1e-12) * t_start * np.exp(log_tr * frac)
+        temp = max(best_J, 1e-12) * t_start * math.exp(log_tr * frac)
         dJ = Jp - J
         ok = (dJ <= 0) | (unif[it] < np.exp(-np.maximum(dJ, 0.0) / temp))
         acc += int(ok.sum())
@@ -108,7 +109,7 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
             best_J = float(J[ib])
             best_x = X[ib].copy()
         if restart_every and (it + 1) % restart_every == 0 and it + 1 < iterations:
-            worst = np.argsort(J)[-n_restart:]
+            worst = np.argsort(J, kind="mergesort")[-n_restart:]  # stable: ties reproducible
             X[worst] = best_x
             J[worst] = best_J
         done += 1

@@ -18,7 +18,7 @@ import numpy as np
 from plant.vehicle import Vehicle
 
 from . import rollout as _ro
-from .annealer import anneal
+from .sa_kernel import CompiledAnnealer
 from .models import MPCSettings, make_model
 from .reference import Reference
 
@@ -68,8 +68,10 @@ class MPC:
         self.Q = np.array(s.Q, dtype=float)
         self.L = np.array(s.effective_L, dtype=float)
         self.R = np.array(s.R, dtype=float)
-        self._buf = self.model.allocate(s.chains)
-        self._costs = np.empty(s.chains)
+        self._sa = CompiledAnnealer(self.model, self.Q, self.L, self.R, self.lower, self.upper,
+                                    self.sigma, chains=s.chains, iterations=s.iterations,
+                                    sigma_final=s.sigma_final, t_start=s.t_start,
+                                    t_end=s.t_end, parallel=s.threads > 1)
         self.reset()
 
     # ---- state -------------------------------------------------------------------------
@@ -113,19 +115,10 @@ class MPC:
         R = np.ascontiguousarray(ref.sample(times))
         if s.threads > 1:
             numba.set_num_threads(min(s.threads, numba.config.NUMBA_NUM_THREADS))
-        buf, costs, model = self._buf, self._costs, self.model
         zprev = self.z[: 2 * self.nw].copy()
-
-        def cost(Z):
-            model.rollout(x0, R, Z, out=buf)
-            _ro.batch_cost(buf.poses, buf.wear, R, Z, zprev, self.Q, self.L, self.R, self.nw, costs)
-            return costs
-
         warm = self._shifted(self.z)
         deadline = None if s.deadline_ms is None else s.deadline_ms / 1000.0 - (time.perf_counter() - t0)
-        res = anneal(cost, warm, self.lower, self.upper, self.sigma, self.rng, chains=s.chains,
-                     iterations=s.iterations, deadline_s=deadline, sigma_final=s.sigma_final,
-                     t_start=s.t_start, t_end=s.t_end)
+        res = self._sa.solve(x0, R, zprev, warm, self.rng, deadline)
         self.z = res.x
         om_w, om_s = self.commands_for(x0, R[0], res.x)
         ms = (time.perf_counter() - t0) * 1000.0

@@ -409,9 +409,10 @@ def rollout_batch_parallel(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, 
 
 
 @njit(cache=True, error_model="numpy")
-def batch_cost(poses, wear, ref, Z, zprev, Q, L, R, nw, costs):
-    """Cost of each candidate (paper eq. 22-26) plus the shared command regularisation.
+def candidate_cost(poses, wear, ref, z, zprev, Q, L, R, nw):
+    """Cost of one candidate (paper eq. 22-26) plus the shared command regularisation.
 
+    ``poses``, ``wear`` (N_p, 3) of the candidate, ``z`` (D,) its decision vector.
     ``J = sum_k (Y_k - Yt_k)^T Q (Y_k - Yt_k) + P_k^T L P_k`` (eq. 22, W_Y = E (x) Q,
     W_P = E (x) L, P the wear powers in kW so L has usable magnitudes), heading error
     wrapped to (-pi, pi]; plus ``R = (R_dw, R_dd, R_ow, R_od)``: smoothness of the offsets
@@ -419,28 +420,33 @@ def batch_cost(poses, wear, ref, Z, zprev, Q, L, R, nw, costs):
     (``zprev``), weighted R_dw [1/(rad/s)^2] for wheel speeds and R_dd [1/rad^2] for
     angles, and a ridge R_ow, R_od on the offsets themselves. Scaled by 1/N_p.
     """
-    B, Np = poses.shape[0], poses.shape[1]
-    D = Z.shape[1]
-    nb = D // (2 * nw)
-    for b in range(B):
-        J = 0.0
-        for k in range(Np):
-            ex = poses[b, k, 0] - ref[k + 1, 0]
-            ey = poses[b, k, 1] - ref[k + 1, 1]
-            ep = _wrap(poses[b, k, 2] - ref[k + 1, 2])
-            J += Q[0] * ex * ex + Q[1] * ey * ey + Q[2] * ep * ep
-            p0 = wear[b, k, 0] * 1e-3
-            p1 = wear[b, k, 1] * 1e-3
-            p2 = wear[b, k, 2] * 1e-3
-            J += L[0] * p0 * p0 + L[1] * p1 * p1 + L[2] * p2 * p2
-        reg = 0.0
-        for blk in range(nb):
-            for j in range(2 * nw):
-                zi = Z[b, blk * 2 * nw + j]
-                prev = zprev[j] if blk == 0 else Z[b, (blk - 1) * 2 * nw + j]
-                dz = zi - prev
-                if j < nw:
-                    reg += R[0] * dz * dz + R[2] * zi * zi
-                else:
-                    reg += R[1] * dz * dz + R[3] * zi * zi
-        costs[b] = J / Np + reg
+    Np = poses.shape[0]
+    nb = z.shape[0] // (2 * nw)
+    J = 0.0
+    for k in range(Np):
+        ex = poses[k, 0] - ref[k + 1, 0]
+        ey = poses[k, 1] - ref[k + 1, 1]
+        ep = _wrap(poses[k, 2] - ref[k + 1, 2])
+        J += Q[0] * ex * ex + Q[1] * ey * ey + Q[2] * ep * ep
+        p0 = wear[k, 0] * 1e-3
+        p1 = wear[k, 1] * 1e-3
+        p2 = wear[k, 2] * 1e-3
+        J += L[0] * p0 * p0 + L[1] * p1 * p1 + L[2] * p2 * p2
+    reg = 0.0
+    for blk in range(nb):
+        for j in range(2 * nw):
+            zi = z[blk * 2 * nw + j]
+            prev = zprev[j] if blk == 0 else z[(blk - 1) * 2 * nw + j]
+            dz = zi - prev
+            if j < nw:
+                reg += R[0] * dz * dz + R[2] * zi * zi
+            else:
+                reg += R[1] * dz * dz + R[3] * zi * zi
+    return J / Np + reg
+
+
+@njit(cache=True, error_model="numpy")
+def batch_cost(poses, wear, ref, Z, zprev, Q, L, R, nw, costs):
+    """:func:`candidate_cost` of every row of ``Z`` into ``costs`` (B,)."""
+    for b in range(Z.shape[0]):
+        costs[b] = candidate_cost(poses[b], wear[b], ref, Z[b], zprev, Q, L, R, nw)

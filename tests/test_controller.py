@@ -180,6 +180,44 @@ def test_annealer_seeded_and_deadline():
     assert c.cost <= f(np.zeros((1, 6)))[0]
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_compiled_annealer_equals_the_generic_one_on_the_mpc_cost(threads):
+    """The MPC's compiled solver loop (controller.sa_kernel) is the generic annealer run on
+    the MPC's batch cost: same seed, same random draws, same answer."""
+    from controller import rollout as ro
+
+    v = default_vehicle()
+    ref, init = make_case("curve", 25.0)
+    mpc = MPC(v, MPCSettings(threads=threads, chains=12, iterations=25), ref)
+    st = init(v)
+    x0 = np.r_[[st[k] for k in ("x", "y", "phi", "vx", "vy", "r")], np.full(4, 0.02)]
+    s = mpc.settings
+    R = np.ascontiguousarray(ref.sample(s.dt * np.arange(s.N_p + 1)))
+    warm = np.random.default_rng(3).normal(size=mpc.model.dim) * 0.05
+    zprev = warm[:8].copy()
+    got = mpc._sa.solve(x0, R, zprev, warm, np.random.default_rng(5))
+    buf, costs = mpc.model.allocate(s.chains), np.empty(s.chains)
+
+    def cost(Z):
+        mpc.model.rollout(x0, R, Z, out=buf)
+        ro.batch_cost(buf.poses, buf.wear, R, Z, zprev, mpc.Q, mpc.L, mpc.R, 4, costs)
+        return costs
+
+    want = anneal(cost, warm, mpc.lower, mpc.upper, mpc.sigma, np.random.default_rng(5),
+                  chains=s.chains, iterations=s.iterations, sigma_final=s.sigma_final,
+                  t_start=s.t_start, t_end=s.t_end)
+    assert got.cost == pytest.approx(want.cost, rel=1e-12)
+    assert np.allclose(got.x, want.x, rtol=0, atol=1e-12)
+    assert got.iterations == want.iterations == 25
+    assert got.accepted == pytest.approx(want.accepted)
+    # the warm start is among the candidates: annealing never returns worse than it
+    assert got.cost <= cost(np.clip(warm, mpc.lower, mpc.upper)[None, :])[0]
+    # a deadline stops early with the best point so far, inside the box
+    late = mpc._sa.solve(x0, R, zprev, warm, np.random.default_rng(5), deadline_s=1e-4)
+    assert 1 <= late.iterations < 25
+    assert np.all(late.x >= mpc.lower) and np.all(late.x <= mpc.upper)
+
+
 # ---- rollout vs plant --------------------------------------------------------------------
 def _plant_vs_rollout(speed, dt, t_start=1.0):
     ref, init = make_case("curve", speed)
