@@ -32,7 +32,7 @@ MAX_REFERENCE_SAMPLES = 1_000_000
 
 # reason codes (docs/PROTOCOL.md, "Validation and rejection")
 NOT_MSGPACK = "not_msgpack"  # undecodable bytes, trailing bytes, too large
-NOT_A_MAP = "not_a_map"  # valid msgpack but not a map with string keys
+NOT_A_MAP = "not_a_map"  # valid msgpack but not a map (non-string keys are not_msgpack)
 VERSION_MISMATCH = "version"  # v missing, not an integer, or not VERSION
 MISSING_FIELD = "missing_field"
 EXTRA_FIELD = "extra_field"

@@ -110,6 +110,7 @@ class PlantStats:
     accepted: int = 0
     stale: int = 0  # valid but older than the newest accepted (out of order)
     duplicate: int = 0
+    after_end: int = 0  # valid answers to the end state (never applied)
     late: int = 0  # realtime: periods stepped without the command answering their state
     cmd_seq_gaps: int = 0
     safe_events: int = 0
@@ -239,6 +240,11 @@ class PlantNode:
             return None
         if self.rec is not None:
             self.rec.message("rx", key, payload, rx_wall)
+        if j >= self.cfg.steps:
+            # the answer to the end state: the run is over, nothing will apply it
+            with self._lock:
+                self.stats.after_end += 1
+            return None
         with self._lock:
             n = self._newest
             if n is not None and j < n.state_seq:
@@ -315,8 +321,8 @@ class PlantNode:
             self._ctl_event.clear()
 
     def _wait_answer(self, k: int, timeout_s: float) -> _Cmd | None:
-        """Lockstep: wait for the command answering state k. A controller that (re)appears
-        meanwhile is sent state k again. None if stopped."""
+        """Wait for the command answering state k (lockstep: every k; realtime: k = 0). A
+        controller that (re)appears meanwhile is sent state k again. None if stopped."""
         t0 = time.monotonic()
         gen = self._ctl_generation
         while True:
@@ -328,7 +334,7 @@ class PlantNode:
                 return None
             if time.monotonic() - t0 > timeout_s:
                 who = "present" if self.controller_present else "gone"
-                raise PlantRunError(f"lockstep: no command answering state {k} (t = "
+                raise PlantRunError(f"{self.cfg.run_mode}: no command answering state {k} (t = "
                                     f"{k * self.cfg.period:.2f} s) within {timeout_s:g} s "
                                     f"(controller token {who}); ending the run")
             if self._ctl_generation != gen and self.controller_present:
@@ -380,20 +386,10 @@ class PlantNode:
         cfg, T, st = self.cfg, self.cfg.period, self.stats
         stale_s = cfg.stale_ms / 1000.0
         self.publish_state(0)
-        # the clock starts with the first command (the controller is warm by then)
-        t0 = time.monotonic()
-        while True:
-            with self._lock:
-                n = self._newest
-            if n is not None and n.state_seq == 0:
-                break
-            if self.stop.is_set():
-                return
-            if time.monotonic() - t0 > cfg.timeout_s:
-                raise PlantRunError(f"realtime: no command answering state 0 within "
-                                    f"{cfg.timeout_s:g} s; ending the run")
-            self._cmd_event.wait(0.05)
-            self._cmd_event.clear()
+        # the clock starts with the first command (the controller is warm by then); a
+        # controller that (re)appears meanwhile is sent state 0 again, as in lockstep
+        if self._wait_answer(0, cfg.timeout_s) is None:
+            return
         w0 = time.perf_counter()
         last_pub = w0
         for k in range(cfg.steps):
@@ -473,7 +469,8 @@ class PlantNode:
             "lateness_ms": percentiles_ms(st.lateness_s),
             "period_jitter_ms": percentiles_ms(jit),
             "commands": {"accepted": st.accepted, "stale": st.stale, "duplicate": st.duplicate,
-                         "late": st.late, "lost": lost, "seq_gaps": st.cmd_seq_gaps},
+                         "late": st.late, "lost": lost, "seq_gaps": st.cmd_seq_gaps,
+                         "after_end": st.after_end},
             "safe": {"events": st.safe_events, "periods": st.safe_periods, "resumes": st.resumes},
             "controller_losses": st.controller_losses,
             "rejected": self.rej.summary(),

@@ -213,7 +213,7 @@ def test_a_controller_written_from_protocol_md_completes_a_lockstep_run(tmp_path
     assert s["steps"] == steps and s["t_end"] == pytest.approx(DURATION)
     c = s["commands"]
     assert c == {"accepted": steps, "stale": 1, "duplicate": 1, "late": 0, "lost": 0,
-                 "seq_gaps": 0}, c
+                 "seq_gaps": 0, "after_end": 0}, c
     bad = {k: v for k, v in seen["bad"].items() if k not in ("duplicate", "stale")}
     assert len(bad) == 12  # every reason code of section 5
     assert s["rejected"]["by_reason"] == bad
