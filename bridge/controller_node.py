@@ -85,6 +85,7 @@ class ControllerNode:
         self._event = threading.Event()
         self._lock = threading.Lock()
         self._pending = None  # (state dict, rx_perf)
+        self._held = None  # newest state received while the plant's token was not seen
         self._pending_ref = None  # decoded reference message
         self._last_seq: int | None = None
         self._cmd_seq = 0
@@ -126,9 +127,15 @@ class ControllerNode:
         if present:
             self.plant_seen = True
             log.info("plant %s present", self.keys.id)
+            with self._lock:
+                # a state that arrived just before the token was seen (the two travel on
+                # different paths): answer it now; --max-age-ms still drops it if too old
+                if self._held is not None and self._pending is None:
+                    self._pending, self._held = self._held, None
         else:
             with self._lock:
                 self._pending = None  # never answer a state of a plant that is gone
+                self._held = None
             log.warning("plant %s gone (liveliness token lost): not commanding%s", self.keys.id,
                         "" if self.cfg.on_plant_loss == "exit" else "; waiting for it to return")
         if self.rec is not None:
@@ -150,6 +157,8 @@ class ControllerNode:
             self.rec.message("rx", key, payload)
         if not self.plant_present:
             self.stats.ignored_no_plant += 1
+            with self._lock:
+                self._held = (st, rx_perf)
             return None
         with self._lock:
             if self._pending is not None:
@@ -275,6 +284,7 @@ class ControllerNode:
                 "dropped_stale": s.dropped_stale, "ignored_no_plant": s.ignored_no_plant,
                 "references": s.references, "ends": s.ends, "rejected": self.rej.summary(),
                 "exit_reason": self.exit_reason,
+                "solver": getattr(self.mpc, "solver_name", "sa"),
                 "settings": dataclasses.asdict(self.mpc.settings)}
 
 
@@ -336,13 +346,12 @@ def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> d
 
 
 def main(argv: list[str]) -> int:
-    from controller.mpc import MPC
     from controller.reference import ReferenceError
     from plant.stepping import PlantError
     from plant.vehicle import VehicleError, load_vehicle, vehicle_from_dict
 
     from .recording import Recorder
-    from .run_cmd import scenario_from_args, settings_from_args
+    from .run_cmd import make_mpc, scenario_from_args, settings_from_args, solver_from_args
     from .session import SessionError, open_session, options_from_args
 
     ap = build_parser()
@@ -364,6 +373,7 @@ def main(argv: list[str]) -> int:
         opts = options_from_args(a)
         keys = Keys(opts.id)
         settings = settings_from_args(a)
+        solver = solver_from_args(a, settings)  # ipopt without CasADi or with model != mf: exit 2
         if a.vehicle:
             load_vehicle(a.vehicle)  # a bad file fails before any network
     except (VehicleError, ValueError, FileNotFoundError) as e:
@@ -398,7 +408,7 @@ def main(argv: list[str]) -> int:
                 log.info("realtime plant: solve budget %g ms (--deadline-ms)", REALTIME_DEADLINE_MS)
             max_age = a.max_age_ms if a.max_age_ms is not None else (
                 50.0 if run_mode == "realtime" else None)
-            mpc = MPC(vehicle, settings, ref, period=period)
+            mpc = make_mpc(solver, vehicle, settings, ref, period=period)
             t0 = time.perf_counter()
             # compiling cannot be interrupted from Python: let SIGTERM act at once meanwhile
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
@@ -406,14 +416,15 @@ def main(argv: list[str]) -> int:
             sig.install()
             if stop.is_set():
                 return EXIT_OK
-            log.info("MPC warm (%.2f s): %s %s, seed %d", time.perf_counter() - t0,
-                     settings.method, settings.model, settings.seed)
+            log.info("MPC warm (%.2f s): %s %s, %s, seed %d", time.perf_counter() - t0,
+                     settings.method, settings.model, solver, settings.seed)
             if a.record:
                 rec = Recorder(a.record, {
                     "role": "controller", "id": keys.id, "vehicle": vehicle.to_dict(),
                     "period": period, "run_mode": run_mode,
                     "reference": dict(ref.to_message(), name=ref.name),
-                    "settings": dataclasses.asdict(settings), "argv": list(argv)})
+                    "settings": dataclasses.asdict(settings), "solver": solver,
+                    "argv": list(argv)})
             node = ControllerNode(mpc, keys, ControllerConfig(max_age, a.on_plant_loss,
                                                               a.exit_at_end),
                                   session=session, recorder=rec)

@@ -17,6 +17,8 @@ from controller.reference import ReferenceError, SpeedProfile, from_csv, make_ca
 from plant.stepping import PlantError, parse_initial
 from plant.vehicle import VehicleError, load_vehicle
 
+SOLVERS = ("sa", "ipopt")  # --solver: the annealer (controller.mpc) or IPOPT (controller.ipopt)
+
 
 def add_case_args(ap: argparse.ArgumentParser, default_case: str = "curve") -> None:
     g = ap.add_mutually_exclusive_group()
@@ -46,6 +48,36 @@ def add_mpc_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--threads", type=int, help="numba threads for the rollout (default 1)")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="any MPCSettings field, e.g. --set L=0.05,0.05,0.05 --set N_p=12")
+    ap.add_argument("--solver", choices=SOLVERS, default="sa",
+                    help="horizon solver: sa (simulated annealing, default) or ipopt (CasADi + "
+                         "IPOPT, exact derivatives; --model mf only, needs msagv[ipopt]; the "
+                         "annealer options are ignored, --deadline-ms is IPOPT's wall-time limit)")
+
+
+def solver_from_args(a, settings: MPCSettings) -> str:
+    """The ``--solver`` of ``a``, checked against ``settings``: ``ValueError`` (a
+    ``ControllerError``) with a message if IPOPT is asked for without CasADi or with a
+    prediction model other than 'mf'."""
+    solver = getattr(a, "solver", None) or "sa"
+    if solver not in SOLVERS:
+        raise ValueError(f"--solver: expected one of {', '.join(SOLVERS)}, got '{solver}'")
+    if solver == "ipopt":
+        from controller import ipopt
+
+        ipopt.check_supported(settings)
+    return solver
+
+
+def make_mpc(solver: str, vehicle, settings: MPCSettings, reference, period: float = 0.01):
+    """The MPC for ``--solver``: :class:`controller.mpc.MPC` (sa) or
+    :class:`controller.ipopt.IpoptMPC` (ipopt), same interface."""
+    if solver == "ipopt":
+        from controller.ipopt import IpoptMPC
+
+        return IpoptMPC(vehicle, settings, reference, period=period)
+    from controller.mpc import MPC
+
+    return MPC(vehicle, settings, reference, period=period)
 
 
 def settings_from_args(a) -> MPCSettings:
@@ -162,13 +194,13 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
                     help="progress bar (default: on a terminal for runs > 10 s)")
     a = ap.parse_args(argv)
     from controller.loop import closed_loop
-    from controller.mpc import MPC
     from plant.stepping import Plant
 
     errors: tuple = (VehicleError, ReferenceError, PlantError, ValueError, FileNotFoundError)
     plant = None
     try:
         settings = settings_from_args(a)
+        solver = solver_from_args(a, settings)
         if fmu:
             from fmu_build.cli import fmu_plant_from_args
             from fmu_build.host import FmuHostError
@@ -183,7 +215,7 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         duration = a.duration if a.duration is not None else ref.duration
         if not duration > 0:
             raise ValueError("--duration must be > 0")
-        mpc = MPC(vehicle, settings, ref)
+        mpc = make_mpc(solver, vehicle, settings, ref)
         log = closed_loop(plant, mpc, ref, duration, progress=a.progress)
     except errors as e:
         print(f"{prog}: {e}", file=sys.stderr)
@@ -195,12 +227,14 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     if a.log:
         log.to_csv(a.log)
     if a.plot:
-        plot_run(log, ref, a.plot, title=f"{ref.name} {settings.method.upper()} ({settings.model})")
+        plot_run(log, ref, a.plot, title=f"{ref.name} {settings.method.upper()} ({settings.model}"
+                                        f"{', ipopt' if solver == 'ipopt' else ''})")
     if a.json:
         print(json.dumps(m))
     else:
         where = f"FMU {Path(a.fmu).name}" if fmu else f"{vehicle.name} {vehicle.mass:g} kg"
-        print(format_table(m, f"{ref.name}, {settings.method.upper()} ({settings.model}), {where}"))
+        how = f"{settings.model}, ipopt" if solver == "ipopt" else settings.model
+        print(format_table(m, f"{ref.name}, {settings.method.upper()} ({how}), {where}"))
         if a.plot:
             print(f"  plot       {Path(a.plot)}")
     return 0

@@ -172,6 +172,23 @@ def test_controller_never_commands_a_plant_that_is_gone(ctl, vehicle):
     assert ctl.stats.ignored_no_plant == 1 and not ctl.sent
 
 
+def test_controller_answers_a_state_that_came_just_before_the_plants_token(ctl, vehicle):
+    # state and liveliness travel on different paths: a new plant's state 0 can arrive
+    # before its token; it is held, answered once the token is seen, dropped if it goes
+    ctl.plant_present = False
+    ctl.handle_state(_state_payload(0, vehicle), time.perf_counter())
+    ctl._on_plant_change(True)
+    st, rx = ctl._pending
+    assert st["seq"] == 0 and ctl.step(st, rx) == "sent"
+    ctl._on_plant_change(False)
+    ctl.handle_state(_state_payload(1, vehicle), time.perf_counter())
+    ctl._on_plant_change(False)
+    ctl._on_plant_change(True)
+    assert ctl._pending is None or ctl._pending[0]["seq"] == 1
+    ctl._on_plant_change(False)
+    assert ctl._pending is None and ctl._held is None
+
+
 def test_controller_does_not_send_a_stale_command(mpc, vehicle):
     node = ControllerNode(mpc, Keys("t0"), ControllerConfig(max_age_ms=1.0))
     st = M.decode_state(_state_payload(0, vehicle), 4)
