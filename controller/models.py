@@ -44,7 +44,9 @@ class MPCSettings:
       chains, iterations: fixed budget (deterministic). deadline_ms: optional wall-clock
         budget per solve (anytime). seed: the random generator's seed.
       sigma_w [rad/s], sigma_d [rad]: initial proposal scales; sigma_final: their final
-        fraction; t_start, t_end: relative temperatures.
+        fraction; t_start, t_end: relative temperatures; ladder: the smallest initial
+        per-chain step factor (chains start on a geometric ladder from it to 1);
+        adapt_up, adapt_down: per-chain step factor after an accepted / rejected move.
     method: 'two' (the paper's, with wear) or 'ntwo' (L = 0).
     model: 'mf' (paper), 'dugoff' (DH), 'kinematic', 'tct'.
     threads: 1 = serial rollouts (default: predictable when the plant or other runs share
@@ -59,7 +61,7 @@ class MPCSettings:
     blocks: tuple[int, ...] = (1, 2, 3)
     Q: tuple[float, float, float] = (200.0, 200.0, 1000.0)
     L: tuple[float, float, float] = (0.02, 0.01, 0.02)
-    R: tuple[float, float, float, float] = (0.05, 20.0, 0.0, 0.0)
+    R: tuple[float, float, float, float] = (0.05, 20.0, 0.005, 2.0)
     K_servo: float = 10.0
     K_pos: float = 1.0
     K_phi: float = 1.0
@@ -67,8 +69,8 @@ class MPCSettings:
     r_fb_max: float = 0.3
     offset_w_max: float = 3.0
     offset_d_max: float = 0.3
-    chains: int = 32
-    iterations: int = 30
+    chains: int = 2
+    iterations: int = 240
     deadline_ms: float | None = None
     seed: int = 0
     sigma_w: float = 0.3
@@ -76,6 +78,9 @@ class MPCSettings:
     sigma_final: float = 0.1
     t_start: float = 1e-2
     t_end: float = 1e-4
+    ladder: float = 0.05
+    adapt_up: float = 1.5
+    adapt_down: float = 0.7
     threads: int = 1
     ff_cornering: bool = True
 
@@ -101,6 +106,10 @@ class MPCSettings:
             bad = f"R: need 4 finite weights >= 0, got {self.R}"
         elif self.chains < 2 or self.iterations < 1:
             bad = "chains must be >= 2 and iterations >= 1"
+        elif not (0.0 < self.ladder <= 1.0):
+            bad = f"ladder: must be in (0, 1], got {self.ladder}"
+        elif not (self.adapt_up >= 1.0 and 0.0 < self.adapt_down <= 1.0):
+            bad = f"adapt_up must be >= 1 and adapt_down in (0, 1], got {self.adapt_up}, {self.adapt_down}"
         elif self.threads < 1:
             bad = f"threads: must be >= 1, got {self.threads}"
         elif self.deadline_ms is not None and not self.deadline_ms > 0:

@@ -71,7 +71,8 @@ class MPC:
         self._sa = CompiledAnnealer(self.model, self.Q, self.L, self.R, self.lower, self.upper,
                                     self.sigma, chains=s.chains, iterations=s.iterations,
                                     sigma_final=s.sigma_final, t_start=s.t_start,
-                                    t_end=s.t_end, parallel=s.threads > 1)
+                                    t_end=s.t_end, parallel=s.threads > 1, ladder=s.ladder,
+                                    adapt_up=s.adapt_up, adapt_down=s.adapt_down)
         self.reset()
 
     # ---- state -------------------------------------------------------------------------

@@ -13,8 +13,8 @@ Two variants: serial (default; predictable when other processes share the cores)
 ``parallel`` (the chains of an iteration spread over numba's threads with ``prange``).
 
 Budgets as in :func:`anneal`: a fixed iteration count runs in one kernel call; with a
-wall-clock deadline the kernel is called one iteration at a time so the clock can be read
-between iterations (about 10 us of overhead each).
+wall-clock deadline the kernel is called in chunks of up to ``CHUNK`` iterations, sized
+from the time per iteration measured so far, and the clock is read between chunks.
 """
 
 from __future__ import annotations
@@ -25,8 +25,10 @@ import time
 import numpy as np
 from numba import njit, prange
 
-from .annealer import AnnealResult
+from .annealer import SCALE_MAX, SCALE_MIN, AnnealResult, ladder_factors
 from .rollout import _simulate, candidate_cost
+
+CHUNK = 16  # iterations per kernel call under a deadline (the clock is read between calls)
 
 
 def _make_evaluate(parallel: bool):
@@ -47,11 +49,13 @@ evaluate_parallel = _make_evaluate(True)
 
 def _make_iterate(evaluate, name: str):
     def iterate(model, x0, ref, block, P, S, wx, wy, Q, L, R, nw, zprev, X, J, Xp, Jp,
-                best_x, best, noise, unif, it0, fracs, sigma, lower, upper, log_sf, t_start,
-                log_tr, restart_every, n_restart, iterations, poses, wear, cmds):
+                best_x, best, scale, noise, unif, it0, fracs, sigma, lower, upper, log_sf,
+                t_start, log_tr, restart_every, n_restart, iterations, up, down, poses, wear,
+                cmds):
         """Iterations ``it0 .. it0 + len(fracs) - 1`` of :func:`controller.annealer.anneal`
         (``fracs``: the schedule's progress fraction of each). ``best`` = [best_J,
-        accepted count] is updated in place, as are X, J and best_x."""
+        accepted count] is updated in place, as are X, J, best_x and the per-chain step
+        factors ``scale``."""
         C, D = X.shape
         for i in range(fracs.shape[0]):
             it = it0 + i
@@ -59,7 +63,7 @@ def _make_iterate(evaluate, name: str):
             sf = math.exp(log_sf * frac)
             for c in range(C):
                 for d in range(D):
-                    v = X[c, d] + sigma[d] * sf * noise[it + 1, c, d]
+                    v = X[c, d] + sigma[d] * sf * scale[c] * noise[it + 1, c, d]
                     Xp[c, d] = min(max(v, lower[d]), upper[d])
             evaluate(model, x0, ref, Xp, block, P, S, wx, wy, Q, L, R, nw, zprev, poses, wear,
                      cmds, Jp)
@@ -71,6 +75,9 @@ def _make_iterate(evaluate, name: str):
                     for d in range(D):
                         X[c, d] = Xp[c, d]
                     J[c] = Jp[c]
+                    scale[c] = min(max(scale[c] * up, SCALE_MIN), SCALE_MAX)
+                else:
+                    scale[c] = min(max(scale[c] * down, SCALE_MIN), SCALE_MAX)
             ib = 0
             for c in range(1, C):
                 if J[c] < J[ib]:
@@ -104,7 +111,8 @@ class CompiledAnnealer:
 
     def __init__(self, model, Q, L, R, lower, upper, sigma, *, chains: int, iterations: int,
                  sigma_final: float, t_start: float, t_end: float, parallel: bool = False,
-                 restart_every: int = 10, init_spread: float = 0.5):
+                 restart_every: int = 10, init_spread: float = 0.5, ladder: float = 1.0,
+                 adapt_up: float = 1.0, adapt_down: float = 1.0):
         self.model = model
         self.Q, self.L, self.R = (np.ascontiguousarray(a, dtype=np.float64) for a in (Q, L, R))
         self.lower = np.ascontiguousarray(lower, dtype=np.float64)
@@ -119,6 +127,8 @@ class CompiledAnnealer:
         self.restart_every = int(restart_every)
         self.n_restart = max(self.chains // 4, 1)
         self.init_spread = float(init_spread)
+        self.ladder0 = ladder_factors(self.chains, ladder)
+        self.up, self.down = float(adapt_up), float(adapt_down)
         self._evaluate = evaluate_parallel if parallel else evaluate_serial
         self._iterate = iterate_parallel if parallel else iterate_serial
         D = model.dim
@@ -148,8 +158,8 @@ class CompiledAnnealer:
         zprev = np.ascontiguousarray(zprev, dtype=np.float64)
         w = np.clip(np.asarray(warm, dtype=float), self.lower, self.upper)
         X = self.X
-        np.multiply(self.init_spread * self.sigma, noise[0], out=X)
-        X += w
+        scale = self.ladder0.copy()
+        X[:] = w + (self.init_spread * self.sigma)[None, :] * scale[:, None] * noise[0]
         X[0] = w
         if C > 1:
             X[1] = np.clip(0.0, self.lower, self.upper)
@@ -162,21 +172,30 @@ class CompiledAnnealer:
         self.best[0] = self.J[ib]
         self.best[1] = 0.0
         tail = (self.sigma, self.lower, self.upper, self.log_sf, self.t_start, self.log_tr,
-                self.restart_every, self.n_restart, I, self.poses, self.wear, self.cmds)
-        state = (X, self.J, self.Xp, self.Jp, self.best_x, self.best, noise, unif)
+                self.restart_every, self.n_restart, I, self.up, self.down, self.poses,
+                self.wear, self.cmds)
+        state = (X, self.J, self.Xp, self.Jp, self.best_x, self.best, scale, noise, unif)
         if deadline_s is None:
             self._iterate(*args, *state, 0, self._fixed_fracs, *tail)
             done = I
         else:
+            # anytime: iterations in chunks sized from the measured time per iteration, the
+            # clock read between chunks; the cooling follows the elapsed fraction
             denom = max(I - 1, 1)
             done = 0
-            frac1 = np.empty(1)
-            for it in range(I):
+            while done < I:
                 el = time.perf_counter() - t0
-                if it > 0 and el + el / it > deadline_s:
-                    break
-                frac1[0] = min(max(it / denom, el / deadline_s), 1.0)
-                self._iterate(*args, *state, it, frac1, *tail)
-                done += 1
+                if done == 0:
+                    n = 1
+                else:
+                    per_it = el / done
+                    n = min(int((deadline_s - el) / per_it), CHUNK, I - done)
+                    if n < 1:
+                        break
+                    per = per_it / deadline_s
+                its = np.arange(done, done + n)
+                fr = its / denom if done == 0 else np.maximum(its / denom, el / deadline_s + per * (its - done))
+                self._iterate(*args, *state, done, np.minimum(fr, 1.0), *tail)
+                done += n
         return AnnealResult(self.best_x.copy(), float(self.best[0]), done, C * (done + 1),
                             float(self.best[1]) / max(done * C, 1))

@@ -1,0 +1,136 @@
+"""Optimality of the annealer: its cost within the real-time budget against IPOPT's optimum.
+
+States are sampled from closed-loop runs of the default SA-MPC (``msagv run``'s loop) on
+Case 1 at 15, 25 and 35 km/h and on Case 2 at 10 km/h, evenly over each run, together with
+the MPC's previous solution at that instant (which defines the warm start and the
+command-smoothing term). At each sample the *same* horizon problem is solved twice:
+
+* by the annealer with the default settings (its fixed iteration budget, which is what
+  runs within the 10 ms period; a fresh random stream seeded by the sample index), and
+* by IPOPT (``controller.ipopt``, reference options: tolerance 1e-8, |.| smoothed over
+  1 mW, up to 3000 iterations) from the same warm start, run to convergence.
+
+Both costs are the exact cost of ``controller.rollout.candidate_cost`` (true |.|). The
+ratio annealer / IPOPT is reported as percentiles (1 = the optimum found; IPOPT is a local
+method, so a ratio < 1 means the annealer found a better basin), with IPOPT's time per
+solve and its convergence status counts.
+
+Run ``python -m benchmarks.optimality_bench [--states 200]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+T = 0.01
+RUNS = (("curve", 15.0), ("curve", 25.0), ("curve", 35.0), ("line", 10.0))
+
+
+def sample_states(n_states: int, settings=None, seconds: float = 6.0) -> list[dict]:
+    """``n_states`` samples ``{case, speed, k, state, z}`` spread evenly over the runs."""
+    from controller import MPC, MPCSettings, make_case
+    from controller.loop import closed_loop
+    from plant import Plant, default_vehicle
+
+    v = default_vehicle()
+    per_run = int(np.ceil(n_states / len(RUNS)))
+    out = []
+    for case, speed in RUNS:
+        ref, init = make_case(case, speed)
+        dur = min(seconds, ref.duration)
+        n = int(round(dur / T))
+        pick = set(np.linspace(5, n - 1, per_run).astype(int).tolist())
+        plant = Plant(v, initial=init(v))
+        mpc = MPC(v, settings or MPCSettings(), ref)
+
+        # record (state, previous solution) just before each picked solve
+        z_before = {}
+        orig_step = mpc.step
+
+        def step(state, reference=None, _orig=orig_step, _z=z_before, _mpc=mpc):
+            k = int(round(state["t"] / T))
+            if k in pick:
+                _z[k] = (dict(state), _mpc.z.copy())
+            return _orig(state, reference)
+
+        mpc.step = step
+        closed_loop(plant, mpc, ref, dur, period=T, progress=False)
+        for k in sorted(z_before):
+            st, z = z_before[k]
+            out.append({"case": case, "speed": speed, "k": k, "state": st, "z": z})
+    return out[:n_states]
+
+
+def bench_optimality(n_states: int = 200, settings=None) -> dict:
+    from controller import MPC, MPCSettings, make_case
+    from controller.ipopt import REFERENCE_OPTIONS, IpoptMPC
+    from plant import default_vehicle
+
+    v = default_vehicle()
+    s = settings or MPCSettings()
+    t0 = time.perf_counter()
+    samples = sample_states(n_states, s)
+    refs = {(c, sp): make_case(c, sp)[0] for c, sp in RUNS}
+    sa = {key: MPC(v, s, r) for key, r in refs.items()}
+    ip = {key: IpoptMPC(v, s, r, options=REFERENCE_OPTIONS) for key, r in refs.items()}
+    for m in sa.values():
+        m.warmup()
+    rows = []
+    for i, smp in enumerate(samples):
+        key = (smp["case"], smp["speed"])
+        m = sa[key]
+        m.rng = np.random.default_rng(1000 + i)
+        m.z = smp["z"].copy()
+        c_sa = m.step(smp["state"])
+        q = ip[key]
+        q.z = smp["z"].copy()
+        c_ip = q.step(smp["state"])
+        rows.append({"case": key[0], "speed": key[1], "k": smp["k"], "J_sa": c_sa.cost,
+                     "J_ipopt": c_ip.cost, "sa_ms": c_sa.solve_ms, "ipopt_ms": c_ip.solve_ms,
+                     "ipopt_status": str(q.last_stats.get("return_status")),
+                     "ipopt_iter": int(q.last_stats.get("iter_count", 0))})
+    r = np.array([x["J_sa"] / x["J_ipopt"] for x in rows])
+    ipms = np.array([x["ipopt_ms"] for x in rows])
+    sams = np.array([x["sa_ms"] for x in rows])
+    status = {}
+    for x in rows:
+        status[x["ipopt_status"]] = status.get(x["ipopt_status"], 0) + 1
+    per_run = {}
+    for c, sp in RUNS:
+        rr = np.array([x["J_sa"] / x["J_ipopt"] for x in rows
+                       if x["case"] == c and x["speed"] == sp])
+        if rr.size:
+            per_run[f"{c} {sp:g} km/h"] = {"ratio_p50": float(np.median(rr)),
+                                            "ratio_p90": float(np.percentile(rr, 90)),
+                                            "n": int(rr.size)}
+    return {"states": len(rows), "ratio_p50": float(np.median(r)),
+            "ratio_p90": float(np.percentile(r, 90)), "ratio_max": float(r.max()),
+            "ratio_min": float(r.min()), "sa_better": int(np.sum(r < 1.0 - 1e-9)),
+            "ipopt_ms": {"p50": float(np.median(ipms)), "p99": float(np.percentile(ipms, 99)),
+                         "max": float(ipms.max())},
+            "sa_ms": {"p50": float(np.median(sams)), "p99": float(np.percentile(sams, 99))},
+            "ipopt_status": status, "per_run": per_run,
+            "settings": {"chains": s.chains, "iterations": s.iterations, "N_p": s.N_p,
+                         "dt": s.dt, "blocks": list(s.blocks)},
+            "wall_s": time.perf_counter() - t0, "rows": rows}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.optimality_bench",
+                                 description=__doc__.splitlines()[0])
+    ap.add_argument("--states", type=int, default=200)
+    ap.add_argument("--rows", action="store_true", help="include every sample's costs")
+    a = ap.parse_args(argv)
+    res = bench_optimality(a.states)
+    if not a.rows:
+        res.pop("rows")
+    print(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
