@@ -250,7 +250,7 @@ def bench_rollout(axles=(2, 4, 6), batch: int | None = None, repeats: int = 2000
                   warmup: int = 200, rounds: int = 5, seed: int = 0) -> dict:
     """Time one batch-rollout call for each axle count and implementation.
 
-    ``batch`` defaults to MPCSettings().chains (20). ``repeats`` timed calls per
+    ``batch`` defaults to MPCSettings().chains (``msagv bench`` uses 32). ``repeats`` timed calls per
     implementation, in ``rounds`` interleaved rounds, after ``warmup`` calls each.
     Returns ``{"settings": ..., "c_build": ..., "axles": {n: result}}``; each result holds,
     per implementation, ``call_us`` (p50, p99, min over the timed calls), ``overhead_us``

@@ -4,6 +4,9 @@
 * ``case2``: the straight line, 12 t, 10 km/h, heading 60 degrees off at the start
   (Table 2).
 * ``case3``: the Case 1 curve at 30 km/h, 8/12/16/20 t (Table 3, Omega against load).
+* ``ridge``: NTWO and TWO on the Case 1 curve at 5/15/25/35 km/h with the command ridge
+  (R_ow, R_od) off, at its default and ten times stronger: how TWO's wear cut depends on
+  how well NTWO is regularised (``ridge.md``, ``ridge.csv``, ``ridge.json``).
 * ``pareto``: on the Case 1 curve at 15 and 35 km/h, TWO with its wear weights L scaled
   against NTWO with its command regularisation scaled (the only other lever that lowers
   wear), the three baselines as points: does the wear term buy less wear at the same
@@ -35,12 +38,14 @@ from pathlib import Path
 
 from .experiments_runs import METHODS, RunSpec, run_all
 
-EXPERIMENTS = ("case1", "case2", "case3", "pareto")
+EXPERIMENTS = ("case1", "case2", "case3", "pareto", "ridge")
 CASE1_SPEEDS = (35.0, 25.0, 15.0, 5.0)  # km/h, the paper's row order
 CASE2_SPEED = 10.0
 CASE3_SPEED = 30.0
 CASE3_MASSES_T = (8.0, 12.0, 16.0, 20.0)
 PARETO_SPEEDS = (15.0, 35.0)
+RIDGE_SPEEDS = (5.0, 15.0, 25.0, 35.0)  # the ridge experiment: Case 1 speeds
+RIDGE_LEVELS = (0.0, 0.1, 1.0)  # x RIDGE_BASE; 0.1 is the default
 # TWO: L = scale x the default L. NTWO-smooth: (R_dw, R_dd) = scale x their defaults (the
 # smoothing of the offsets between blocks and solves; the default ridge kept). NTWO-ridge:
 # (R_ow, R_od) = scale x RIDGE_BASE (pulls the offsets toward the kinematic feed-forward;
@@ -118,6 +123,22 @@ def pareto_specs(*, speeds=None, duration=None, vehicle=None, two_scales=TWO_SCA
         for m in baselines:
             specs.append(RunSpec(m, g, "curve", float(v), 12000.0, dict(METHODS[m]), duration,
                                  vehicle, {"family": "baseline"}))
+    return specs
+
+
+def ridge_specs(*, speeds=None, levels=RIDGE_LEVELS, duration=None, vehicle=None) -> list[RunSpec]:
+    """NTWO and TWO with (R_ow, R_od) = level x RIDGE_BASE (everything else default)."""
+    from controller.models import MPCSettings
+
+    d = MPCSettings()
+    specs = []
+    for lv in levels:
+        R = [d.R[0], d.R[1], lv * RIDGE_BASE[0], lv * RIDGE_BASE[1]]
+        for v in (speeds or RIDGE_SPEEDS):
+            for m in ("NTWO", "TWO"):
+                specs.append(RunSpec(f"{m} ridge x{lv:g}", _kmh(v), "curve", float(v), 12000.0,
+                                     dict(METHODS[m], R=R), duration, vehicle,
+                                     {"family": m, "ridge": lv}))
     return specs
 
 
@@ -247,6 +268,51 @@ def report_pareto(results: list[dict], out: Path, run_summary: dict) -> dict:
     return summary
 
 
+def report_ridge(results: list[dict], out: Path, run_summary: dict) -> dict:
+    from .experiments_report import fmt
+
+    cells: dict[tuple, dict] = {}
+    for r in results:
+        sp, m = r["spec"], r.get("metrics") or {}
+        cells[(sp["tags"]["ridge"], sp["group"], sp["tags"]["family"])] = {
+            "W_tw": m.get("W_tw"), "e_bar": m.get("e_bar"), "Omega": m.get("Omega"),
+            "status": r["status"], "key": r["key"]}
+    levels = sorted({k[0] for k in cells})
+    groups = list(dict.fromkeys(r["spec"]["group"] for r in results))
+    rows = []
+    for lv in levels:
+        for g in groups:
+            n, t = cells.get((lv, g, "NTWO"), {}), cells.get((lv, g, "TWO"), {})
+            ok = n.get("W_tw") is not None and t.get("W_tw") is not None
+            rows.append({"ridge": lv, "R_ow": lv * RIDGE_BASE[0], "R_od": lv * RIDGE_BASE[1],
+                         "group": g, "NTWO": n, "TWO": t,
+                         "cut_percent": 100.0 * (1.0 - t["W_tw"] / n["W_tw"]) if ok else None})
+    lines = ["# TWO's wear cut against NTWO as the command ridge grows (Case 1 curve, 12 t)\n",
+             "`W_tw` in J, `e_bar` as the paper; NTWO and TWO share every setting but L.\n",
+             "| ridge (R_ow, R_od) | speed | NTWO W_tw | NTWO e_bar | TWO W_tw | TWO e_bar | cut |",
+             "|---|---|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        cut = "n/a" if r["cut_percent"] is None else f"{r['cut_percent']:.1f} %"
+        lines.append(f"| x{r['ridge']:g} ({r['R_ow']:g}, {r['R_od']:g}) | {r['group']} | "
+                     f"{fmt('W_tw', r['NTWO'].get('W_tw'))} | {fmt('e_bar', r['NTWO'].get('e_bar'))} | "
+                     f"{fmt('W_tw', r['TWO'].get('W_tw'))} | {fmt('e_bar', r['TWO'].get('e_bar'))} | {cut} |")
+    (out / "ridge.md").write_text("\n".join(lines) + "\n")
+    import csv
+
+    with (out / "ridge.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["ridge", "R_ow", "R_od", "speed", "NTWO_W_tw", "NTWO_e_bar", "TWO_W_tw",
+                    "TWO_e_bar", "cut_percent"])
+        for r in rows:
+            w.writerow([r["ridge"], r["R_ow"], r["R_od"], r["group"], r["NTWO"].get("W_tw"),
+                        r["NTWO"].get("e_bar"), r["TWO"].get("W_tw"), r["TWO"].get("e_bar"),
+                        r["cut_percent"]])
+    summary = {"experiment": "ridge", "rows": rows, "runs": run_summary, "out": str(out)}
+    (out / "ridge.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
 # ---- entry point ------------------------------------------------------------------------------
 def _floats(text: str | None, name: str):
     if text is None:
@@ -278,6 +344,9 @@ def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None
         if methods:
             kw["baselines"] = [m for m in _methods(methods) if m in ("Kinematic", "DH", "TCT")]
         specs = pareto_specs(speeds=speeds, duration=duration, vehicle=vehicle, **kw)
+    elif name == "ridge":
+        kw = {"levels": ridge_scales} if ridge_scales is not None else {}
+        specs = ridge_specs(speeds=speeds, duration=duration, vehicle=vehicle, **kw)
     else:
         specs = case_specs(name, speeds=speeds, masses_t=masses_t, methods=methods,
                            duration=duration, vehicle=vehicle)
@@ -286,6 +355,8 @@ def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None
     summ["jobs"] = int(jobs or os.cpu_count() or 1)
     if name == "pareto":
         return report_pareto(results, out, summ)
+    if name == "ridge":
+        return report_ridge(results, out, summ)
     return report_case(name, results, out, summ)
 
 
@@ -305,7 +376,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--force", action="store_true", help="redo runs even if finished")
     ap.add_argument("--two-scales", metavar="S,...", help="pareto: factors on TWO's L")
     ap.add_argument("--smooth-scales", metavar="S,...", help="pareto: factors on NTWO's R_dw, R_dd")
-    ap.add_argument("--ridge-scales", metavar="S,...", help="pareto: factors of NTWO's R_ow, R_od")
+    ap.add_argument("--ridge-scales", metavar="S,...",
+                    help="pareto: factors of NTWO's R_ow, R_od; ridge: the levels (default 0,0.1,1)")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                     help="progress bar over finished runs on stderr (default on)")
     a = ap.parse_args(argv)
@@ -332,6 +404,8 @@ def main(argv: list[str]) -> int:
         print(json.dumps(summary))
     elif a.experiment == "pareto":
         print((out / "pareto.md").read_text())
+    elif a.experiment == "ridge":
+        print((out / "ridge.md").read_text())
     else:
         print((out / "table.md").read_text())
     return 0

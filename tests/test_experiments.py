@@ -186,6 +186,25 @@ def test_reduced_pareto(tmp_path, capsys):
     assert d["runs"]["runs"] == 6
 
 
+def test_reduced_ridge(tmp_path, capsys):
+    rc, stdout, _ = run_main(capsys, [
+        "ridge", "--duration", "0.5", "--speeds", "25", "--ridge-scales", "0,0.1",
+        "--out", str(tmp_path), "--jobs", "2", "--json", "--no-progress"])
+    assert rc == 0
+    d = json.loads(stdout)
+    assert [(r["ridge"], r["group"]) for r in d["rows"]] == [(0.0, "25 km/h"), (0.1, "25 km/h")]
+    for r in d["rows"]:
+        n, t = r["NTWO"]["W_tw"], r["TWO"]["W_tw"]
+        assert r["cut_percent"] == pytest.approx(100.0 * (1.0 - t / n))
+    # the default ridge is x0.1: that row is the default NTWO of case1 (same key, same run)
+    from bridge.experiments import RIDGE_BASE
+    from controller.models import MPCSettings
+
+    assert tuple(MPCSettings().R[2:]) == pytest.approx((0.1 * RIDGE_BASE[0], 0.1 * RIDGE_BASE[1]))
+    for name in ("ridge.md", "ridge.csv", "ridge.json"):
+        assert (tmp_path / name).is_file(), name
+
+
 @pytest.mark.parametrize("args", [
     ["case1", "--methods", "MPPI"],
     ["case1", "--speeds", "fast"],

@@ -1,0 +1,155 @@
+"""``msagv bench``: every benchmark of the project, as percentiles and ratios.
+
+Sections (each is also its own module, runnable with ``python -m benchmarks.<name>``):
+
+* ``plant``: real-time factor of the stepping plant (Dormand-Prince, rtol 1e-8, T = 0.01 s)
+  for 2 / 4 / 6 axles (:mod:`benchmarks.plant_bench`);
+* ``rollout``: predicted wheel-steps per second of the batch rollout, numba serial and
+  parallel against a single-thread C implementation of the same equations
+  (:mod:`benchmarks.rollout_bench`);
+* ``controller``: SA-MPC solve time p50 / p99 / max in the closed loop, 2 / 4 / 6 axles
+  (:mod:`benchmarks.controller_bench`);
+* ``optimality``: the annealer's cost over IPOPT's converged cost on states sampled from
+  closed-loop runs of Cases 1 and 2 (:mod:`benchmarks.optimality_bench`; needs CasADi);
+* ``transport``: Zenoh state-to-command round trip without a solve, at 100 Hz, between
+  two processes (:mod:`benchmarks.transport_bench`);
+* ``fmu``: the plant FMU stepped by fmpy against the native plant, per step
+  (:mod:`benchmarks.fmu_bench`).
+
+Timing is never asserted anywhere: the machines are shared and noisy. Each section prints
+what it measured and the machine's core count; ``--json`` prints one object with a key per
+section. ``--quick`` shortens every section (for a smoke test, not for figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+SECTIONS = ("plant", "rollout", "controller", "optimality", "transport", "fmu")
+
+
+def _machine() -> dict:
+    from .rollout_bench import _cpu_name
+
+    try:
+        load = os.getloadavg()
+    except OSError:
+        load = None
+    return {"cores": os.cpu_count(), "cpu": _cpu_name(), "python": platform.python_version(),
+            "machine": platform.machine(), "loadavg_at_start": load,
+            "date": time.strftime("%Y-%m-%dT%H:%M:%S")}
+
+
+def run_section(name: str, quick: bool) -> dict:
+    if name == "plant":
+        from .plant_bench import bench_plant
+
+        r = bench_plant(seconds=2.0 if quick else 20.0, repeats=1 if quick else 5)
+        out = {n: a["rtf"]["p50"] for n, a in r["axles"].items()}
+        return {"rtf": out, "detail": r}
+    if name == "rollout":
+        from .rollout_bench import bench_rollout
+
+        return bench_rollout(batch=32, repeats=100 if quick else 2000)
+    if name == "controller":
+        from .controller_bench import bench_controller
+
+        r = bench_controller(seconds=0.5 if quick else 5.0, repeats=1 if quick else 3)
+        return {n: {"solve_ms": a["solve_ms"], "detail": a} for n, a in r["axles"].items()} | \
+            {"settings": r["settings"]}
+    if name == "optimality":
+        try:
+            import casadi  # noqa: F401
+        except ImportError:
+            return {"skipped": "CasADi is not installed (pip install 'msagv[ipopt]')"}
+        from .optimality_bench import bench_optimality
+
+        r = bench_optimality(8 if quick else 200)
+        r.pop("rows", None)
+        return r
+    if name == "transport":
+        from .transport_bench import bench_transport
+
+        return bench_transport(seconds=1.0 if quick else 10.0)
+    if name == "fmu":
+        from .fmu_bench import bench_fmu
+
+        return bench_fmu(seconds=1.0 if quick else 10.0, repeats=1 if quick else 3)
+    raise ValueError(f"unknown section '{name}'")
+
+
+def _summary(name: str, r: dict) -> str:
+    if "skipped" in r:
+        return f"{name:<11} skipped: {r['skipped']}"
+    if name == "plant":
+        return f"{name:<11} real-time factor (p50 step) " + ", ".join(
+            f"{n} axles {v:,.0f}" for n, v in r["rtf"].items())
+    if name == "controller":
+        parts = [f"{n} axles p50 {a['solve_ms']['p50']:.2f} p99 {a['solve_ms']['p99']:.2f} "
+                 f"max {a['solve_ms']['max']:.2f} ms" for n, a in r.items() if n != "settings"]
+        return f"{name:<11} solve " + "; ".join(parts)
+    if name == "optimality":
+        return (f"{name:<11} annealer / IPOPT cost p50 {r['ratio_p50']:.4f} p90 "
+                f"{r['ratio_p90']:.4f} over {r['states']} states; IPOPT p50 "
+                f"{r['ipopt_ms']['p50']:.1f} ms")
+    if name == "transport":
+        return (f"{name:<11} round trip p50 {r['p50_ms']:.3f} p99 {r['p99_ms']:.3f} max "
+                f"{r['max_ms']:.3f} ms, lost {r['lost']} of {r['sent']}")
+    if name == "fmu":
+        return (f"{name:<11} FMU/native per step (p50) {r['ratio_fmpy_native_p50']:.2f}x "
+                f"(+{r['overhead_fmpy_p50_us']:.0f} us)")
+    if name == "rollout":
+        lines = []
+        for n, a in r.get("axles", {}).items():
+            ns = a["impls"].get("numba_serial") or {}
+            c = a["impls"].get("c_fast")
+            thr = ns.get("wheel_steps_per_s")
+            txt = f"{n} axles numba {thr / 1e6:.2f} M wheel-steps/s" if thr else f"{n} axles"
+            if c and thr:
+                txt += (f", C {c['wheel_steps_per_s'] / 1e6:.2f} M (C/numba "
+                        f"{c['wheel_steps_per_s'] / thr:.2f}x)")
+            lines.append(txt)
+        return f"{name:<11} " + "; ".join(lines)
+    return name
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="msagv bench", description=__doc__.splitlines()[0])
+    ap.add_argument("sections", nargs="*", metavar="SECTION",
+                    help=f"which benchmarks (default all): {', '.join(SECTIONS)}")
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--quick", action="store_true",
+                    help="short runs (a smoke test; the figures are not meaningful)")
+    ap.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    a = ap.parse_args(argv)
+    bad = [s for s in a.sections if s not in SECTIONS]
+    if bad:
+        print(f"msagv bench: unknown section(s) {', '.join(bad)} (known: {', '.join(SECTIONS)})",
+              file=sys.stderr)
+        return 2
+    sections = a.sections or list(SECTIONS)
+    result = {"machine": _machine()}
+    print(f"msagv bench: {result['machine']['cores']} cores ({result['machine']['cpu']}), "
+          f"load {result['machine']['loadavg_at_start']}", file=sys.stderr)
+    for name in sections:
+        t0 = time.perf_counter()
+        print(f"msagv bench: {name} ...", file=sys.stderr, flush=True)
+        r = run_section(name, a.quick)
+        r["wall_s"] = time.perf_counter() - t0
+        result[name] = r
+        print(_summary(name, r), file=sys.stderr if a.json else sys.stdout, flush=True)
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(result, f, indent=1)
+    if a.json:
+        print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
