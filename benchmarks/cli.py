@@ -91,7 +91,7 @@ def _summary(name: str, r: dict) -> str:
             f"{n} axles {v:,.0f}" for n, v in r["rtf"].items())
     if name == "controller":
         parts = [f"{n} axles p50 {a['solve_ms']['p50']:.2f} p99 {a['solve_ms']['p99']:.2f} "
-                 f"max {a['solve_ms']['max']:.2f} ms" for n, a in r.items() if n != "settings"]
+                 f"max {a['solve_ms']['max']:.2f} ms" for n, a in r.items() if n.isdigit()]
         return f"{name:<11} solve " + "; ".join(parts)
     if name == "optimality":
         return (f"{name:<11} annealer / IPOPT cost p50 {r['ratio_p50']:.4f} p90 "

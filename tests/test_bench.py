@@ -1,0 +1,30 @@
+"""msagv bench: the dispatcher runs its sections and reports their structure (never timing:
+the figures themselves are only reported, see docs/PERFORMANCE.md)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmarks.cli import SECTIONS, main
+
+
+@pytest.mark.timeout(300)
+def test_quick_plant_and_controller_json(capsys):
+    assert main(["--quick", "--json", "plant", "controller"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["machine"]["cores"] >= 1
+    assert set(d["plant"]["rtf"]) == {"2", "4", "6"}
+    assert all(v > 0 for v in d["plant"]["rtf"].values())
+    for n in ("2", "4", "6"):
+        sm = d["controller"][n]["solve_ms"]
+        assert 0 < sm["p50"] <= sm["p99"] <= sm["max"]
+        # the timed controller is the working one
+        assert d["controller"][n]["detail"]["e_bar"]["max"] < 2.0
+
+
+def test_unknown_section_exits_2(capsys):
+    assert main(["warp"]) == 2
+    assert "unknown section" in capsys.readouterr().err
+    assert set(SECTIONS) == {"plant", "rollout", "controller", "optimality", "transport", "fmu"}
