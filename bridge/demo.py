@@ -118,6 +118,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--deadline-ms", type=float, default=7.0,
                     help="the controller's solve budget per period (default 7)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--solver", choices=["sa", "ipopt"], default="sa",
+                    help="the controller's solver (ipopt: the reference, too slow for 100 Hz "
+                         "here; use it with --run-mode lockstep)")
     ap.add_argument("--plot", metavar="FILE", default="msagv-demo.png",
                     help="PNG to write (default msagv-demo.png)")
     ap.add_argument("--keep", metavar="DIR", help="keep the recordings in DIR")
@@ -145,7 +148,8 @@ def main(argv: list[str]) -> int:
         try:
             rt = ["--rt-priority", str(a.rt_priority)] if a.rt_priority else []
             r = run_demo(a.duration, a.speed, a.run_mode, a.deadline_ms, a.seed, work,
-                         quiet=not a.verbose, extra_plant=rt, extra_controller=rt)
+                         quiet=not a.verbose, extra_plant=rt,
+                         extra_controller=rt + ["--solver", a.solver])
         except (RuntimeError, ValueError) as e:
             print(f"msagv demo: {e}", file=sys.stderr)
             return 1
