@@ -429,13 +429,15 @@ def main(argv: list[str]) -> int:
                                                               a.exit_at_end),
                                   session=session, recorder=rec)
             node.stop = stop
+            # everything allocated so far (numba, numpy, the model) leaves the garbage
+            # collector's view: a full collection would otherwise stall a period. Done
+            # before the subscriptions exist, so no message waits for it (a collection
+            # here took ~80 ms and delayed the answer to state 0).
+            gc.collect()
+            gc.freeze()
             node.open()
             log.info("controller ready on %s", keys.state)
             try:
-                # everything allocated so far (numba, numpy, the model) leaves the garbage
-                # collector's view: a full collection would otherwise stall a period
-                gc.collect()
-                gc.freeze()
                 node.run()
             finally:
                 node.close()

@@ -624,14 +624,18 @@ def main(argv: list[str]) -> int:
     try:
         with open_session(opts, "plant") as session:
             node.session = session
+            # everything allocated so far (numba, numpy, the model) leaves the garbage
+            # collector's view: a full collection would otherwise stall a period. Done
+            # before the subscriptions exist, so no message waits for it (a collection
+            # here took ~80 ms and delayed the answer to state 0).
+            if hasattr(plant, "warmup"):
+                plant.warmup()  # the integrator compiled before the real-time clock starts
+            gc.collect()
+            gc.freeze()
             node.open()
             log.info("%s plant ready: %s, %d steps of %g s, %s", cfg.run_mode, vehicle.name,
                      cfg.steps, cfg.period, ref.name)
             try:
-                # everything allocated so far (numba, numpy, the model) leaves the garbage
-                # collector's view: a full collection would otherwise stall a period
-                gc.collect()
-                gc.freeze()
                 node.run()
             except PlantRunError as e:
                 log.error("%s", e)

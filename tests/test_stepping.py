@@ -128,6 +128,24 @@ def test_get_set_state_round_trip():
     np.testing.assert_array_equal(p.inputs[0], U_w[49])
 
 
+def test_warmup_changes_nothing():
+    v = default_vehicle()
+    p = Plant(v, initial=_initial())
+    p.set_inputs([9.0] * 4, [0.1, -0.1, 0.1, -0.1])
+    before = (p.t, p.state_vector, p.output_vector(), p.inputs)
+    p.warmup()
+    assert p.t == before[0]
+    np.testing.assert_array_equal(p.state_vector, before[1])
+    np.testing.assert_array_equal(p.output_vector(), before[2])
+    np.testing.assert_array_equal(p.inputs[0], before[3][0])
+    # and the run after it is the run without it
+    q = Plant(v, initial=_initial())
+    q.set_inputs([9.0] * 4, [0.1, -0.1, 0.1, -0.1])
+    p.do_step(0.0, 0.01)
+    q.do_step(0.0, 0.01)
+    np.testing.assert_array_equal(p.state_vector, q.state_vector)
+
+
 def test_set_state_from_another_vehicle_is_refused():
     p = Plant(default_vehicle())
     q = Plant(n_axle_vehicle(3))
