@@ -207,6 +207,8 @@ class PlantNode:
         if present != was:
             if present:
                 log.info("controller %s present", self.keys.id)
+            elif self.final_state is not None:
+                log.info("controller %s left after the end of the run", self.keys.id)
             else:
                 self.stats.controller_losses += 1
                 log.warning("controller %s gone (liveliness token lost)", self.keys.id)
