@@ -15,7 +15,8 @@ ratio annealer / IPOPT is reported as percentiles (1 = the optimum found; IPOPT 
 method, so a ratio < 1 means the annealer found a better basin), with IPOPT's time per
 solve and its convergence status counts.
 
-Run ``python -m benchmarks.optimality_bench [--states 200]``.
+Run ``python -m benchmarks.optimality_bench [--states 200]``; ``--ablation`` compares the
+annealer variants of docs/CONTROLLER.md on 40 states instead (:func:`bench_ablation`).
 """
 
 from __future__ import annotations
@@ -119,12 +120,82 @@ def bench_optimality(n_states: int = 200, settings=None) -> dict:
             "wall_s": time.perf_counter() - t0, "rows": rows}
 
 
+# (label, chains, iterations, ladder, adapt_up, adapt_down, restart_every): the annealer
+# variants of docs/CONTROLLER.md's table "What each choice bought", all but the first
+# three at the same number of candidate evaluations per solve (480)
+ABLATION = (
+    ("20 x 24, plain proposals", 20, 24, 1.0, 1.0, 1.0, 10),
+    ("20 x 24, + step ladder", 20, 24, 0.05, 1.0, 1.0, 10),
+    ("20 x 24, + success-rule adaptation", 20, 24, 1.0, 1.5, 0.7, 10),
+    ("20 x 24, ladder + adaptation", 20, 24, 0.05, 1.5, 0.7, 10),
+    ("8 x 60, ladder + adaptation", 8, 60, 0.05, 1.5, 0.7, 10),
+    ("4 x 120, ladder + adaptation", 4, 120, 0.05, 1.5, 0.7, 10),
+    ("2 x 240, ladder + adaptation (default)", 2, 240, 0.05, 1.5, 0.7, 10),
+    ("2 x 240, ladder + adaptation, no restarts", 2, 240, 0.05, 1.5, 0.7, 0),
+)
+
+
+def bench_ablation(n_states: int = 40, seeds=(1, 2), settings=None) -> dict:
+    """The annealer variants of :data:`ABLATION` on the same sampled states and warm starts,
+    each against IPOPT's converged cost (the ratio percentiles over states x seeds)."""
+    from controller import MPC, MPCSettings, make_case
+    from controller.ipopt import REFERENCE_OPTIONS, IpoptMPC
+    from controller.sa_kernel import CompiledAnnealer
+    from plant import default_vehicle
+
+    v = default_vehicle()
+    s = settings or MPCSettings()
+    t0 = time.perf_counter()
+    samples = sample_states(n_states, s)
+    refs = {(c, sp): make_case(c, sp)[0] for c, sp in RUNS}
+    mpcs = {key: MPC(v, s, r) for key, r in refs.items()}
+    ip = {key: IpoptMPC(v, s, r, options=REFERENCE_OPTIONS) for key, r in refs.items()}
+    ratios = {row[0]: [] for row in ABLATION}
+    for smp in samples:
+        key = (smp["case"], smp["speed"])
+        q = ip[key]
+        q.z = smp["z"].copy()
+        J_opt = q.step(smp["state"]).cost
+        m = mpcs[key]
+        t, x0 = m._state_vector(smp["state"])
+        R = np.ascontiguousarray(refs[key].sample(t + s.dt * np.arange(s.N_p + 1)))
+        zprev = smp["z"][: 2 * m.nw].copy()
+        warm = m._shifted(smp["z"])
+        for label, C, I, lad, up, down, rst in ABLATION:
+            sa = CompiledAnnealer(m.model, m.Q, m.L, m.R, m.lower, m.upper, m.sigma, chains=C,
+                                  iterations=I, sigma_final=s.sigma_final, t_start=s.t_start,
+                                  t_end=s.t_end, ladder=lad, adapt_up=up, adapt_down=down,
+                                  restart_every=rst)
+            for seed in seeds:
+                res = sa.solve(x0, R, zprev, warm, np.random.default_rng(seed))
+                ratios[label].append(res.cost / J_opt)
+    rows = []
+    for label, C, I, lad, up, down, rst in ABLATION:
+        r = np.asarray(ratios[label])
+        rows.append({"variant": label, "chains": C, "iterations": I, "ladder": lad,
+                     "adapt_up": up, "adapt_down": down, "restart_every": rst,
+                     "evaluations": C * (I + 1), "ratio_p50": float(np.median(r)),
+                     "ratio_p90": float(np.percentile(r, 90)), "ratio_max": float(r.max())})
+    return {"states": len(samples), "seeds": list(seeds), "rows": rows,
+            "wall_s": time.perf_counter() - t0}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.optimality_bench",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("--states", type=int, default=200)
     ap.add_argument("--rows", action="store_true", help="include every sample's costs")
+    ap.add_argument("--ablation", action="store_true",
+                    help="compare the annealer variants of docs/CONTROLLER.md instead "
+                         "(default 40 states, 2 seeds each)")
     a = ap.parse_args(argv)
+    if a.ablation:
+        res = bench_ablation(a.states if a.states != 200 else 40)
+        for r in res["rows"]:
+            print(f"| {r['variant']} | {r['evaluations']} | {r['ratio_p50']:.3f} | "
+                  f"{r['ratio_p90']:.3f} | {r['ratio_max']:.3f} |")
+        print(json.dumps(res, indent=2))
+        return 0
     res = bench_optimality(a.states)
     if not a.rows:
         res.pop("rows")

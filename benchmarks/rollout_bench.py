@@ -66,7 +66,7 @@ from plant import default_vehicle, n_axle_vehicle
 
 SOURCE = Path(__file__).with_name("rollout_ref.c")
 SYMBOL = "rollout_batch_mf"
-COMMON_FLAGS = ["-std=c99", "-O3", "-march=native", "-fPIC", "-shared"]
+COMMON_FLAGS = ["-std=c99", "-O3", "-march=native", "-fPIC"]
 VARIANTS = {
     "fast": COMMON_FLAGS + ["-ffast-math"],
     "strict": COMMON_FLAGS + ["-ffp-contract=off"],
@@ -151,13 +151,18 @@ def build_c_rollout(variant: str = "strict", workdir: str | Path | None = None) 
         workdir = tmp.name
     try:
         lib_path = Path(workdir) / f"librollout_ref_{variant}.so"
-        cmd = [cc, *flags, "-o", str(lib_path), str(SOURCE), "-lm"]
-        try:
-            res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-        except (OSError, subprocess.SubprocessError) as e:
-            raise CBuildError(f"{' '.join(cmd)}: {e}") from None
-        if res.returncode != 0:
-            raise CBuildError(f"{' '.join(cmd)} failed:\n{res.stderr.strip()}")
+        obj_path = Path(workdir) / f"rollout_ref_{variant}.o"
+        # compile with the variant's flags, link without them: gcc links crtfastmath.o into
+        # a shared library linked with -ffast-math, which sets flush-to-zero and
+        # denormals-are-zero for the whole process when the library is loaded
+        for cmd in ([cc, *flags, "-c", "-o", str(obj_path), str(SOURCE)],
+                    [cc, "-shared", "-o", str(lib_path), str(obj_path), "-lm"]):
+            try:
+                res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+            except (OSError, subprocess.SubprocessError) as e:
+                raise CBuildError(f"{' '.join(cmd)}: {e}") from None
+            if res.returncode != 0:
+                raise CBuildError(f"{' '.join(cmd)} failed:\n{res.stderr.strip()}")
         try:
             lib = np.ctypeslib.load_library(lib_path.name, str(lib_path.parent))
         except OSError as e:

@@ -18,9 +18,9 @@ COMMANDS = {
     "router": ("bridge.router", "main", "a Zenoh router for plants and controllers on several machines"),
     "run": ("bridge.run_cmd", "main", "in-process closed loop (controller at 100 Hz on the stepping plant)"),
     "report": ("bridge.report", "main", "the paper's metrics and plots from a recording"),
-    "experiment": ("bridge.experiments", "main", "the paper's Cases 1-3 and the Pareto front"),
+    "experiment": ("bridge.experiments", "main", "the paper's Cases 1-3, the Pareto front and the ridge study"),
     "fmu": ("fmu_build.cli", "main", "fmu build | fmu simulate"),
-    "bench": ("benchmarks.cli", "main", "benchmarks (plant, rollout, controller, optimality, transport)"),
+    "bench": ("benchmarks.cli", "main", "benchmarks (plant, rollout, controller, optimality, transport, fmu)"),
 }
 
 

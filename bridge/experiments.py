@@ -1,4 +1,4 @@
-"""``msagv experiment case1|case2|case3|pareto``: the paper's Section 4 and the Pareto front.
+"""``msagv experiment case1|case2|case3|pareto|ridge``: the paper's Section 4 and more.
 
 * ``case1``: the Case 1 curve, 12 t, 35/25/15/5 km/h, all five methods (paper Table 1).
 * ``case2``: the straight line, 12 t, 10 km/h, heading 60 degrees off at the start
@@ -53,7 +53,7 @@ RIDGE_LEVELS = (0.0, 0.1, 1.0)  # x RIDGE_BASE; 0.1 is the default
 TWO_SCALES = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 SMOOTH_SCALES = (0.0, 1.0, 4.0, 16.0, 64.0, 256.0)
 RIDGE_SCALES = (0.0, 0.1, 0.3, 1.0, 4.0, 16.0)
-RIDGE_BASE = (0.05, 20.0)  # (R_ow [1/(rad/s)^2], R_od [1/rad^2]): the defaults
+RIDGE_BASE = (0.05, 20.0)  # (R_ow [1/(rad/s)^2], R_od [1/rad^2]) at scale 1 (x0.1 = the defaults)
 
 
 def _kmh(v: float) -> str:

@@ -111,7 +111,7 @@ class PlantStats:
     stale: int = 0  # valid but older than the newest accepted (out of order)
     duplicate: int = 0
     after_end: int = 0  # valid answers to the end state (never applied)
-    late: int = 0  # realtime: periods stepped without the command answering their state
+    late: int = 0  # realtime: periods stepped with a fresh command answering an earlier state
     cmd_seq_gaps: int = 0
     safe_events: int = 0
     safe_periods: int = 0
@@ -222,7 +222,8 @@ class PlantNode:
     # ---- commands ----------------------------------------------------------------------
     def handle_cmd(self, payload: bytes, rx_perf: float, rx_wall: float | None = None) -> dict | None:
         """Validate one command; the newest valid one is kept for the next step. Returns
-        the decoded command, or None if rejected or ignored (stale/duplicate)."""
+        the decoded command, or None if rejected or ignored (stale, duplicate, or an answer
+        to the end state: after_end)."""
         key = self.keys.cmd
         try:
             c = M.decode_cmd(payload, self.nw)

@@ -407,7 +407,7 @@ class IpoptMPC(MPC):
     ``options.keep_best`` a solve that ends worse than that start (or fails) returns the
     start. ``Command.cost`` is the exact cost (numba ``batch_cost``) of the
     solution and ``Command.iterations`` IPOPT's iteration count. The annealer fields of
-    ``settings`` (chains, iterations, sigma_*, t_*, seed, threads) are ignored;
+    ``settings`` (chains, iterations, sigma_*, t_*, ladder, adapt_*, seed) are ignored;
     ``deadline_ms`` becomes IPOPT's wall-time limit unless ``options.max_wall_ms`` is set.
 
     Extra parameter ``options``: :class:`IpoptOptions` (smoothing, tolerance, Hessian).

@@ -25,9 +25,9 @@ class MPCSettings:
     """Settings of the tire-wear-aware MPC (paper Section 3.5) and of its annealer.
 
     Horizon (see docs/CONTROLLER.md for why these defaults):
-      dt: prediction step [s] (5 control periods T = 0.01 s).
+      dt: prediction step [s] (10 control periods T = 0.01 s).
       N_p: prediction horizon in steps (N_p * dt = 1.0 s: 9.7 m at 35 km/h).
-      blocks: move blocks in prediction steps; N_c = sum(blocks) (0.5 s), controls held
+      blocks: move blocks in prediction steps; N_c = sum(blocks) (0.6 s), controls held
         after N_c. 3 blocks x 4n offsets = 24 decision variables for 2 axles.
     Cost (eq. 22-26):
       Q: (Q_X [1/m^2], Q_Y [1/m^2], Q_phi [1/rad^2]).

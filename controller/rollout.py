@@ -36,7 +36,7 @@ form of eq. (17) and J its Jacobian with respect to the body velocity (tire forc
 transport terms); heading and position are advanced with the mean of the old and new
 velocities, and the tire forces use the step's mid steering angle. Forward Euler (the
 paper's) is unstable at a coarse prediction step at low speed, where the tires'
-relaxation time ``m v / (2n C)`` falls to ~10 ms (5 km/h), and at 35 km/h its path error
+relaxation time ``m v / (2n C)`` falls to ~18 ms (5 km/h), and at 35 km/h its path error
 over a 1 s horizon was 41 cm at dt = 0.1 s; this form is stable at every speed, costs one
 3x3 solve per step, and its error at 35 km/h is given in docs/CONTROLLER.md. It reduces
 to eq. (19)-(21) as dt -> 0.
@@ -402,8 +402,10 @@ def rollout_batch(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
 @njit(cache=True, parallel=True)
 def rollout_batch_parallel(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
     """As :func:`rollout_batch`, candidates spread over numba's threads (prange). Faster
-    on an idle machine; with other busy processes on the cores its tail latency is worse
-    (measured in docs/PERFORMANCE.md), hence not the default."""
+    on an idle machine (docs/PERFORMANCE.md); with other busy processes on the cores its
+    tail latency is worse (docs/CONTROLLER.md, "Threads"). Used by
+    :meth:`controller.models.PredictionModel.rollout` with ``threads > 1``; the MPC's own
+    threaded path is :func:`controller.sa_kernel.evaluate_parallel`."""
     for b in prange(Z.shape[0]):
         _simulate(model, x0, ref, Z[b], block, P, S, wx, wy, poses[b], wear[b], cmds[b])
 
@@ -418,7 +420,8 @@ def candidate_cost(poses, wear, ref, z, zprev, Q, L, R, nw):
     wrapped to (-pi, pi]; plus ``R = (R_dw, R_dd, R_ow, R_od)``: smoothness of the offsets
     between consecutive blocks and against the previous solution's first block
     (``zprev``), weighted R_dw [1/(rad/s)^2] for wheel speeds and R_dd [1/rad^2] for
-    angles, and a ridge R_ow, R_od on the offsets themselves. Scaled by 1/N_p.
+    angles, and a ridge R_ow, R_od on the offsets themselves. The tracking and wear sum
+    is divided by N_p; the regularisation is added unscaled.
     """
     Np = poses.shape[0]
     nb = z.shape[0] // (2 * nw)

@@ -136,7 +136,7 @@ def test_c_reference_on_benchmark_inputs(c_strict):
     vehicle = default_vehicle()
     model = MagicFormulaModel(vehicle, settings)
     x0, ref = case_inputs(vehicle, settings)
-    Z = proposal_batches(model, settings, settings.chains, 1, seed=3)[0]
+    Z = proposal_batches(model, settings, 20, 1, seed=3)[0]
     got, want = _both(c_strict, model, x0, ref, Z)
     _check(got, want, what="benchmark inputs")
     # the first commands are the policy's commands at x0 (controller.rollout layout)
@@ -173,3 +173,16 @@ def test_checked_call_rejects_bad_shapes(c_strict):
     o = model.allocate(3)
     with pytest.raises(ValueError, match="inconsistent"):
         c_strict(x0, ref, Z, model.block, model.P, model.S, model.wx, model.wy, *o)
+
+
+def test_loading_the_fast_math_build_leaves_subnormals_alone():
+    """A -ffast-math shared library can switch the whole process to flush-to-zero when it
+    is loaded (gcc's crtfastmath.o); the build links without it, so other code (hypothesis,
+    numba, numpy) keeps IEEE subnormals."""
+    try:
+        build_c_rollout("fast")
+    except CBuildError as e:
+        pytest.skip(f"no C build: {e}")
+    tiny = np.float64(5e-324)
+    assert tiny * np.float64(1.0) == tiny and tiny / np.float64(2.0) == 0.0
+    assert np.float64(2.2250738585072014e-308) / np.float64(4.0) > 0.0
