@@ -36,6 +36,9 @@ log = logging.getLogger("msagv.controller")
 REALTIME_DEADLINE_MS = 7.0  # solve budget used against a realtime plant unless --deadline-ms
 
 
+FALLBACK_LOSS_S = 2.0  # s without a state before a plant known only by its states is gone
+
+
 class ControllerRunError(RuntimeError):
     """The controller cannot go on (no plant, the plant gone with --on-plant-loss exit)."""
 
@@ -86,6 +89,9 @@ class ControllerNode:
         self._lock = threading.Lock()
         self._pending = None  # (state dict, rx_perf)
         self._held = None  # newest state received while the plant's token was not seen
+        self._plant_presence = None  # the Presence of the plant's token (open())
+        self._fallback = False  # present because its states arrive, its token never seen
+        self._last_state_rx = 0.0  # time.monotonic() of the last valid state
         self._pending_ref = None  # decoded reference message
         self._last_seq: int | None = None
         self._cmd_seq = 0
@@ -102,7 +108,8 @@ class ControllerNode:
         import zenoh
 
         s, k = self.session, self.keys
-        self._decls.append(Presence(s, k.alive_plant, self._on_plant_change))
+        self._plant_presence = Presence(s, k.alive_plant, self._on_plant_change)
+        self._decls.append(self._plant_presence)
         self._pub = s.declare_publisher(k.cmd, express=True, priority=zenoh.Priority.REAL_TIME,
                                         congestion_control=zenoh.CongestionControl.BLOCK,
                                         encoding=zenoh.Encoding(M.CONTENT_TYPE))
@@ -122,11 +129,15 @@ class ControllerNode:
                     pass
         self._token, self._decls, self._pub = None, [], None
 
-    def _on_plant_change(self, present: bool) -> None:
+    def _on_plant_change(self, present: bool, via: str = "token") -> None:
+        if via == "token":
+            self._fallback = False
         self.plant_present = present
         if present:
             self.plant_seen = True
-            log.info("plant %s present", self.keys.id)
+            log.info("plant %s present%s", self.keys.id,
+                     "" if via == "token" else " (its states arrive; its liveliness token "
+                                               "is not visible from here)")
             with self._lock:
                 # a state that arrived just before the token was seen (the two travel on
                 # different paths): answer it now; --max-age-ms still drops it if too old
@@ -142,6 +153,11 @@ class ControllerNode:
             self.rec.event("plant_alive", present=present)
         self._event.set()
 
+    def check_fallback_loss(self, now: float) -> None:
+        """A plant known only by its states is gone after FALLBACK_LOSS_S without one."""
+        if self._fallback and self.plant_present and now - self._last_state_rx > FALLBACK_LOSS_S:
+            self._on_plant_change(False, via="states")
+
     # ---- incoming ----------------------------------------------------------------------
     def handle_state(self, payload: bytes, rx_perf: float) -> dict | None:
         """Validate a state; the newest valid one is solved next. Returns it, or None."""
@@ -155,6 +171,15 @@ class ControllerNode:
             return None
         if self.rec is not None:
             self.rec.message("rx", key, payload)
+        self._last_state_rx = time.monotonic()
+        pres = self._plant_presence
+        if not self.plant_present and pres is not None and pres.generation == 0:
+            # Zenoh did not deliver the plant's token to this session (seen in a mesh of
+            # peers with gossip off: the token neither arrived nor answered a query),
+            # but its states do: they are the evidence of presence, and their silence
+            # (FALLBACK_LOSS_S) the evidence of loss, until the token shows up
+            self._fallback = True
+            self._on_plant_change(True, via="states")
         if not self.plant_present:
             self.stats.ignored_no_plant += 1
             with self._lock:
@@ -193,6 +218,7 @@ class ControllerNode:
     def run(self) -> dict:
         """Answer states until stopped (or the end, or the plant's loss, as configured)."""
         while not self.stop.is_set():
+            self.check_fallback_loss(time.monotonic())
             if self.cfg.on_plant_loss == "exit" and self.plant_seen and not self.plant_present:
                 self.exit_reason = "plant gone"
                 raise ControllerRunError(

@@ -3,16 +3,30 @@
 A liveliness subscriber reports a token's appearance (PUT) and disappearance (DELETE; for
 a killed process after the transport lease). A process restarted quickly declares a new
 token under the same key before the old one has expired, so a DELETE is checked with a
-liveliness query before the peer is declared gone.
+liveliness query before the peer is declared gone. Another node of the bus can still hold
+a dead peer's token for up to its lease after the DELETE and answer that query, so the
+check is repeated for ``VERIFY_S``: the peer is declared gone at the first query nobody
+answers, and kept only if it answers throughout (a restarted peer does).
+
+Events alone were not enough: about one run in three of a process test, a controller's
+liveliness subscriber (declared with history, on a bus with several paths) never received
+the plant's PUT, so it never commanded, nor noticed the plant's loss. A helper thread
+therefore also queries every ``POLL_S`` and reconciles: a token found while absent is a
+PUT, a token missing while present is a DELETE (re-checked as above).
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Callable
 
 log = logging.getLogger("msagv.bridge")
+
+VERIFY_S = 2.5  # s, how long a DELETE is re-checked (more than twice the 1 s lease)
+VERIFY_EVERY_S = 0.25
+POLL_S = 0.5  # s, reconciliation query period
 
 
 class Presence:
@@ -33,7 +47,12 @@ class Presence:
         self._epoch = 0
         self._lock = threading.Lock()
         self._closed = False
+        self._verifying = 0
+        self._stop = threading.Event()
         self._sub = session.liveliness().declare_subscriber(key, self._on_sample, history=True)
+        self._poller = threading.Thread(target=self._poll, daemon=True,
+                                        name=f"presence {key}")
+        self._poller.start()
 
     def _on_sample(self, sample) -> None:
         import zenoh
@@ -46,15 +65,54 @@ class Presence:
         else:
             threading.Thread(target=self._verify, args=(epoch,), daemon=True).start()
 
-    def _verify(self, epoch: int) -> None:
-        alive = False
+    def _query(self) -> bool:
         try:
             for reply in self.session.liveliness().get(self.key, timeout=0.3):
                 if reply.ok is not None:
-                    alive = True
+                    return True
         except Exception:  # the session is closing
-            alive = False
-        self._set(alive, epoch)
+            return False
+        return False
+
+    def _poll(self) -> None:
+        while not self._stop.wait(POLL_S):
+            alive = self._query()
+            with self._lock:
+                if self._closed:
+                    return
+                if alive == self.present or self._verifying:
+                    continue
+                self._epoch += 1
+                epoch = self._epoch
+            if alive:
+                log.debug("presence %s: found by query (no PUT seen)", self.key)
+                self._set(True, epoch)
+            else:
+                log.debug("presence %s: missing from query (no DELETE seen)", self.key)
+                self._verify(epoch)
+
+    def _verify(self, epoch: int) -> None:
+        with self._lock:
+            self._verifying += 1
+        try:
+            self._verify_loop(epoch)
+        finally:
+            with self._lock:
+                self._verifying -= 1
+
+    def _verify_loop(self, epoch: int) -> None:
+        end = time.monotonic() + VERIFY_S
+        while True:
+            if not self._query():
+                self._set(False, epoch)
+                return
+            with self._lock:
+                if epoch != self._epoch or self._closed:  # a newer event decides
+                    return
+            if time.monotonic() >= end:
+                self._set(True, epoch)
+                return
+            time.sleep(VERIFY_EVERY_S)
 
     def _set(self, present: bool, epoch: int) -> None:
         with self._lock:
@@ -74,6 +132,7 @@ class Presence:
     def close(self) -> None:
         with self._lock:
             self._closed = True
+        self._stop.set()
         try:
             self._sub.undeclare()
         except Exception:

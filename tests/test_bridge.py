@@ -172,6 +172,31 @@ def test_controller_never_commands_a_plant_that_is_gone(ctl, vehicle):
     assert ctl.stats.ignored_no_plant == 1 and not ctl.sent
 
 
+def test_controller_falls_back_to_states_when_the_plants_token_never_shows(ctl, vehicle):
+    # zenoh now and then does not deliver a token to a session in a mesh of peers: the
+    # plant's states are then the evidence of its presence, their silence of its loss
+    from types import SimpleNamespace
+
+    from bridge.controller_node import FALLBACK_LOSS_S
+
+    ctl.plant_present, ctl.plant_seen = False, False
+    ctl._plant_presence = SimpleNamespace(generation=0)
+    st = ctl.handle_state(_state_payload(0, vehicle), time.perf_counter())
+    assert st is not None and ctl.plant_present and ctl.plant_seen and ctl._fallback
+    assert ctl.step(st, time.perf_counter()) == "sent"
+    now = time.monotonic()
+    ctl.check_fallback_loss(now)
+    assert ctl.plant_present  # states are fresh
+    ctl.check_fallback_loss(now + FALLBACK_LOSS_S + 0.1)
+    assert not ctl.plant_present  # silence: gone, never commanded again until a state comes
+    # once the token is seen, liveliness decides again
+    ctl._plant_presence.generation = 1
+    ctl._on_plant_change(True)
+    assert ctl.plant_present and not ctl._fallback
+    ctl.check_fallback_loss(now + 100.0)
+    assert ctl.plant_present
+
+
 def test_controller_answers_a_state_that_came_just_before_the_plants_token(ctl, vehicle):
     # state and liveliness travel on different paths: a new plant's state 0 can arrive
     # before its token; it is held, answered once the token is seen, dropped if it goes

@@ -402,19 +402,42 @@ def test_plant_killed_controller_stops_commanding_exits_or_waits(procs, bus, tmp
     P = free_port()
     procs.start("plant", msagv("plant", "--duration", 60, "--listen", ep(P), "--connect",
                                ep(bus.port), "-q"))
-    procs.start("ctl_exit", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
-                                  "--on-plant-loss", "exit", "-q", "--json"))
-    procs.start("ctl_wait", msagv("controller", "--id", "agv0", "--connect", ep(P), "--connect",
-                                  ep(bus.port), "--json"))
+    ctl = {"ctl_exit": msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
+                             "--on-plant-loss", "exit", "--json"),
+           "ctl_wait": msagv("controller", "--id", "agv0", "--connect", ep(P), "--connect",
+                             ep(bus.port), "--json")}
+    for name, cmd in ctl.items():
+        procs.start(name, cmd)
     bus.wait_for(lambda st: st and st[-1][1]["seq"] >= 30, 120, "30 lockstep steps")
+    # In this mesh of four peers (gossip off), zenoh now and then leaves a new session
+    # half-connected: its queries (the params) are answered, but no publication or token
+    # reaches it (seen about once in eight runs; 0 states received). Such a controller
+    # never saw a plant, so it cannot lose one: restart it once, as an operator would.
+    for name, cmd in ctl.items():
+        t1 = time.monotonic()
+        while "plant agv0 present" not in procs.err(name) and time.monotonic() - t1 < 20:
+            time.sleep(0.1)
+        if "plant agv0 present" not in procs.err(name):
+            print(f"\n{name} saw no plant (zenoh half-connected it): restarting it")
+            procs.p[name].kill()
+            procs.p[name].wait(10)
+            procs.start(name, cmd)
+            t1 = time.monotonic()
+            while "plant agv0 present" not in procs.err(name) and time.monotonic() - t1 < 60:
+                time.sleep(0.1)
+            assert "plant agv0 present" in procs.err(name), procs.err(name)
+    bus.wait_for(lambda st: st and st[-1][1]["seq"] >= 60, 120, "60 lockstep steps")
     procs.p["plant"].kill()
     t0 = time.monotonic()
     assert procs.wait("ctl_exit", 30) == 3
     print(f"\ncontroller exited {time.monotonic() - t0:.2f} s after the plant was killed")
     assert "plant 'agv0' gone" in procs.err("ctl_exit")
     assert procs.json("ctl_exit")["exit_reason"] == "plant gone"
-    time.sleep(1.0)
-    assert procs.p["ctl_wait"].poll() is None  # the default: wait for the plant
+    # the default: wait for the plant (its loss is confirmed within a few leases)
+    t1 = time.monotonic()
+    while "waiting for it to return" not in procs.err("ctl_wait") and time.monotonic() - t1 < 15:
+        time.sleep(0.1)
+    assert procs.p["ctl_wait"].poll() is None
     assert "waiting for it to return" in procs.err("ctl_wait")
     last_state = max(m["seq"] for _, m in bus.states)
     n_cmds = len(bus.cmds)
