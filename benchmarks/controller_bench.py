@@ -33,17 +33,6 @@ def _vehicle(n: int):
     return default_vehicle() if n == 2 else n_axle_vehicle(n)
 
 
-def _pct(values) -> dict:
-    a = np.asarray(values, dtype=float)
-    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)),
-            "max": float(a.max())}
-
-
-def _spread(values) -> dict:
-    a = np.asarray(values, dtype=float)
-    return {"min": float(a.min()), "p50": float(np.median(a)), "max": float(a.max())}
-
-
 def run_once(n_axles: int, seconds: float, settings=None) -> dict:
     """One closed-loop run; returns its solve times [ms] and e_bar."""
     from controller import MPC, MPCSettings, make_case
@@ -63,6 +52,9 @@ def bench_controller(axles=(2, 4, 6), seconds: float = 5.0, repeats: int = 3,
                      settings=None) -> dict:
     """Solve-time percentiles per axle count (see the module docstring)."""
     from controller import MPCSettings
+    from controller.metrics import percentiles
+
+    from .plant_bench import _spread
 
     s = settings or MPCSettings()
     out = {"settings": {"case": "curve", "speed_kmh": SPEED_KMH, "seconds": seconds,
@@ -81,7 +73,7 @@ def bench_controller(axles=(2, 4, 6), seconds: float = 5.0, repeats: int = 3,
             p50s.append(float(np.percentile(r["solve_ms"], 50)))
             p99s.append(float(np.percentile(r["solve_ms"], 99)))
             ebar.append(r["e_bar"])
-        res = {"n_wheels": 2 * n, "solve_ms": _pct(allv), "p50_over_repeats": _spread(p50s),
+        res = {"n_wheels": 2 * n, "solve_ms": percentiles(allv), "p50_over_repeats": _spread(p50s),
                "p99_over_repeats": _spread(p99s), "solves": len(allv),
                "within_period": float(np.mean(np.asarray(allv) <= T * 1000.0)),
                "e_bar": _spread(ebar)}

@@ -165,10 +165,8 @@ def bench_ablation(n_states: int = 40, seeds=(1, 2), settings=None) -> dict:
         q.z = smp["z"].copy()
         J_opt = q.step(smp["state"]).cost
         m = mpcs[key]
-        t, x0 = m._state_vector(smp["state"])
-        R = np.ascontiguousarray(refs[key].sample(t + s.dt * np.arange(s.N_p + 1)))
-        zprev = smp["z"][: 2 * m.nw].copy()
-        warm = m._shifted(smp["z"])
+        m.z = smp["z"].copy()
+        x0, R, zprev, warm = m.horizon_problem(smp["state"])
         for label, C, I, lad, up, down, rst in ABLATION:
             sa = CompiledAnnealer(m.model, m.Q, m.L, m.R, m.lower, m.upper, m.sigma, chains=C,
                                   iterations=I, sigma_final=s.sigma_final, t_start=s.t_start,

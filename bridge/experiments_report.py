@@ -218,6 +218,16 @@ def _groups_in_order(results):
     return groups
 
 
+def _group_logs(results, out_dir: Path, grp: str):
+    """``(result, per-step log)`` of every stored run of row group ``grp``."""
+    for r in results:
+        if r["spec"]["group"] != grp:
+            continue
+        log = load_log(out_dir, r)
+        if log is not None:
+            yield r, log
+
+
 def plot_trajectories(results: list[dict], out_dir: Path, path: Path, title: str) -> None:
     """Path of every method against the reference, one panel per row group."""
     plt = _plt()
@@ -225,12 +235,7 @@ def plot_trajectories(results: list[dict], out_dir: Path, path: Path, title: str
     fig, axes = plt.subplots(len(groups), 1, figsize=(9, 2.6 * len(groups) + 0.6), squeeze=False)
     for ax, grp in zip(axes[:, 0], groups):
         ref_done = False
-        for r in results:
-            if r["spec"]["group"] != grp:
-                continue
-            log = load_log(out_dir, r)
-            if log is None:
-                continue
+        for r, log in _group_logs(results, out_dir, grp):
             if not ref_done:
                 ax.plot(log["x_ref"], log["y_ref"], "k--", lw=1.2, label="reference")
                 ref_done = True
@@ -254,12 +259,7 @@ def plot_errors(results: list[dict], out_dir: Path, path: Path, title: str) -> N
     groups = _groups_in_order(results)
     fig, axes = plt.subplots(len(groups), 3, figsize=(13, 2.4 * len(groups) + 0.6), squeeze=False)
     for row, grp in zip(axes, groups):
-        for r in results:
-            if r["spec"]["group"] != grp:
-                continue
-            log = load_log(out_dir, r)
-            if log is None:
-                continue
+        for r, log in _group_logs(results, out_dir, grp):
             step = max(1, len(log["t"]) // 1500)
             t = log["t"][::step]
             color, _ = METHOD_STYLE.get(r["spec"]["label"], (None, None))

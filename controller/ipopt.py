@@ -437,14 +437,8 @@ class IpoptMPC(MPC):
     def step(self, state: Mapping, reference: Reference | None = None) -> Command:
         """One IPOPT solve from the shifted previous solution: commands for one period."""
         t0 = time.perf_counter()
-        ref = reference if reference is not None else self.reference
-        if ref is None:
-            raise ControllerError("step: no reference (pass one or call set_reference)")
-        t, x0 = self._state_vector(state)
-        s = self.settings
-        R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
-        zprev = self.z[: 2 * self.nw].copy()
-        warm = np.clip(self._shifted(self.z), self.lower, self.upper)
+        x0, R, zprev, warm = self.horizon_problem(state, reference)
+        warm = np.clip(warm, self.lower, self.upper)
         Jw = self.exact_cost(x0, R, warm, zprev)
         zero = np.clip(np.zeros_like(warm), self.lower, self.upper)
         J0 = self.exact_cost(x0, R, zero, zprev)

@@ -104,20 +104,26 @@ class MPC:
         return t, x0
 
     # ---- the step ----------------------------------------------------------------------
-    def step(self, state: Mapping, reference: Reference | None = None) -> Command:
-        """One MPC solve: commands to hold over the next control period."""
-        t0 = time.perf_counter()
+    def horizon_problem(self, state: Mapping, reference: Reference | None = None):
+        """The horizon problem of one solve: ``(x0, R, zprev, warm)`` - the state vector,
+        the reference rows at the prediction times (N_p + 1, 6), the previous solution's
+        first block (the smoothing term's anchor) and the warm start (the previous solution
+        shifted by one period). Shared by every solver."""
         ref = reference if reference is not None else self.reference
         if ref is None:
             raise ControllerError("step: no reference (pass one or call set_reference)")
         t, x0 = self._state_vector(state)
         s = self.settings
-        times = t + s.dt * np.arange(s.N_p + 1)
-        R = np.ascontiguousarray(ref.sample(times))
+        R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
+        return x0, R, self.z[: 2 * self.nw].copy(), self._shifted(self.z)
+
+    def step(self, state: Mapping, reference: Reference | None = None) -> Command:
+        """One MPC solve: commands to hold over the next control period."""
+        t0 = time.perf_counter()
+        x0, R, zprev, warm = self.horizon_problem(state, reference)
+        s = self.settings
         if s.threads > 1:
             numba.set_num_threads(min(s.threads, numba.config.NUMBA_NUM_THREADS))
-        zprev = self.z[: 2 * self.nw].copy()
-        warm = self._shifted(self.z)
         deadline = None if s.deadline_ms is None else s.deadline_ms / 1000.0 - (time.perf_counter() - t0)
         res = self._sa.solve(x0, R, zprev, warm, self.rng, deadline)
         self.z = res.x
