@@ -35,16 +35,16 @@ def _vehicle(n: int):
 
 def run_once(n_axles: int, seconds: float, settings=None) -> dict:
     """One closed-loop run; returns its solve times [ms] and e_bar."""
-    from controller import MPC, MPCSettings, make_case
-    from controller.loop import closed_loop
-    from plant import Plant
+    from dataclasses import asdict
 
-    vehicle = _vehicle(n_axles)
-    ref, init = make_case("curve", SPEED_KMH)
-    plant = Plant(vehicle, initial=init(vehicle))
-    mpc = MPC(vehicle, settings or MPCSettings(), ref)
+    from controller.loop import closed_loop
+    from experiments.scenario import Scenario
+
+    sc = Scenario(vehicle=_vehicle(n_axles), case="curve", speed=SPEED_KMH, duration=seconds,
+                  settings={} if settings is None else asdict(settings), period=T)
+    b = sc.build()
     gc.collect()
-    log = closed_loop(plant, mpc, ref, seconds, period=T, progress=False)
+    log = closed_loop(b.plant, b.controller, b.reference, seconds, period=T, progress=False)
     return {"solve_ms": list(log.solve_ms), "e_bar": log.metrics()["e_bar"]}
 
 

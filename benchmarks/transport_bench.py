@@ -81,7 +81,7 @@ def bench_transport(seconds: float = 5.0, period: float = T) -> dict:
     import zenoh
 
     from bridge import messages as M
-    from bridge.demo import free_port
+    from bridge.process import free_port
     from bridge.presence import Presence
     from bridge.session import Keys, SessionOptions, open_session
 

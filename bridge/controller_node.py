@@ -14,22 +14,20 @@ reset again at every state with ``seq = 0`` (a new plant run), exactly as
 
 from __future__ import annotations
 
-import argparse
-import gc
 import dataclasses
-import json
 import logging
 import signal
-import sys
 import threading
 import time
+from typing import Callable
 
 import numpy as np
 
 from . import messages as M
-from .plant_node import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, percentiles_ms, setup_logging
+from .plant_node import percentiles_ms
 from .presence import Presence
-from .session import Keys
+from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, freeze_heap
+from .session import Keys, SessionError, SessionOptions, open_session
 
 log = logging.getLogger("msagv.controller")
 
@@ -314,31 +312,25 @@ class ControllerNode:
                 "settings": dataclasses.asdict(self.mpc.settings)}
 
 
-# ---- command line -----------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    from .run_cmd import add_case_args, add_mpc_args
-    from .session import add_session_args
+# ---- the process ------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class PlantParams:
+    """What a plant's ``params`` reply tells a controller (docs/PROTOCOL.md)."""
 
-    ap = argparse.ArgumentParser(
-        prog="msagv controller",
-        description="The MPC as a Zenoh process: answers each state with a command.")
-    add_case_args(ap)
-    add_mpc_args(ap)
-    ap.add_argument("--wait", type=float, default=60.0, metavar="S",
-                    help="wait this long for the plant's params at start, 0 = forever "
-                         "(default 60; not needed with --vehicle)")
-    ap.add_argument("--max-age-ms", type=float, metavar="MS",
-                    help="never send a command for a state older than this (default: "
-                         "50 against a realtime plant, none in lockstep)")
-    ap.add_argument("--on-plant-loss", choices=["wait", "exit"], default="wait",
-                    help="when the plant's token disappears: wait for it (default) or exit 3")
-    ap.add_argument("--exit-at-end", action="store_true",
-                    help="exit after the plant's last state (end = true)")
-    ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
-    ap.add_argument("--json", action="store_true", help="print the summary as JSON at exit")
-    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
-    add_session_args(ap)
-    return ap
+    vehicle: object  # plant.vehicle.Vehicle
+    period: float
+    run_mode: str
+
+
+def realtime_defaults(run_mode: str | None, deadline_ms: float | None,
+                      max_age_ms: float | None) -> tuple[float | None, float | None]:
+    """The solve budget and the command age bound against a plant of ``run_mode``: against
+    a realtime plant ``REALTIME_DEADLINE_MS`` and the plant's default staleness bound (50 ms)
+    unless given; in lockstep only what is given."""
+    if run_mode == "realtime":
+        return (REALTIME_DEADLINE_MS if deadline_ms is None else deadline_ms,
+                50.0 if max_age_ms is None else max_age_ms)
+    return deadline_ms, max_age_ms
 
 
 def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> dict:
@@ -371,96 +363,72 @@ def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> d
     raise ControllerRunError("stopped while waiting for the plant's params")
 
 
-def main(argv: list[str]) -> int:
-    from controller.reference import ReferenceError
-    from plant.stepping import PlantError
-    from plant.vehicle import VehicleError, load_vehicle, vehicle_from_dict
+class SetupError(ValueError):
+    """The controller cannot be built for this plant (e.g. its params name a vehicle the
+    scenario cannot use); nothing ran (exit 2)."""
 
-    from .recording import Recorder
-    from .run_cmd import make_mpc, scenario_from_args, settings_from_args, solver_from_args
-    from .session import SessionError, open_session, options_from_args
 
-    ap = build_parser()
-    a = ap.parse_args(argv)
-    setup_logging("msagv controller", a.id, a.quiet)
-    if a.rt_priority:
-        from .session import set_realtime_priority
+def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object],
+          cfg: ControllerConfig, *, fetch: bool = True, wait_s: float = 60.0,
+          open_recorder: Callable[[object, PlantParams | None], object] | None = None,
+          stop: threading.Event | None = None, on_signal_install: Callable[[], None] | None = None
+          ) -> tuple[dict, int]:
+    """Run the controller process: open the Zenoh session, fetch the plant's params (unless
+    ``fetch`` is False: the caller's vehicle is used), build the MPC with
+    ``make_mpc(params)``, warm it up, answer states until stopped, close everything.
 
-        why = set_realtime_priority(a.rt_priority)
-        if why:
-            log.warning("%s", why)
-    if a.initial is not None:
-        print("msagv controller: --initial applies to msagv plant", file=sys.stderr)
-        return EXIT_USAGE
-    if a.duration is not None:
-        print("msagv controller: --duration applies to msagv plant", file=sys.stderr)
-        return EXIT_USAGE
-    try:
-        opts = options_from_args(a)
-        keys = Keys(opts.id)
-        settings = settings_from_args(a)
-        solver = solver_from_args(a, settings)  # ipopt without CasADi or with model != mf: exit 2
-        if a.vehicle:
-            load_vehicle(a.vehicle)  # a bad file fails before any network
-    except (VehicleError, ValueError, FileNotFoundError) as e:
-        print(f"msagv controller: {e}", file=sys.stderr)
-        return EXIT_USAGE
-    stop = threading.Event()
+    ``make_mpc`` raises :class:`SetupError` (or ValueError) for a scenario that cannot be
+    built: exit 2. ``open_recorder(mpc, params)`` returns a Recorder or None (closed here,
+    with the summary). ``cfg.max_age_ms`` None takes :func:`realtime_defaults`' bound for
+    the plant's run mode. ``on_signal_install`` installs the caller's signal handlers once
+    the session is open, and again after the warm-up (compiling cannot be interrupted from
+    Python, so SIGTERM acts at once meanwhile). Returns ``(summary, exit code)``.
+    """
+    keys = Keys(opts.id)
+    stop = stop or threading.Event()
     rec = None
     node = None
     rc = EXIT_OK
     summary: dict = {"role": "controller", "id": keys.id}
     try:
         with open_session(opts, "controller") as session:
-            sig = StopOnSignal(stop)
-            sig.install()
-            period, run_mode, vehicle = 0.01, None, None
+            if on_signal_install is not None:
+                on_signal_install()
+            params = None
+            if fetch:
+                p = fetch_params(session, keys, wait_s, stop)
+                from plant.vehicle import VehicleError, vehicle_from_dict
+
+                try:
+                    vehicle = vehicle_from_dict(p["vehicle"])
+                except VehicleError as e:
+                    raise ControllerRunError(f"the plant's params: vehicle: {e}") from None
+                params = PlantParams(vehicle, p["period"], p["run_mode"])
+                log.info("plant params: %s, %d wheels, T = %g s, %s", vehicle.name,
+                         vehicle.n_wheels, params.period, params.run_mode)
             try:
-                if not a.vehicle:
-                    p = fetch_params(session, keys, a.wait, stop)
-                    try:
-                        vehicle = vehicle_from_dict(p["vehicle"])
-                    except VehicleError as e:
-                        raise ControllerRunError(f"the plant's params: vehicle: {e}") from None
-                    period, run_mode = p["period"], p["run_mode"]
-                    log.info("plant params: %s, %d wheels, T = %g s, %s", vehicle.name,
-                             vehicle.n_wheels, period, run_mode)
-                vehicle, ref, _ = scenario_from_args(a, vehicle=vehicle)
-            except (VehicleError, ReferenceError, PlantError, FileNotFoundError, ValueError) as e:
-                print(f"msagv controller: {e}", file=sys.stderr)
-                return EXIT_USAGE
-            if run_mode == "realtime" and a.deadline_ms is None:
-                settings = settings.with_(deadline_ms=REALTIME_DEADLINE_MS)
-                log.info("realtime plant: solve budget %g ms (--deadline-ms)", REALTIME_DEADLINE_MS)
-            max_age = a.max_age_ms if a.max_age_ms is not None else (
-                50.0 if run_mode == "realtime" else None)
-            mpc = make_mpc(solver, vehicle, settings, ref, period=period)
+                mpc = make_mpc(params)
+            except ValueError as e:
+                log.error("%s", e)
+                return dict(summary, error=str(e)), EXIT_USAGE
+            if cfg.max_age_ms is None:
+                cfg = dataclasses.replace(cfg, max_age_ms=realtime_defaults(
+                    params.run_mode if params else None, None, None)[1])
             t0 = time.perf_counter()
-            # compiling cannot be interrupted from Python: let SIGTERM act at once meanwhile
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
             mpc.warmup()  # compiles, then resets the warm start and the RNG
-            sig.install()
+            if on_signal_install is not None:
+                on_signal_install()
             if stop.is_set():
-                return EXIT_OK
+                return summary, EXIT_OK
+            s = mpc.settings
             log.info("MPC warm (%.2f s): %s %s, %s, seed %d", time.perf_counter() - t0,
-                     settings.method, settings.model, solver, settings.seed)
-            if a.record:
-                rec = Recorder(a.record, {
-                    "role": "controller", "id": keys.id, "vehicle": vehicle.to_dict(),
-                    "period": period, "run_mode": run_mode,
-                    "reference": dict(ref.to_message(), name=ref.name),
-                    "settings": dataclasses.asdict(settings), "solver": solver,
-                    "argv": list(argv)})
-            node = ControllerNode(mpc, keys, ControllerConfig(max_age, a.on_plant_loss,
-                                                              a.exit_at_end),
-                                  session=session, recorder=rec)
+                     s.method, s.model, getattr(mpc, "solver_name", "sa"), s.seed)
+            if open_recorder is not None:
+                rec = open_recorder(mpc, params)
+            node = ControllerNode(mpc, keys, cfg, session=session, recorder=rec)
             node.stop = stop
-            # everything allocated so far (numba, numpy, the model) leaves the garbage
-            # collector's view: a full collection would otherwise stall a period. Done
-            # before the subscriptions exist, so no message waits for it (a collection
-            # here took ~80 ms and delayed the answer to state 0).
-            gc.collect()
-            gc.freeze()
+            freeze_heap()
             node.open()
             log.info("controller ready on %s", keys.state)
             try:
@@ -468,13 +436,11 @@ def main(argv: list[str]) -> int:
             finally:
                 node.close()
     except ControllerRunError as e:
-        if stop.is_set():
-            rc = EXIT_OK
-        else:
-            print(f"msagv controller: {e}", file=sys.stderr)
+        if not stop.is_set():
+            log.error("%s", e)
             rc = EXIT_RUNTIME
     except SessionError as e:
-        print(f"msagv controller: {e}", file=sys.stderr)
+        log.error("%s", e)
         rc = EXIT_USAGE
     except KeyboardInterrupt:
         pass
@@ -483,12 +449,4 @@ def main(argv: list[str]) -> int:
             summary = node.summary()
         if rec is not None:
             rec.close(summary)
-    if a.json:
-        print(json.dumps(summary), flush=True)
-    elif node is not None:
-        sm = summary["solve_ms"]
-        print(f"controller {keys.id}: answered {summary['answered']}, skipped "
-              f"{summary['skipped']}, rejected {summary['rejected']['total']}, solve p50 "
-              f"{(sm['p50'] or 0):.2f} p99 {(sm['p99'] or 0):.2f} ms ({summary['exit_reason']})",
-              file=sys.stderr)
-    return rc
+    return summary, rc

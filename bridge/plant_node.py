@@ -17,14 +17,8 @@ and declares the liveliness token ``msagv/{id}/alive/plant``. Two stepping modes
 
 from __future__ import annotations
 
-import argparse
-import gc
-import json
 import logging
 import math
-import os
-import signal
-import sys
 import threading
 import time
 from collections import OrderedDict
@@ -32,13 +26,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from controller.metrics import percentiles
+
 from . import messages as M
 from .presence import Presence
-from .session import Keys
+from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_heap
+from .session import Keys, SessionError, SessionOptions, open_session
 
 log = logging.getLogger("msagv.plant")
-
-EXIT_OK, EXIT_USAGE, EXIT_RUNTIME = 0, 2, 3
 
 
 class PlantRunError(RuntimeError):
@@ -89,11 +84,8 @@ class PlantConfig:
 
 
 def percentiles_ms(values_s) -> dict:
-    v = np.asarray(values_s, dtype=float) * 1000.0
-    if v.size == 0:
-        return {"p50": None, "p99": None, "max": None, "n": 0}
-    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)),
-            "max": float(v.max()), "n": int(v.size)}
+    """Percentiles in ms of durations given in s (:func:`controller.metrics.percentiles`)."""
+    return percentiles(values_s, scale=1000.0, count=True)
 
 
 @dataclass
@@ -482,162 +474,31 @@ class PlantNode:
         }
 
 
-# ---- command line -----------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    from .run_cmd import add_case_args
-    from .session import add_session_args
+# ---- the process ------------------------------------------------------------------------
+def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, recorder=None,
+          signals: StopOnSignal | None = None) -> tuple[dict, int]:
+    """Run the plant process: open the Zenoh session, serve one run, close everything.
 
-    ap = argparse.ArgumentParser(
-        prog="msagv plant",
-        description="The plant as a Zenoh process (state out, commands in, params queryable, "
-                    "liveliness token). 'msagv plant replay' is the open-loop CSV replay.")
-    ap.add_argument("--run-mode", choices=list(M.RUN_MODES), default="lockstep",
-                    help="lockstep: step when the command for the current state arrives "
-                         "(deterministic); realtime: step on the wall clock at 1/T "
-                         "(default lockstep)")
-    add_case_args(ap)
-    ap.add_argument("--from-rest", action="store_true",
-                    help="start at rest at the origin (+ --initial), as 'plant replay', "
-                         "instead of on the reference")
-    ap.add_argument("--fmu", metavar="FILE", help="host this FMI 2.0 co-simulation FMU "
-                                                  "instead of the built-in plant")
-    ap.add_argument("--map", metavar="FILE", help="with --fmu: the variable-name mapping file")
-    ap.add_argument("--period", type=float, default=0.01, help="control period T [s] (0.01)")
-    ap.add_argument("--timeout", type=float, default=10.0, metavar="S",
-                    help="lockstep: longest wait for a command; realtime: for the first one "
-                         "(default 10)")
-    ap.add_argument("--wait", type=float, default=60.0, metavar="S",
-                    help="wait this long for a controller at start, 0 = forever (default 60)")
-    ap.add_argument("--stale-ms", type=float, default=50.0,
-                    help="realtime: a command older than this puts the plant in its safe "
-                         "behaviour (default 50)")
-    ap.add_argument("--safe-decel", type=float, default=2.0, metavar="M/S2",
-                    help="realtime safe behaviour: wheel ramp-down at the rim (default 2)")
-    ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
-    ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
-    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
-    add_session_args(ap)
-    return ap
-
-
-def setup_logging(prog: str, vid: str, quiet: bool) -> None:
-    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, stream=sys.stderr,
-                        format=f"{prog} [{vid}] %(levelname)s: %(message)s", force=True)
-
-
-class StopOnSignal:
-    """SIGINT/SIGTERM set ``event`` (the loops check it at least every 50 ms) instead of
-    killing the process, so recordings are closed and tokens undeclared."""
-
-    def __init__(self, event: threading.Event):
-        self.event = event
-        self.signum: int | None = None
-
-    def install(self) -> None:
-        for s in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(s, self._handler)
-
-    def _handler(self, signum, frame) -> None:
-        if self.event.is_set():  # a second signal: stop at once
-            raise KeyboardInterrupt
-        self.signum = signum
-        self.event.set()
-
-
-def make_plant(a):
-    """``(plant, vehicle, reference, initial)`` from the options (built-in or FMU)."""
-    from plant.stepping import Plant, parse_initial
-    from plant.vehicle import load_vehicle
-
-    from .run_cmd import scenario_from_args
-
-    if a.map and not a.fmu:
-        raise ValueError("--map applies to --fmu")
-    if a.fmu:
-        from fmu_build.host import FmuPlant
-
-        given = load_vehicle(a.vehicle) if a.vehicle else None
-        params = {"mass": a.mass} if a.mass is not None else None
-        fp = FmuPlant(a.fmu, given, mapping=a.map, parameters=params)
-        try:
-            vehicle, ref, initial = scenario_from_args(a, vehicle=fp.vehicle)
-            if a.from_rest:
-                initial = parse_initial(a.initial)
-            fp.reset(initial)
-        except Exception:
-            fp.close()
-            raise
-        return fp, vehicle, ref, initial
-    vehicle, ref, initial = scenario_from_args(a)
-    if a.from_rest:
-        initial = parse_initial(a.initial)
-    return Plant(vehicle, initial=initial), vehicle, ref, initial
-
-
-def main(argv: list[str]) -> int:
-    from controller.reference import ReferenceError
-    from plant.stepping import PlantError
-    from plant.vehicle import VehicleError
-
-    from .recording import Recorder
-    from .session import SessionError, open_session, options_from_args
-
-    a = build_parser().parse_args(argv)
-    setup_logging("msagv plant", a.id, a.quiet)
-    if a.rt_priority:
-        from .session import set_realtime_priority
-
-        why = set_realtime_priority(a.rt_priority)
-        if why:
-            log.warning("%s", why)
-    stop = threading.Event()
-    sig = StopOnSignal(stop)
-    sig.install()
-    try:
-        from fmu_build.host import FmuHostError
-    except ImportError:  # pragma: no cover
-        FmuHostError = RuntimeError
-    try:
-        opts = options_from_args(a)
-        keys = Keys(opts.id)
-        plant, vehicle, ref, initial = make_plant(a)
-        duration = a.duration if a.duration is not None else ref.duration
-        cfg = PlantConfig(run_mode=a.run_mode, period=a.period,
-                          steps=int(round(duration / a.period)) if duration > 0 else 0,
-                          timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
-                          safe_decel=a.safe_decel)
-    except (VehicleError, ReferenceError, PlantError, ValueError, FileNotFoundError,
-            FmuHostError) as e:
-        print(f"msagv plant: {e}", file=sys.stderr)
-        return EXIT_USAGE
-    rec = None
-    if a.record:
-        try:
-            rec = Recorder(a.record, {
-                "role": "plant", "id": keys.id, "vehicle": vehicle.to_dict(),
-                "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
-                "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
-                "fmu": a.fmu, "argv": list(argv)})
-        except OSError as e:
-            print(f"msagv plant: --record: {e}", file=sys.stderr)
-            return EXIT_USAGE
-    node = PlantNode(plant, keys, cfg, recorder=rec)
-    node.stop = stop
+    ``plant``: any object with the plant interface (:class:`plant.interface.PlantInterface`),
+    built by the caller; ``recorder``: an open :class:`bridge.recording.Recorder` or None
+    (closed here, with the summary); ``signals``: the installed SIGINT/SIGTERM handler
+    whose event ends the run (the summary then names the signal).
+    Returns ``(summary, exit code)``: 0 done or stopped, 2 the session could not open,
+    3 the run could not go on (:class:`PlantRunError`).
+    """
+    node = PlantNode(plant, Keys(opts.id), cfg, recorder=recorder)
+    if signals is not None:
+        node.stop = signals.event
     rc = EXIT_OK
     try:
         with open_session(opts, "plant") as session:
             node.session = session
-            # everything allocated so far (numba, numpy, the model) leaves the garbage
-            # collector's view: a full collection would otherwise stall a period. Done
-            # before the subscriptions exist, so no message waits for it (a collection
-            # here took ~80 ms and delayed the answer to state 0).
             if hasattr(plant, "warmup"):
                 plant.warmup()  # the integrator compiled before the real-time clock starts
-            gc.collect()
-            gc.freeze()
+            freeze_heap()
             node.open()
-            log.info("%s plant ready: %s, %d steps of %g s, %s", cfg.run_mode, vehicle.name,
-                     cfg.steps, cfg.period, ref.name)
+            log.info("%s plant ready: %s, %d steps of %g s", cfg.run_mode, plant.vehicle.name,
+                     cfg.steps, cfg.period)
             try:
                 node.run()
             except PlantRunError as e:
@@ -646,51 +507,16 @@ def main(argv: list[str]) -> int:
             finally:
                 node.close()
     except SessionError as e:
-        print(f"msagv plant: {e}", file=sys.stderr)
+        log.error("%s", e)
         node.error = str(e)
         rc = EXIT_USAGE
     except KeyboardInterrupt:
         node.error = "interrupted"
     finally:
         summary = node.summary()
-        if sig.signum is not None:
-            summary["stopped_by"] = signal.Signals(sig.signum).name
-            log.info("stopped by %s", summary["stopped_by"])
-        if rec is not None:
-            rec.close(summary)
-        if hasattr(plant, "close"):
-            plant.close()
-    _report(summary, a.json)
-    if a.fmu:
-        # Everything is flushed and closed: leave without the interpreter's and the shared
-        # libraries' exit handlers. A pythonfmu binary and Zenoh's static destructors in one
-        # process intermittently aborted at exit ('corrupted double-linked list', in
-        # zenoh_shm's cleanup) after a complete, correct run.
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(rc)
-    return rc
-
-
-def _report(s: dict, as_json: bool) -> None:
-    if as_json:
-        print(json.dumps(s), flush=True)
-        return
-    c, r = s["commands"], s["rejected"]
-    lines = [f"plant {s['id']}: {s['run_mode']}, {s['steps']} steps ({s['t_end']:.2f} s)"
-             f"{'' if s['completed'] else ' (incomplete)'}",
-             f"  commands   accepted {c['accepted']}, late {c['late']}, lost {c['lost']}, "
-             f"stale {c['stale']}, duplicate {c['duplicate']}",
-             f"  rejected   {r['total']} {r['by_reason'] if r['total'] else ''}"]
-    lat = s["latency_ms"]
-    if lat["n"]:
-        lines.append(f"  latency    p50 {lat['p50']:.3f} ms  p99 {lat['p99']:.3f} ms  "
-                     f"max {lat['max']:.3f} ms (state -> command, without the solve)")
-    if s["run_mode"] == "realtime":
-        j = s["period_jitter_ms"]
-        lines.append(f"  periods    missed {s['missed_periods']}, jitter p50 "
-                     f"{(j['p50'] or 0):.3f} p99 {(j['p99'] or 0):.3f} max {(j['max'] or 0):.3f} ms")
-        sf = s["safe"]
-        lines.append(f"  safe       events {sf['events']}, periods {sf['periods']}, "
-                     f"resumes {sf['resumes']}")
-    print("\n".join(lines), file=sys.stderr, flush=True)
+        if signals is not None and signals.name is not None:
+            summary["stopped_by"] = signals.name
+            log.info("stopped by %s", signals.name)
+        if recorder is not None:
+            recorder.close(summary)
+    return summary, rc

@@ -20,10 +20,13 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
 import msgpack
+
+from . import messages as M
 
 MAGIC = "msagv-recording"
 REC_VERSION = 1
@@ -135,3 +138,63 @@ def read_recording(path: str | Path) -> tuple[dict, list[dict], dict | None]:
         else:
             recs.append(r)
     return header, recs, summary
+
+
+# ---- the runs of a recording ---------------------------------------------------------------
+@dataclass
+class RecordedRun:
+    """One plant run (seq from 0) as seen in a recording."""
+
+    states: dict = field(default_factory=dict)  # seq -> decoded state
+    cmds: dict = field(default_factory=dict)  # state_seq -> first decoded command answering it
+    cmd_ts: dict = field(default_factory=dict)  # state_seq -> its record time
+    state_ts: dict = field(default_factory=dict)  # seq -> record time
+    references: list = field(default_factory=list)  # (first seq it applies to, message)
+    end_seq: int | None = None
+
+
+def split_runs(header: dict, records: list[dict]) -> list[RecordedRun]:
+    """Valid states and commands of each run (a run starts at seq 0 or when seq decreases).
+    Records carrying a rejection reason (``why``) are skipped, as the process skipped them."""
+    nw = len(header["vehicle"]["axle_x"]) * 2
+    runs: list[RecordedRun] = []
+    cur: RecordedRun | None = None
+    last = None
+    pending_refs: list = []
+    for r in records:
+        key = r.get("key")
+        if key is None or "why" in r:
+            continue
+        if key.endswith("/state"):
+            try:
+                st = M.decode_state(r["p"], nw)
+            except M.MessageError:
+                continue
+            seq = st["seq"]
+            if cur is None or seq == 0 and cur.states or (last is not None and seq < last):
+                cur = RecordedRun()
+                runs.append(cur)
+            last = seq
+            if seq in cur.states:  # a state sent again (lockstep, controller restarted)
+                continue
+            cur.states[seq] = st
+            cur.state_ts[seq] = r["ts"]
+            for m in pending_refs:
+                cur.references.append((seq, m))
+            pending_refs = []
+            if st.get("end"):
+                cur.end_seq = seq
+        elif key.endswith("/cmd"):
+            try:
+                c = M.decode_cmd(r["p"], nw)
+            except M.MessageError:
+                continue
+            if cur is not None and c["state_seq"] in cur.states and c["state_seq"] not in cur.cmds:
+                cur.cmds[c["state_seq"]] = c
+                cur.cmd_ts[c["state_seq"]] = r["ts"]
+        elif key.endswith("/reference"):
+            try:
+                pending_refs.append(M.decode_reference(r["p"]))
+            except M.MessageError:
+                continue
+    return [r for r in runs if r.states]

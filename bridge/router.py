@@ -1,4 +1,4 @@
-"""``msagv router``: a Zenoh router for plants and controllers on several machines.
+"""A Zenoh router for plants and controllers on several machines (``msagv router``).
 
 There is no ``zenohd`` on PyPI or Debian here; a Python session opened in ``router`` mode
 routes between its peers and clients just as well (DESIGN.md). Plants and controllers
@@ -8,32 +8,19 @@ number of vehicles share it by id. Multicast scouting is off: clients name the e
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import threading
 
-from .plant_node import EXIT_OK, EXIT_USAGE, StopOnSignal, setup_logging
+from .process import EXIT_OK, EXIT_USAGE
+from .session import ROUTER_PORT, SessionError, SessionOptions, open_session
 
 log = logging.getLogger("msagv.router")
 
 
-def main(argv: list[str]) -> int:
-    from .session import ROUTER_PORT, SessionError, add_session_args, open_session, options_from_args
-
-    ap = argparse.ArgumentParser(
-        prog="msagv router",
-        description=f"A Zenoh router (a session in router mode); listens on "
-                    f"tcp/127.0.0.1:{ROUTER_PORT} unless --listen is given (use "
-                    f"--listen tcp/0.0.0.0:{ROUTER_PORT} for other machines).")
-    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
-    add_session_args(ap, router=True)
-    a = ap.parse_args(argv)
-    setup_logging("msagv router", "-", a.quiet)
-    stop = threading.Event()
-    StopOnSignal(stop).install()
+def serve(opts: SessionOptions, stop: threading.Event) -> int:
+    """Route until ``stop`` is set; returns the exit code (2: the session cannot open)."""
     try:
-        opts = options_from_args(a, router=True)
         with open_session(opts, "router") as session:
             eps = opts.listen or [f"tcp/127.0.0.1:{ROUTER_PORT}"]
             log.info("router %s listening on %s", session.zid(), ", ".join(eps))

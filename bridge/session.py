@@ -19,7 +19,6 @@ See docs/PROTOCOL.md for the key expressions and the messages.
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 from dataclasses import dataclass, field
@@ -102,36 +101,6 @@ class SessionOptions:
     lease_ms: int = DEFAULT_LEASE_MS
 
 
-def add_session_args(ap: argparse.ArgumentParser, router: bool = False) -> None:
-    g = ap.add_argument_group("Zenoh session")
-    if not router:
-        g.add_argument("--id", default=DEFAULT_ID,
-                       help=f"vehicle id: keys msagv/ID/... (default {DEFAULT_ID}); several "
-                            f"vehicles share one bus by id")
-        g.add_argument("--mode", choices=["peer", "client"], default="peer",
-                       help="zenoh session mode (client: through a router, e.g. msagv router)")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)")
-    g.add_argument("--zenoh-config", metavar="FILE",
-                   help="a zenoh JSON5 config file (the options above are applied on top)")
-    g.add_argument("--lease-ms", type=int, default=DEFAULT_LEASE_MS,
-                   help=f"transport lease [ms]: how soon a dead process is noticed "
-                        f"(default {DEFAULT_LEASE_MS})")
-    if not router:
-        g.add_argument("--rt-priority", type=int, default=0, metavar="N",
-                       help="run under SCHED_FIFO priority N (1-99; needs CAP_SYS_NICE), so "
-                            "a loaded machine delays the periods less (default 0: off)")
-
-
-def options_from_args(a, router: bool = False) -> SessionOptions:
-    return SessionOptions(id=check_id(getattr(a, "id", DEFAULT_ID)), connect=list(a.connect),
-                          listen=list(a.listen),
-                          mode="router" if router else a.mode,
-                          config_file=a.zenoh_config, lease_ms=a.lease_ms)
-
-
 def make_config(opts: SessionOptions, role: str):
     """A :class:`zenoh.Config` for ``role`` in {'plant', 'controller', 'router', 'tool'}."""
     import zenoh
@@ -188,19 +157,3 @@ def open_session(opts: SessionOptions, role: str):
     except Exception as e:  # zenoh.ZError: e.g. the listen port is taken
         eps = ", ".join(opts.listen or opts.connect) or "the default endpoint"
         raise SessionError(f"cannot open the zenoh session ({role}, {eps}): {e}") from None
-
-
-def set_realtime_priority(priority: int) -> str | None:
-    """Run this process (and the threads it starts later, e.g. zenoh's) under SCHED_FIFO
-    at ``priority`` (1-99), so a loaded machine cannot delay its periods. Call before
-    opening the session. Returns None on success, else why not (e.g. no CAP_SYS_NICE);
-    the process then runs at normal priority."""
-    import os
-
-    if not 1 <= priority <= 99:
-        return f"--rt-priority must be 1..99, got {priority}"
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (AttributeError, PermissionError, OSError) as e:
-        return f"cannot use SCHED_FIFO ({e}); running at normal priority"
-    return None

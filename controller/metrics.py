@@ -39,12 +39,18 @@ def tracking_errors(pose: np.ndarray, ref_pose: np.ndarray) -> dict[str, float]:
     return {"e_x_cm": ex, "e_y_cm": ey, "e_phi_deg": ep, "e_bar": (ex + ey + ep) / 3.0}
 
 
-def percentiles(values) -> dict[str, float]:
-    v = np.asarray(values, dtype=float)
+def percentiles(values, scale: float = 1.0, count: bool = False) -> dict:
+    """``{"p50", "p99", "max"}`` (plus ``"n"`` with ``count``) of ``values`` times ``scale``
+    (e.g. 1000 for seconds to milliseconds); None (JSON null) when there are no values."""
+    v = np.asarray(values, dtype=float).reshape(-1) * scale
     if v.size == 0:
-        return {"p50": float("nan"), "p99": float("nan"), "max": float("nan")}
-    return {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)),
-            "max": float(v.max())}
+        out = {"p50": None, "p99": None, "max": None}
+    else:
+        out = {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99)),
+               "max": float(v.max())}
+    if count:
+        out["n"] = int(v.size)
+    return out
 
 
 def compute_metrics(pose, ref_pose, W_start, W_end, solve_ms=()) -> dict:
@@ -74,6 +80,7 @@ def format_table(m: dict, title: str = "") -> str:
     lines.append(f"  e_bar      {m['e_bar']:.3f}   (e_x {m['e_x_cm']:.2f} cm, e_y {m['e_y_cm']:.2f} cm, "
                  f"e_phi {m['e_phi_deg']:.2f} deg)")
     sm = m["solve_ms"]
-    lines.append(f"  solve [ms] p50 {sm['p50']:.2f}  p99 {sm['p99']:.2f}  max {sm['max']:.2f}")
+    if sm.get("p50") is not None:
+        lines.append(f"  solve [ms] p50 {sm['p50']:.2f}  p99 {sm['p99']:.2f}  max {sm['max']:.2f}")
     lines.append(f"  steps      {m['steps']}")
     return "\n".join(lines)

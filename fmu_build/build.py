@@ -186,7 +186,7 @@ def build_fmu(out: str | Path, vehicle: Vehicle | None = None, *, prefix: str = 
                 raise
             raise FmuBuildError(f"initial: {e}") from None
         cmd = [sys.executable, "-m", "pythonfmu", "build", "-f", str(script), "-d", str(dest),
-               *[str(p) for p in project]]
+               "--handle-state", *[str(p) for p in project]]
         env = dict(os.environ, **{slave_mod.BUILD_ENV: f"msagv_plant_{h}"})
         try:
             r = subprocess.run(cmd, cwd=td, env=env, capture_output=True, text=True,

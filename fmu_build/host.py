@@ -37,7 +37,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from plant.stepping import PlantError, signal_names, state_names
+from plant.interface import PlantError, check_inputs, check_step, saturate, state_message
+from plant.stepping import signal_names, state_names
 from plant.vehicle import Vehicle, vehicle_from_dict
 
 from .slave import CONFIG_FILE
@@ -106,21 +107,15 @@ def read_fmu_config(fmu_path: str | Path) -> dict | None:
         raise FmuHostError(f"{fmu_path}: not an FMU (not a zip archive)") from None
 
 
-def check_inputs(vehicle: Vehicle, omega_w, omega_s) -> tuple[np.ndarray, np.ndarray]:
-    """The validation of :meth:`plant.Plant.set_inputs` (same messages): shapes (2n,),
-    finite, ``omega_w >= 0``. Returns the commands as float arrays (not saturated)."""
-    nw = vehicle.n_wheels
-    w = np.array(omega_w, dtype=float).reshape(-1)
-    s = np.array(omega_s, dtype=float).reshape(-1)
-    if w.shape != (nw,) or s.shape != (nw,):
-        raise PlantError(f"inputs: expected {nw} wheel speeds and {nw} steering "
-                         f"rates, got {w.size} and {s.size}")
-    if not (np.all(np.isfinite(w)) and np.all(np.isfinite(s))):
-        raise PlantError("inputs: commands must be finite (got NaN or inf)")
-    if np.any(w < 0):
-        raise PlantError(f"inputs: omega_w must be >= 0 (wheel "
-                         f"{vehicle.wheel_names[int(np.argmin(w))]} got {w.min()})")
-    return w, s
+@dataclass(frozen=True)
+class FmuSnapshot:
+    """A saved FMU state (:meth:`FmuPlant.get_state`), valid for the instance that took it."""
+
+    owner: Any
+    handle: Any
+    t: float
+    omega_w: np.ndarray
+    omega_s: np.ndarray
 
 
 class FmuPlant:
@@ -384,9 +379,7 @@ class FmuPlant:
             self._fmu.setReal(self._in_vr, w.tolist() + s.tolist())
         except Exception as e:
             raise PlantError(f"inputs: the FMU refused them: {e}{self._log_tail()}") from None
-        lim = self.vehicle.limits
-        self._u_w = np.minimum(w, lim.omega_w_max)
-        self._u_s = np.clip(s, lim.omega_s_min, lim.omega_s_max)
+        self._u_w, self._u_s = saturate(self.vehicle, w, s)
         self._y = None
 
     @property
@@ -395,10 +388,7 @@ class FmuPlant:
 
     def do_step(self, t: float, h: float) -> None:
         """Advance from ``t`` (must equal :attr:`t`) by ``h`` > 0 seconds."""
-        if not (math.isfinite(h) and h > 0):
-            raise PlantError(f"do_step: step size must be finite and > 0, got {h}")
-        if not math.isfinite(t) or abs(t - self.t) > 1e-9 * max(1.0, abs(self.t)):
-            raise PlantError(f"do_step: t = {t} does not match the plant's time {self.t}")
+        check_step(self.t, t, h)
         try:
             self._fmu.doStep(currentCommunicationPoint=self.t, communicationStepSize=h)
         except Exception as e:
@@ -431,18 +421,37 @@ class FmuPlant:
         """DESIGN.md's ``state`` fields (without ``v``/``seq``), like ``Plant.state_message``."""
         y, ix = self._values(), self._out_index
         w = self.vehicle.wheel_names
-        msg = {"t": self.t}
-        for k in REQUIRED_OUTPUTS:
-            msg[k] = y[ix[k]]
-        msg["delta"] = [y[ix[f"delta_{k}"]] for k in w]
-        if all(f"omega_w_{k}" in ix for k in w):
-            msg["omega_w"] = [y[ix[f"omega_w_{k}"]] for k in w]
-        else:
-            msg["omega_w"] = self._u_w.tolist()
-        for k in ("W_s", "W_alpha", "W_t"):
-            if k in ix:
-                msg[k] = y[ix[k]]
-        return msg
+        omega_w = ([y[ix[f"omega_w_{k}"]] for k in w] if all(f"omega_w_{k}" in ix for k in w)
+                   else self._u_w)
+        wear = None
+        if all(k in ix for k in ("W_s", "W_alpha", "W_t")):
+            wear = [y[ix[k]] for k in ("W_s", "W_alpha", "W_t")]
+        return state_message(self.t, [y[ix[k]] for k in REQUIRED_OUTPUTS],
+                             [y[ix[f"delta_{k}"]] for k in w], omega_w, wear)
+
+    def get_state(self) -> "FmuSnapshot":
+        """A snapshot of the FMU's whole state (fmi2GetFMUstate) with the host's time and
+        held inputs; :class:`PlantError` if the FMU cannot save its state."""
+        if not getattr(self.model_description.coSimulation, "canGetAndSetFMUstate", False):
+            raise PlantError(f"get_state: {self.path.name} cannot save its state "
+                             f"(canGetAndSetFMUstate is false)")
+        try:
+            handle = self._fmu.getFMUState()
+        except Exception as e:
+            raise PlantError(f"get_state: the FMU failed: {e}{self._log_tail()}") from None
+        return FmuSnapshot(self, handle, self.t, self._u_w.copy(), self._u_s.copy())
+
+    def set_state(self, snap: "FmuSnapshot") -> None:
+        """Restore a snapshot of this instance (fmi2SetFMUstate)."""
+        if not isinstance(snap, FmuSnapshot) or snap.owner is not self:
+            raise PlantError("set_state: snapshot does not belong to this FMU instance")
+        try:
+            self._fmu.setFMUState(snap.handle)
+        except Exception as e:
+            raise PlantError(f"set_state: the FMU failed: {e}{self._log_tail()}") from None
+        self.t = snap.t
+        self._u_w, self._u_s = snap.omega_w.copy(), snap.omega_s.copy()
+        self._y = None
 
     def reset(self, initial: Mapping[str, float] | None = None) -> None:
         """Back to t = 0 at the initial state (the constructor's, or ``initial``)."""

@@ -307,6 +307,29 @@ class MsagvPlant(Fmi2Slave):
         self._inputs_dirty = True
         self._apply_inputs()
 
+    # ---- FMU state (canGetAndSetFMUstate: fmi2GetFMUstate / fmi2SetFMUstate) ------------
+    def _get_fmu_state(self):
+        """The whole instance state, held as Python objects by pythonfmu's wrapper: the
+        plant (with a snapshot of its integrator state), inputs, parameters, flags."""
+        return {"plant": self._plant,
+                "snapshot": None if self._plant is None else self._plant.get_state(),
+                "u": list(self._u), "par": dict(self._par), "bad": dict(self._bad_inputs),
+                "pending": list(self._pending), "y": list(self._y),
+                "flags": (self._inputs_dirty, self._vehicle_dirty, self._initialized,
+                          self._start_time)}
+
+    def _set_fmu_state(self, state) -> None:
+        self._plant = state["plant"]
+        if self._plant is not None:
+            self._plant.set_state(state["snapshot"])
+        self._u = list(state["u"])
+        self._par = dict(state["par"])
+        self._bad_inputs = dict(state["bad"])
+        self._pending = list(state["pending"])
+        self._y = list(state["y"])
+        (self._inputs_dirty, self._vehicle_dirty, self._initialized,
+         self._start_time) = state["flags"]
+
     def do_step(self, current_time: float, step_size: float) -> bool:
         try:
             if self._pending:

@@ -5,10 +5,11 @@ Imports nothing of the project's other packages (no transport, no controller).
 
 from .vehicle import (Vehicle, VehicleError, default_vehicle, load_vehicle, n_axle_vehicle,
                       vehicle_from_dict)
-from .stepping import Plant, PlantError, PlantSnapshot, input_names, signal_names, state_names
+from .interface import PlantError, PlantInterface
+from .stepping import Plant, PlantSnapshot, input_names, signal_names, state_names
 
 __all__ = [
     "Vehicle", "VehicleError", "default_vehicle", "load_vehicle", "n_axle_vehicle",
     "vehicle_from_dict", "Plant", "PlantError", "PlantSnapshot", "input_names",
-    "signal_names", "state_names",
+    "signal_names", "state_names", "PlantInterface",
 ]

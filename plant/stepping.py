@@ -10,12 +10,11 @@ from typing import Mapping
 import numpy as np
 
 from . import dynamics as dyn
+from .interface import PlantError, check_inputs, check_step, saturate, state_message
 from .tire import V_EPS_DEFAULT
 from .vehicle import Vehicle, default_vehicle
 
-
-class PlantError(ValueError):
-    """Bad input to the plant (the plant's state is left unchanged)."""
+__all__ = ["Plant", "PlantError", "PlantSnapshot", "input_names", "signal_names", "state_names"]
 
 
 def state_names(vehicle: Vehicle) -> list[str]:
@@ -44,28 +43,6 @@ def signal_names(vehicle: Vehicle) -> list[str]:
 def input_names(vehicle: Vehicle) -> list[str]:
     w = vehicle.wheel_names
     return [f"omega_w_{k}" for k in w] + [f"omega_s_{k}" for k in w]
-
-
-def parse_initial(text: str | None) -> dict[str, float]:
-    """Parse ``name=value,name=value`` into a dict (values must be finite numbers)."""
-    out: dict[str, float] = {}
-    if not text:
-        return out
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "=" not in part:
-            raise PlantError(f"--initial: expected name=value, got '{part}'")
-        k, v = (s.strip() for s in part.split("=", 1))
-        try:
-            val = float(v)
-        except ValueError:
-            raise PlantError(f"--initial: {k}: '{v}' is not a number") from None
-        if not math.isfinite(val):
-            raise PlantError(f"--initial: {k}: must be finite, got {v}")
-        out[k] = val
-    return out
 
 
 @dataclass(frozen=True)
@@ -169,23 +146,10 @@ class Plant:
 
     # ---- inputs ----------------------------------------------------------------------
     def set_inputs(self, omega_w, omega_s) -> None:
-        """Set the held commands: wheel speeds and steering rates, each shape (2n,)."""
-        try:
-            w = np.array(omega_w, dtype=float).reshape(-1)
-            s = np.array(omega_s, dtype=float).reshape(-1)
-        except (TypeError, ValueError) as e:
-            raise PlantError(f"inputs: commands must be numbers ({e})") from None
-        if w.shape != (self.nw,) or s.shape != (self.nw,):
-            raise PlantError(f"inputs: expected {self.nw} wheel speeds and {self.nw} steering "
-                             f"rates, got {w.size} and {s.size}")
-        if not (np.all(np.isfinite(w)) and np.all(np.isfinite(s))):
-            raise PlantError("inputs: commands must be finite (got NaN or inf)")
-        if np.any(w < 0):
-            raise PlantError(f"inputs: omega_w must be >= 0 (wheel {self.vehicle.wheel_names[int(np.argmin(w))]}"
-                             f" got {w.min()})")
-        lim = self.vehicle.limits
-        self._u_w = np.minimum(w, lim.omega_w_max)
-        self._u_s = np.clip(s, lim.omega_s_min, lim.omega_s_max)
+        """Set the held commands: wheel speeds and steering rates, each shape (2n,)
+        (:func:`plant.interface.check_inputs`, then :func:`plant.interface.saturate`)."""
+        w, s = check_inputs(self.vehicle, omega_w, omega_s)
+        self._u_w, self._u_s = saturate(self.vehicle, w, s)
         self._refresh()
 
     @property
@@ -195,10 +159,7 @@ class Plant:
     # ---- stepping --------------------------------------------------------------------
     def do_step(self, t: float, h: float) -> None:
         """Advance from ``t`` (must equal the plant's time) by ``h`` > 0 seconds."""
-        if not (math.isfinite(h) and h > 0):
-            raise PlantError(f"do_step: step size must be finite and > 0, got {h}")
-        if not math.isfinite(t) or abs(t - self.t) > 1e-9 * max(1.0, abs(self.t)):
-            raise PlantError(f"do_step: t = {t} does not match the plant's time {self.t}")
+        check_step(self.t, t, h)
         y = self._y.copy()
         h_next = dyn.integrate(y, self.t, self.t + h, self._u_w, self._u_s, self._P, self._wx,
                                self._wy, self.rtol, self.atol, self._h, self.max_substeps,
@@ -281,11 +242,8 @@ class Plant:
         self._refresh()
 
     def state_message(self) -> dict:
-        """The state as DESIGN.md's ``state`` fields (without ``v``/``seq``)."""
+        """The state as DESIGN.md's ``state`` fields (:func:`plant.interface.state_message`)."""
         y, nw = self._y, self.nw
         iw = 6 + nw
-        return {
-            "t": self.t, "x": y[0], "y": y[1], "phi": y[2], "vx": y[3], "vy": y[4], "r": y[5],
-            "delta": y[6:6 + nw].tolist(), "omega_w": self._aux[:, dyn.AUX_OMEGA_W].tolist(),
-            "W_s": y[iw], "W_alpha": y[iw + 1], "W_t": y[iw + 2],
-        }
+        return state_message(self.t, y[0:6], y[6:6 + nw], self._aux[:, dyn.AUX_OMEGA_W],
+                             y[iw:iw + 3])

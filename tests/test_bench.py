@@ -7,7 +7,8 @@ import json
 
 import pytest
 
-from benchmarks.cli import SECTIONS, main
+from benchmarks.suite import SECTIONS
+from msagv.cli import bench_main as main
 
 
 @pytest.mark.timeout(300)

@@ -302,7 +302,7 @@ def test_report_of_a_recorded_in_process_run_equals_its_metrics(tmp_path, vehicl
     from controller.mpc import MPC
     from controller.reference import case1_curve
 
-    from bridge.report import evaluate
+    from experiments.recorded import evaluate
 
     ref = case1_curve(15.0)
     plant = Plant(vehicle, initial=ref.initial_state(vehicle))

@@ -1,4 +1,4 @@
-"""``msagv experiment`` (bridge/experiments*.py): reduced experiments (two speeds, 2 s of
+"""``msagv experiment`` (experiments/, msagv/experiment.py): reduced experiments (two speeds, 2 s of
 vehicle time) into a temporary directory: the files, the paper's table layout, the
 best/second marking, resuming without redoing finished runs, determinism, ``--json``;
 plus the report helpers on hand-made data and the transcription of the paper's tables."""
@@ -11,10 +11,10 @@ import math
 
 import pytest
 
-from bridge import experiments as ex
-from bridge.experiments_paper import PAPER_COLUMNS, paper_table
-from bridge.experiments_report import (COLUMNS, check_targets, fmt, lower_front, table_rows,
-                                       wear_at)
+from experiments import studies as ex
+from experiments.paper import PAPER_COLUMNS, paper_table
+from experiments.tables import (COLUMNS, check_targets, fmt, lower_front, table_rows, wear_at)
+from msagv import experiment as ex_cli
 
 CASE1_ARGS = ["case1", "--duration", "2", "--speeds", "15,35", "--no-progress"]
 HEADER = ("| | Method | Omega | W_tw (J) | W_alpha (J) | W_s (J) | W_t (J) | e_bar | "
@@ -22,7 +22,7 @@ HEADER = ("| | Method | Omega | W_tw (J) | W_alpha (J) | W_s (J) | W_t (J) | e_b
 
 
 def run_main(capsys, args):
-    rc = ex.main(args)
+    rc = ex_cli.main(args)
     cap = capsys.readouterr()
     return rc, cap.out, cap.err
 
@@ -197,7 +197,7 @@ def test_reduced_ridge(tmp_path, capsys):
         n, t = r["NTWO"]["W_tw"], r["TWO"]["W_tw"]
         assert r["cut_percent"] == pytest.approx(100.0 * (1.0 - t / n))
     # the default ridge is x0.1: that row is the default NTWO of case1 (same key, same run)
-    from bridge.experiments import RIDGE_BASE
+    from experiments.studies import RIDGE_BASE
     from controller.models import MPCSettings
 
     assert tuple(MPCSettings().R[2:]) == pytest.approx((0.1 * RIDGE_BASE[0], 0.1 * RIDGE_BASE[1]))
@@ -217,10 +217,13 @@ def test_bad_options_exit_2(args, tmp_path, capsys):
     assert err.startswith("msagv experiment:")
 
 
-def test_dispatcher_knows_the_command():
-    from bridge.cli import COMMANDS
+def test_dispatcher_knows_the_command(capsys):
+    from msagv.cli import COMMANDS, main
 
-    assert COMMANDS["experiment"][0] == "bridge.experiments"
+    assert "experiment" in COMMANDS
+    with pytest.raises(SystemExit) as e:  # the dispatcher reaches the experiment's parser
+        main(["experiment", "--help"])
+    assert e.value.code == 0 and "msagv experiment" in capsys.readouterr().out
 
 
 # ---- report helpers on hand-made data --------------------------------------------------------

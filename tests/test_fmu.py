@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fmu_build import cli as fmu_cli
+from helpers import THREE_AXLE_TOML, edit_toml
+from msagv.cli import main as dispatcher
 from fmu_build.build import MAX_AXLES, FmuBuildError, build_fmu
 from fmu_build.drive import libcosim_step_sizes, run_native, varied_inputs
 from fmu_build.variables import (ATOL_DEFAULT, RTOL_DEFAULT, fmu_variables,
@@ -33,45 +34,20 @@ TOL = 1e-9
 PARAMS = {"mass": 16000.0, "tire_lateral_mu": 0.6, "vx_0": 2.0, "phi_0": 0.3,
           "delta_11_0": 0.2, "rtol": 1e-10}
 
-THREE_AXLE = """\
-name = "fmu-3axle"
-mass = 18500.0
-yaw_inertia = 150000.0
-wheel_radius = 0.45
-axle_x = [4.0, 0.5, -3.0]
-half_track = 1.1
-steer_loss_kt = 0.025
-
-[tire.longitudinal]
-B = 10.0
-C = 1.6
-mu = 0.85
-E = 0.1
-
-[tire.lateral]
-B = 8.0
-C = 1.35
-mu = 0.75
-E = -0.3
-
-[tire.dugoff]
-C_s = 400000.0
-C_alpha = 250000.0
-mu = 0.8
-
-[limits]
-omega_s_min = -0.7
-omega_s_max = 0.9
-omega_w_max = 28.0
-delta_min = -1.2
-delta_max = 1.4
-"""
+# the shared 3-axle vehicle with other tires and asymmetric limits
+THREE_AXLE = THREE_AXLE_TOML
+for _table, _key, _value in [("", "name", '"fmu-3axle"'), ("tire.lateral", "mu", "0.75"),
+                             ("tire.dugoff", "C_s", "400000.0"),
+                             ("tire.dugoff", "C_alpha", "250000.0"), ("tire.dugoff", "mu", "0.8"),
+                             ("limits", "omega_s_max", "0.9"), ("limits", "omega_w_max", "28.0"),
+                             ("limits", "delta_min", "-1.2")]:
+    THREE_AXLE = edit_toml(THREE_AXLE, _table, _key, _value)
 
 
 def msagv(argv: list[str]) -> int:
-    """``msagv fmu ...`` as the dispatcher runs it (bridge.cli -> fmu_build.cli.main)."""
+    """``msagv fmu ...`` as the dispatcher runs it (msagv.cli.main -> fmu_main)."""
     assert argv[0] == "fmu"
-    return fmu_cli.main(argv[1:])
+    return dispatcher(argv)
 
 
 def _vehicle_toml(v) -> str:
@@ -125,21 +101,21 @@ def work(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def fmu2(work) -> Path:
-    return build_fmu(work / "plant2.fmu")
+def fmu2(paper_fmu) -> Path:
+    return paper_fmu
 
 
 @pytest.fixture(scope="module")
-def three_axle_file(work) -> Path:
+def fmu3_vehicle_file(work) -> Path:
     p = work / "three.toml"
     p.write_text(THREE_AXLE)
     return p
 
 
 @pytest.fixture(scope="module")
-def fmu3(work, three_axle_file) -> Path:
+def fmu3(work, fmu3_vehicle_file) -> Path:
     out = work / "plant3.fmu"
-    assert msagv(["fmu", "build", "--vehicle", str(three_axle_file), "-o", str(out)]) == 0
+    assert msagv(["fmu", "build", "--vehicle", str(fmu3_vehicle_file), "-o", str(out)]) == 0
     return out
 
 
@@ -276,9 +252,7 @@ def test_refuses_output_without_fmu_suffix(tmp_path):
 
 
 def test_fmu_help_and_unknown_subcommand(capsys):
-    from bridge.cli import main as dispatcher
-
-    assert dispatcher(["fmu"]) == 0  # the msagv dispatcher reaches fmu_build.cli.main
+    assert dispatcher(["fmu"]) == 0  # the msagv dispatcher reaches the fmu command
     assert "msagv fmu build" in capsys.readouterr().out
     assert msagv(["fmu", "frobnicate"]) == 2
 
@@ -304,8 +278,8 @@ def test_parameters_take_effect(fmpy_runs):
     assert np.abs(S[-1] - S_def[-1]).max() > 1.0
 
 
-def test_three_axle_vehicle_builds_and_matches(fmpy_runs, three_axle_file):
-    v = load_vehicle(three_axle_file)
+def test_three_axle_vehicle_builds_and_matches(fmpy_runs, fmu3_vehicle_file):
+    v = load_vehicle(fmu3_vehicle_file)
     names, S = fmpy_runs["names_2"], fmpy_runs["S_2"]
     assert len(names) == len(Plant(v).signal_names) and "Fx_32" in list(names)
     _, S_nat = run_native(v, fmpy_runs["U_2"], 0.01)

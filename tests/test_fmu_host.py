@@ -32,8 +32,8 @@ def work(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def fmu2(work) -> Path:
-    return build_fmu(work / "plant.fmu")
+def fmu2(paper_fmu) -> Path:
+    return paper_fmu
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +86,32 @@ def test_same_interface_and_numbers_as_the_plant(fp):
         else:
             assert abs(m_fmu[k] - v) <= 1e-9, k
     assert all(type(x) is float for x in m_fmu["delta"] + m_fmu["omega_w"])
+
+
+def test_both_plants_declare_the_plant_interface(fp):
+    from plant.interface import PlantInterface
+
+    assert isinstance(Plant(), PlantInterface) and isinstance(fp, PlantInterface)
+
+
+def test_get_and_set_state_rewind_the_fmu_as_the_plant(fp):
+    """A snapshot taken mid-run and restored gives the same continuation, on the FMU
+    (fmi2GetFMUstate / fmi2SetFMUstate) as on the native plant."""
+    p = Plant(fp.vehicle)
+    U = varied_inputs(4, 60, seed=4)
+    for q in (fp, p):
+        _drive(q, U[:20])
+    snaps = fp.get_state(), p.get_state()
+    first = _drive(fp, U[20:]), _drive(p, U[20:])
+    fp.set_state(snaps[0])
+    p.set_state(snaps[1])
+    assert fp.t == p.t == pytest.approx(0.2)
+    again = _drive(fp, U[20:]), _drive(p, U[20:])
+    for a, b, c in zip(first[0], again[0], again[1]):
+        _assert_same(a, b, tol=0.0)  # the same FMU continuation, bit for bit
+        _assert_same(b, c)  # and the native plant's
+    with pytest.raises(PlantError, match="does not belong"):
+        fp.set_state(snaps[1])
 
 
 def test_direct_feedthrough_before_stepping(fp):
@@ -402,22 +428,23 @@ def test_closed_loop_runs_unchanged_on_the_fmu(fmu_prefixed, tmp_path):
     pytest.importorskip("controller.loop")
     import argparse
 
-    from bridge.run_cmd import add_case_args, add_mpc_args, scenario_from_args, settings_from_args
     from controller.loop import closed_loop
-    from controller.mpc import MPC
+    from msagv.args import add_case_args, add_mpc_args, scenario_from_args
 
     ap = argparse.ArgumentParser()
     add_case_args(ap)
     add_mpc_args(ap)
     a = ap.parse_args([])
-    settings = settings_from_args(a)
-    vehicle, ref, initial = scenario_from_args(a)
+    sc = scenario_from_args(a)
+    vehicle = sc.resolve_vehicle()
+    ref, start = sc.reference()
+    initial = sc.initial_state(vehicle, start)
     m = tmp_path / "map.toml"
     m.write_text(f'prefix = "{PREFIX}"\n')
     finals = []
     for plant in (Plant(vehicle, initial=initial),
                   FmuPlant(fmu_prefixed, vehicle, mapping=m, initial=initial)):
-        log = closed_loop(plant, MPC(vehicle, settings, ref), ref, 0.5, progress=False)
+        log = closed_loop(plant, sc.make_controller(vehicle, ref), ref, 0.5, progress=False)
         finals.append(log.final_state)
     native, fmu = finals
     assert fmu["x"] > 1.0
@@ -426,15 +453,20 @@ def test_closed_loop_runs_unchanged_on_the_fmu(fmu_prefixed, tmp_path):
 
 
 def test_cli_options_make_an_fmu_plant(fmu_prefixed, tmp_path):
-    """fmu_build.cli.add_fmu_args / fmu_plant_from_args: FILE.fmu --map FILE --param ..."""
+    """msagv.args.add_fmu_args / scenario_from_args: FILE.fmu --map FILE --param ..."""
     import argparse
 
-    from fmu_build.cli import add_fmu_args, fmu_plant_from_args
+    from msagv.args import add_fmu_args, scenario_from_args
+
+    def fmu_plant_from_args(a, initial=None):
+        sc = scenario_from_args(a)
+        sc.from_rest, sc.initial = True, dict(initial or {})
+        return sc.make_plant()[0]
 
     m = tmp_path / "map.toml"
     m.write_text(f'prefix = "{PREFIX}"\n')
     ap = argparse.ArgumentParser()
-    add_fmu_args(ap)
+    add_fmu_args(ap, positional=True)
     a = ap.parse_args([str(fmu_prefixed), "--map", str(m), "--param", "mass=15000,rtol=1e-9"])
     with fmu_plant_from_args(a, initial={"vx": 1.0}) as f:
         assert f.vehicle.mass == 15000.0 and f.state_message()["vx"] == 1.0

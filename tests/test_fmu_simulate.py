@@ -3,16 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
-MSAGV = str(Path(sys.executable).with_name("msagv"))
+from helpers import run_msagv
 
 
 def _json(args, cwd):
-    out = subprocess.run([MSAGV, *args, "--json"], capture_output=True, text=True, timeout=600,
-                         cwd=cwd)
+    out = run_msagv(*args, "--json", timeout=600, cwd=cwd)
     assert out.returncode == 0, out.stderr
     m = json.loads(out.stdout)
     m.pop("solve_ms")  # wall time differs, everything else must not
@@ -21,11 +17,9 @@ def _json(args, cwd):
 
 def test_fmu_simulate_matches_run(tmp_path):
     fmu = tmp_path / "plant.fmu"
-    b = subprocess.run([MSAGV, "fmu", "build", "-o", str(fmu)], capture_output=True, text=True,
-                       timeout=300, cwd=tmp_path)
+    b = run_msagv("fmu", "build", "-o", fmu, timeout=300, cwd=tmp_path)
     assert b.returncode == 0, b.stderr
     opts = ["--case", "curve", "--speed", "30", "--duration", "0.4", "--seed", "5"]
     assert _json(["fmu", "simulate", str(fmu), *opts], tmp_path) == _json(["run", *opts], tmp_path)
-    bad = subprocess.run([MSAGV, "fmu", "simulate", str(tmp_path / "missing.fmu")],
-                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    bad = run_msagv("fmu", "simulate", tmp_path / "missing.fmu", cwd=tmp_path)
     assert bad.returncode == 2 and "not found" in bad.stderr

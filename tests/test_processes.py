@@ -11,82 +11,25 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bridge import faults
 from bridge import messages as M
-from bridge.demo import free_port
 from bridge.presence import Presence
 from bridge.recording import read_recording
-from bridge.report import evaluate
 from bridge.session import Keys, SessionOptions, open_session
+from experiments.recorded import evaluate
+from helpers import ep, free_port, msagv
 
 PY = sys.executable
 T = 0.01
-
-
-def msagv(*args: str) -> list[str]:
-    return [PY, "-m", "bridge.cli", *[str(a) for a in args]]
-
-
-def ep(port: int) -> str:
-    return f"tcp/127.0.0.1:{port}"
-
-
-class Procs:
-    """Processes of one test: output to files, SIGTERM then SIGKILL at the end."""
-
-    def __init__(self, tmp: Path):
-        self.tmp = tmp
-        self.p: dict[str, subprocess.Popen] = {}
-
-    def start(self, name: str, args: list[str]) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        out = (self.tmp / f"{name}.out").open("w")
-        err = (self.tmp / f"{name}.err").open("w")
-        self.p[name] = subprocess.Popen(args, stdout=out, stderr=err, env=env, cwd=self.tmp)
-        out.close()
-        err.close()
-        return self.p[name]
-
-    def wait(self, name: str, timeout: float) -> int:
-        try:
-            return self.p[name].wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"{name} still running after {timeout} s; stderr:\n"
-                                 f"{self.err(name)[-3000:]}") from None
-
-    def out(self, name: str) -> str:
-        return (self.tmp / f"{name}.out").read_text()
-
-    def err(self, name: str) -> str:
-        return (self.tmp / f"{name}.err").read_text()
-
-    def json(self, name: str) -> dict:
-        lines = [ln for ln in self.out(name).splitlines() if ln.startswith("{")]
-        assert lines, f"{name} printed no JSON; stderr:\n{self.err(name)[-3000:]}"
-        return json.loads(lines[-1])
-
-    def stop_all(self) -> None:
-        for p in self.p.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 5
-        for p in self.p.values():
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(5)
 
 
 class Bus:
@@ -149,15 +92,6 @@ class Bus:
 
 
 @pytest.fixture
-def procs(tmp_path):
-    p = Procs(tmp_path)
-    try:
-        yield p
-    finally:
-        p.stop_all()
-
-
-@pytest.fixture
 def bus():
     b = Bus(free_port())
     try:
@@ -185,19 +119,16 @@ def in_process(duration: float):
     if duration in _IN_PROCESS:
         return _IN_PROCESS[duration]
     from controller.loop import closed_loop
-    from controller.mpc import MPC
-    from plant.stepping import Plant
-
-    from bridge.run_cmd import add_case_args, add_mpc_args, scenario_from_args, settings_from_args
+    from msagv.args import add_case_args, add_mpc_args, scenario_from_args
 
     ap = argparse.ArgumentParser()
     add_case_args(ap)
     add_mpc_args(ap)
     a = ap.parse_args(["--duration", str(duration)])
-    vehicle, ref, initial = scenario_from_args(a)
+    b = scenario_from_args(a).build()
     cmds = {}
-    log = closed_loop(Plant(vehicle, initial=initial), MPC(vehicle, settings_from_args(a), ref),
-                      ref, duration, on_step=lambda k, st, c: cmds.__setitem__(
+    log = closed_loop(b.plant, b.controller, b.reference, duration,
+                      on_step=lambda k, st, c: cmds.__setitem__(
                           k, (c.omega_w.tolist(), c.omega_s.tolist())))
     _IN_PROCESS[duration] = (cmds, log)
     return cmds, log

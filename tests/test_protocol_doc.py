@@ -1,8 +1,9 @@
 """docs/PROTOCOL.md is enough to write a controller: a minimal one, from the page alone.
 
 The client below uses only ``zenoh``, ``msgpack`` and the standard library (nothing from
-bridge/, controller/ or plant/). It runs a real ``msagv plant`` in lockstep on a free
-loopback port and does the following:
+bridge/, controller/ or plant/). The harness (tests/helpers.py: a free port, starting and
+stopping processes) runs a real ``msagv plant`` in lockstep on a free loopback port, and
+the client does the following:
 
 - fetches the vehicle from the params queryable;
 - answers every state with a constant wheel speed and zero steering rate;
@@ -18,38 +19,17 @@ import json
 import math
 import os
 import queue
-import signal
-import socket
 import subprocess
-import sys
 import time
 
 import msgpack
 import pytest
 import zenoh
 
+from helpers import free_port, msagv, stop
+
 VID = "agv_doc"  # any id of 1-64 characters of A-Z a-z 0-9 _ . - (PROTOCOL.md section 2)
 DURATION = 0.2
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def msagv(*args) -> list[str]:
-    return [sys.executable, "-m", "bridge.cli", *[str(a) for a in args]]
-
-
-def stop(p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGTERM)
-        try:
-            p.wait(5)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(5)
 
 
 # ---- the client: PROTOCOL.md sections 1-5 and 7 -------------------------------------------

@@ -1,4 +1,4 @@
-"""``msagv plant replay`` (plant/replay.py, plant/cli.py) as a user runs it: a 3-axle vehicle
+"""``msagv plant replay`` (plant/replay.py, msagv/cli.py) as a user runs it: a 3-axle vehicle
 file, a CSV of random held commands, compared with the independent reference model; and
 malformed CSVs rejected with exit code 2 and a message naming the line."""
 
@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import csv
 import math
-import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,51 +13,12 @@ import pytest
 from plant import load_vehicle
 from plant.stepping import input_names, signal_names
 
-try:
-    from . import reference_model as ref
-except ImportError:  # tests/ is not a package: pytest puts tests/ on sys.path
-    import reference_model as ref
-
-MSAGV = str(Path(__file__).resolve().parents[1] / ".venv" / "bin" / "msagv")
-
-# A 3-axle vehicle unlike the built-in one: axles not centred on the CG, other tires.
-THREE_AXLE = """\
-name = "test-3axle"
-mass = 18500.0            # kg
-yaw_inertia = 150000.0    # kg m^2
-wheel_radius = 0.45       # m
-axle_x = [4.0, 0.5, -3.0] # m, front first
-half_track = 1.1          # m
-steer_loss_kt = 0.025     # m
-
-[tire.longitudinal]
-B = 10.0
-C = 1.6
-mu = 0.85
-E = 0.1
-
-[tire.lateral]
-B = 8.0
-C = 1.35
-mu = 0.85
-E = -0.3
-
-[tire.dugoff]
-C_s = 360000.0
-C_alpha = 240000.0
-mu = 0.85
-
-[limits]
-omega_s_min = -0.7
-omega_s_max = 0.7
-omega_w_max = 30.0
-delta_min = -1.4
-delta_max = 1.4
-"""
+import reference_model as ref  # tests/ is not a package: pytest puts it on sys.path
+from helpers import THREE_AXLE_TOML, run_msagv
 
 
 def _run(*args, timeout=120):
-    return subprocess.run([MSAGV, *args], capture_output=True, text=True, timeout=timeout)
+    return run_msagv(*args, timeout=timeout)
 
 
 def _write_inputs(path, names, t, U):
@@ -76,15 +35,8 @@ def _read_signals(path):
     return rows[0], np.array(rows[1:], dtype=float)
 
 
-@pytest.fixture
-def vehicle_file(tmp_path):
-    p = tmp_path / "three.toml"
-    p.write_text(THREE_AXLE)
-    return p
-
-
-def test_replay_matches_reference(tmp_path, vehicle_file):
-    v = load_vehicle(vehicle_file)
+def test_replay_matches_reference(tmp_path, three_axle_file):
+    v = load_vehicle(three_axle_file)
     assert v.n_axles == 3
     rv = ref.RefVehicle.from_description(v.to_dict())
     rng = np.random.default_rng(20240611)
@@ -101,7 +53,7 @@ def test_replay_matches_reference(tmp_path, vehicle_file):
     _write_inputs(inputs, names, t, U)
     init = {"x": 2.0, "y": -1.0, "phi": 0.4, "vx": 4.0 * math.cos(0.4),
             "vy": 4.0 * math.sin(0.4), "r": 0.05, "delta_21": 0.1}
-    r = _run("plant", "replay", "--vehicle", str(vehicle_file), "--inputs", str(inputs),
+    r = _run("plant", "replay", "--vehicle", str(three_axle_file), "--inputs", str(inputs),
              "--out", str(out), "--initial", ",".join(f"{k}={val!r}" for k, val in init.items()))
     assert r.returncode == 0, r.stderr
     header, S = _read_signals(out)
@@ -192,8 +144,8 @@ MALFORMED = ["missing column", "NaN", "inf", "non-increasing t", "decreasing t",
 
 
 @pytest.mark.parametrize("case", MALFORMED)
-def test_malformed_csv_is_rejected_naming_the_line(tmp_path, vehicle_file, case):
-    names = input_names(load_vehicle(vehicle_file))
+def test_malformed_csv_is_rejected_naming_the_line(tmp_path, three_axle_file, case):
+    names = input_names(load_vehicle(three_axle_file))
     header, rows, line, word = _malformed(names, case)
     inputs = tmp_path / "U.csv"
     with open(inputs, "w", newline="") as f:
@@ -201,7 +153,7 @@ def test_malformed_csv_is_rejected_naming_the_line(tmp_path, vehicle_file, case)
         w.writerow(header)
         w.writerows(rows)
     out = tmp_path / "S.csv"
-    r = _run("plant", "replay", "--vehicle", str(vehicle_file), "--inputs", str(inputs),
+    r = _run("plant", "replay", "--vehicle", str(three_axle_file), "--inputs", str(inputs),
              "--out", str(out))
     assert r.returncode == 2, (r.returncode, r.stderr)
     assert f"U.csv:{line}:" in r.stderr, r.stderr
@@ -209,16 +161,16 @@ def test_malformed_csv_is_rejected_naming_the_line(tmp_path, vehicle_file, case)
     assert not out.exists()
 
 
-def test_the_unmodified_csv_is_accepted(tmp_path, vehicle_file):
+def test_the_unmodified_csv_is_accepted(tmp_path, three_axle_file):
     # control for the cases above: the base rows replay fine
-    names = input_names(load_vehicle(vehicle_file))
+    names = input_names(load_vehicle(three_axle_file))
     inputs = tmp_path / "U.csv"
     with open(inputs, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["t"] + names)
         w.writerows(_good_rows(names))
     out = tmp_path / "S.csv"
-    r = _run("plant", "replay", "--vehicle", str(vehicle_file), "--inputs", str(inputs),
+    r = _run("plant", "replay", "--vehicle", str(three_axle_file), "--inputs", str(inputs),
              "--out", str(out))
     assert r.returncode == 0, r.stderr
     header, S = _read_signals(out)
@@ -230,22 +182,22 @@ def test_the_unmodified_csv_is_accepted(tmp_path, vehicle_file):
     (["--initial", "delta_11=2.0"], "delta_11"),
     (["--initial", "x=abc"], "x"),
 ])
-def test_bad_initial_is_rejected(tmp_path, vehicle_file, args, word):
-    names = input_names(load_vehicle(vehicle_file))
+def test_bad_initial_is_rejected(tmp_path, three_axle_file, args, word):
+    names = input_names(load_vehicle(three_axle_file))
     inputs = tmp_path / "U.csv"
     with open(inputs, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["t"] + names)
         w.writerows(_good_rows(names, 2))
-    r = _run("plant", "replay", "--vehicle", str(vehicle_file), "--inputs", str(inputs),
+    r = _run("plant", "replay", "--vehicle", str(three_axle_file), "--inputs", str(inputs),
              "--out", str(tmp_path / "S.csv"), *args)
     assert r.returncode == 2
     assert word in r.stderr
 
 
-def test_bad_vehicle_file_is_rejected(tmp_path):
+def test_bad_three_axle_file_is_rejected(tmp_path):
     p = tmp_path / "bad.toml"
-    p.write_text(THREE_AXLE.replace("mass = 18500.0", "mass = -1.0"))
+    p.write_text(THREE_AXLE_TOML.replace("mass = 18500.0", "mass = -1.0"))
     inputs = tmp_path / "U.csv"
     inputs.write_text("t\n0.0\n")
     r = _run("plant", "replay", "--vehicle", str(p), "--inputs", str(inputs),

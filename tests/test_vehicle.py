@@ -5,19 +5,15 @@ from __future__ import annotations
 
 import json
 import math
-import re
-import subprocess
-from importlib import resources
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from helpers import BUILTIN_TOML, add_toml, drop_toml_table, edit_toml, run_msagv
 from plant import (Plant, Vehicle, VehicleError, default_vehicle, load_vehicle, n_axle_vehicle,
                    vehicle_from_dict)
 
-MSAGV = str(Path(__file__).resolve().parents[1] / ".venv" / "bin" / "msagv")
-BUILTIN = resources.files("plant").joinpath("data/paper-2axle.toml").read_text()
+BUILTIN = BUILTIN_TOML
 
 
 # ---- the built-in vehicle ---------------------------------------------------------------
@@ -85,102 +81,63 @@ def test_replace():
 
 
 # ---- bad files ---------------------------------------------------------------------------
-def _edit(text: str, table: str, key: str, value: str | None) -> str:
-    """Replace the value of ``key`` in ``[table]`` ('' = top level); None deletes the line."""
-    out, current, hits = [], "", 0
-    for line in text.splitlines():
-        m = re.match(r"^\s*\[([^\]]+)\]", line)
-        if m:
-            current = m.group(1).strip()
-        elif current == table and re.match(rf"^\s*{re.escape(key)}\s*=", line):
-            hits += 1
-            if value is None:
-                continue
-            line = f"{key} = {value}"
-        out.append(line)
-    assert hits == 1, f"{table}.{key} not found exactly once"
-    return "\n".join(out) + "\n"
-
-
-def _add(text: str, table: str, line: str) -> str:
-    """Insert ``line`` into ``[table]`` ('' = top level, before the first table)."""
-    lines = text.splitlines()
-    if table == "":
-        i = next(k for k, s in enumerate(lines) if s.startswith("["))
-    else:
-        i = lines.index(next(s for s in lines if re.match(rf"^\[{re.escape(table)}\]", s))) + 1
-    lines.insert(i, line)
-    return "\n".join(lines) + "\n"
-
-
-def _drop_table(text: str, table: str) -> str:
-    out, skipping = [], False
-    for line in text.splitlines():
-        m = re.match(r"^\s*\[([^\]]+)\]", line)
-        if m:
-            skipping = m.group(1).strip() == table
-        if not skipping:
-            out.append(line)
-    return "\n".join(out) + "\n"
-
-
 BAD_FILES = {
     # missing keys
-    "missing mass": (_edit(BUILTIN, "", "mass", None), ["mass", "missing"]),
-    "missing axle_x": (_edit(BUILTIN, "", "axle_x", None), ["axle_x", "missing"]),
-    "missing lateral B": (_edit(BUILTIN, "tire.lateral", "B", None),
+    "missing mass": (edit_toml(BUILTIN, "", "mass", None), ["mass", "missing"]),
+    "missing axle_x": (edit_toml(BUILTIN, "", "axle_x", None), ["axle_x", "missing"]),
+    "missing lateral B": (edit_toml(BUILTIN, "tire.lateral", "B", None),
                           ["tire.lateral.B", "missing"]),
-    "missing delta_max": (_edit(BUILTIN, "limits", "delta_max", None),
+    "missing delta_max": (edit_toml(BUILTIN, "limits", "delta_max", None),
                           ["limits.delta_max", "missing"]),
-    "missing dugoff table": (_drop_table(BUILTIN, "tire.dugoff"), ["tire.dugoff", "missing"]),
-    "missing limits table": (_drop_table(BUILTIN, "limits"), ["limits", "missing"]),
+    "missing dugoff table": (drop_toml_table(BUILTIN, "tire.dugoff"), ["tire.dugoff", "missing"]),
+    "missing limits table": (drop_toml_table(BUILTIN, "limits"), ["limits", "missing"]),
     # unknown keys, top level and inside tables
-    "unknown top": (_add(BUILTIN, "", 'colour = "red"'), ["colour", "unknown"]),
-    "unknown in lateral": (_add(BUILTIN, "tire.lateral", "F = 1.0"),
+    "unknown top": (add_toml(BUILTIN, "", 'colour = "red"'), ["colour", "unknown"]),
+    "unknown in lateral": (add_toml(BUILTIN, "tire.lateral", "F = 1.0"),
                            ["tire.lateral.F", "unknown"]),
-    "unknown in limits": (_add(BUILTIN, "limits", "omega_w_min = 0.0"),
+    "unknown in limits": (add_toml(BUILTIN, "limits", "omega_w_min = 0.0"),
                           ["limits.omega_w_min", "unknown"]),
     "unknown tire part": (BUILTIN + "\n[tire.vertical]\nk = 1.0\n", ["tire.vertical", "unknown"]),
     "unknown in plant": (BUILTIN + "\n[plant]\ncg_height = 1.0\nroll_stiffness = 2.0\n",
                          ["plant.roll_stiffness", "unknown"]),
     # non-positive
-    "zero mass": (_edit(BUILTIN, "", "mass", "0.0"), ["mass", "> 0"]),
-    "negative mass": (_edit(BUILTIN, "", "mass", "-12000.0"), ["mass", "> 0"]),
-    "negative inertia": (_edit(BUILTIN, "", "yaw_inertia", "-1.0"), ["yaw_inertia"]),
-    "zero radius": (_edit(BUILTIN, "", "wheel_radius", "0"), ["wheel_radius"]),
-    "zero half track": (_edit(BUILTIN, "", "half_track", "0.0"), ["half_track"]),
-    "negative kt": (_edit(BUILTIN, "", "steer_loss_kt", "-0.01"), ["steer_loss_kt"]),
-    "zero mu": (_edit(BUILTIN, "tire.longitudinal", "mu", "0.0"), ["tire.longitudinal.mu"]),
-    "negative C_alpha": (_edit(BUILTIN, "tire.dugoff", "C_alpha", "-5.0"),
+    "zero mass": (edit_toml(BUILTIN, "", "mass", "0.0"), ["mass", "> 0"]),
+    "negative mass": (edit_toml(BUILTIN, "", "mass", "-12000.0"), ["mass", "> 0"]),
+    "negative inertia": (edit_toml(BUILTIN, "", "yaw_inertia", "-1.0"), ["yaw_inertia"]),
+    "zero radius": (edit_toml(BUILTIN, "", "wheel_radius", "0"), ["wheel_radius"]),
+    "zero half track": (edit_toml(BUILTIN, "", "half_track", "0.0"), ["half_track"]),
+    "negative kt": (edit_toml(BUILTIN, "", "steer_loss_kt", "-0.01"), ["steer_loss_kt"]),
+    "zero mu": (edit_toml(BUILTIN, "tire.longitudinal", "mu", "0.0"), ["tire.longitudinal.mu"]),
+    "negative C_alpha": (edit_toml(BUILTIN, "tire.dugoff", "C_alpha", "-5.0"),
                          ["tire.dugoff.C_alpha"]),
     "negative lag": (BUILTIN + "\n[plant]\nwheel_lag = -0.1\n", ["plant.wheel_lag"]),
-    "zero omega_w_max": (_edit(BUILTIN, "limits", "omega_w_max", "0.0"),
+    "zero omega_w_max": (edit_toml(BUILTIN, "limits", "omega_w_max", "0.0"),
                          ["limits.omega_w_max"]),
     # NaN / inf (TOML nan, inf)
-    "nan mass": (_edit(BUILTIN, "", "mass", "nan"), ["mass", "finite"]),
-    "inf inertia": (_edit(BUILTIN, "", "yaw_inertia", "inf"), ["yaw_inertia", "finite"]),
-    "nan lateral E": (_edit(BUILTIN, "tire.lateral", "E", "nan"), ["tire.lateral.E", "finite"]),
-    "nan delta_min": (_edit(BUILTIN, "limits", "delta_min", "nan"), ["limits.delta_min"]),
-    "nan in axle_x": (_edit(BUILTIN, "", "axle_x", "[3.0, nan]"), ["axle_x[1]"]),
+    "nan mass": (edit_toml(BUILTIN, "", "mass", "nan"), ["mass", "finite"]),
+    "inf inertia": (edit_toml(BUILTIN, "", "yaw_inertia", "inf"), ["yaw_inertia", "finite"]),
+    "nan lateral E": (edit_toml(BUILTIN, "tire.lateral", "E", "nan"), ["tire.lateral.E", "finite"]),
+    "nan delta_min": (edit_toml(BUILTIN, "limits", "delta_min", "nan"), ["limits.delta_min"]),
+    "nan in axle_x": (edit_toml(BUILTIN, "", "axle_x", "[3.0, nan]"), ["axle_x[1]"]),
     # min > max
-    "delta min > max": (_edit(_edit(BUILTIN, "limits", "delta_min", "0.5"), "limits",
+    "delta min > max": (edit_toml(edit_toml(BUILTIN, "limits", "delta_min", "0.5"), "limits",
                               "delta_max", "0.2"), ["limits.delta_min", "limits.delta_max"]),
-    "omega_s min > max": (_edit(_edit(BUILTIN, "limits", "omega_s_min", "0.9"), "limits",
+    "omega_s min > max": (edit_toml(edit_toml(BUILTIN, "limits", "omega_s_min", "0.9"), "limits",
                                 "omega_s_max", "-0.9"),
                           ["limits.omega_s_min", "limits.omega_s_max"]),
     # axle_x
-    "empty axle_x": (_edit(BUILTIN, "", "axle_x", "[]"), ["axle_x"]),
-    "increasing axle_x": (_edit(BUILTIN, "", "axle_x", "[-3.0, 3.0]"), ["axle_x[1]"]),
-    "repeated axle": (_edit(BUILTIN, "", "axle_x", "[3.0, 0.0, 0.0]"), ["axle_x[2]"]),
+    "empty axle_x": (edit_toml(BUILTIN, "", "axle_x", "[]"), ["axle_x"]),
+    "increasing axle_x": (edit_toml(BUILTIN, "", "axle_x", "[-3.0, 3.0]"), ["axle_x[1]"]),
+    "repeated axle": (edit_toml(BUILTIN, "", "axle_x", "[3.0, 0.0, 0.0]"), ["axle_x[2]"]),
     # wrong types
-    "string mass": (_edit(BUILTIN, "", "mass", '"heavy"'), ["mass", "number"]),
-    "bool mass": (_edit(BUILTIN, "", "mass", "true"), ["mass", "number"]),
-    "string axle_x": (_edit(BUILTIN, "", "axle_x", '"front"'), ["axle_x"]),
-    "string in axle_x": (_edit(BUILTIN, "", "axle_x", '[3.0, "rear"]'), ["axle_x[1]"]),
-    "numeric name": (_edit(BUILTIN, "", "name", "7"), ["name"]),
-    "limits not a table": (_drop_table(BUILTIN, "limits").replace(
+    "string mass": (edit_toml(BUILTIN, "", "mass", '"heavy"'), ["mass", "number"]),
+    "bool mass": (edit_toml(BUILTIN, "", "mass", "true"), ["mass", "number"]),
+    "string axle_x": (edit_toml(BUILTIN, "", "axle_x", '"front"'), ["axle_x"]),
+    "string in axle_x": (edit_toml(BUILTIN, "", "axle_x", '[3.0, "rear"]'), ["axle_x[1]"]),
+    "numeric name": (edit_toml(BUILTIN, "", "name", "7"), ["name"]),
+    "limits not a table": (drop_toml_table(BUILTIN, "limits").replace(
         "name =", "limits = 3\nname =", 1), ["limits", "table"]),
-    "array B": (_edit(BUILTIN, "tire.lateral", "B", "[7.69]"), ["tire.lateral.B", "number"]),
+    "array B": (edit_toml(BUILTIN, "tire.lateral", "B", "[7.69]"), ["tire.lateral.B", "number"]),
     # not TOML at all
     "not toml": ("mass = = 3\n", ["not valid TOML"]),
 }
@@ -202,7 +159,7 @@ def test_bad_file_is_rejected_naming_the_field(tmp_path, case):
 def test_the_edited_base_file_itself_loads(tmp_path):
     # guards the helpers above: an edit that keeps the file valid still loads
     p = tmp_path / "ok.toml"
-    p.write_text(_edit(_add(BUILTIN, "", "# comment"), "", "mass", "16000.0"))
+    p.write_text(edit_toml(add_toml(BUILTIN, "", "# comment"), "", "mass", "16000.0"))
     assert load_vehicle(p).mass == 16000.0
     p.write_text(BUILTIN + "\n[plant]\ncg_height = 1.1\n")
     v = load_vehicle(p)
@@ -259,7 +216,7 @@ def test_n_axle_vehicle_rejects_zero_axles():
 
 # ---- msagv vehicle show -----------------------------------------------------------------
 def _run(*args, timeout=60):
-    return subprocess.run([MSAGV, *args], capture_output=True, text=True, timeout=timeout)
+    return run_msagv(*args, timeout=timeout)
 
 
 def test_cli_vehicle_show_json_builtin():
@@ -276,7 +233,7 @@ def test_cli_vehicle_show_json_builtin():
 
 def test_cli_vehicle_show_json_file(tmp_path):
     p = tmp_path / "three.toml"
-    text = _edit(_edit(BUILTIN, "", "axle_x", "[4.0, 0.5, -3.0]"), "", "name", '"three"')
+    text = edit_toml(edit_toml(BUILTIN, "", "axle_x", "[4.0, 0.5, -3.0]"), "", "name", '"three"')
     p.write_text(text + "\n[plant]\ncg_height = 1.2\n")
     r = _run("vehicle", "show", "--vehicle", str(p), "--json")
     assert r.returncode == 0, r.stderr
@@ -292,7 +249,7 @@ def test_cli_vehicle_show_json_file(tmp_path):
 
 def test_cli_vehicle_show_bad_file(tmp_path):
     p = tmp_path / "bad.toml"
-    p.write_text(_edit(BUILTIN, "", "mass", "nan"))
+    p.write_text(edit_toml(BUILTIN, "", "mass", "nan"))
     r = _run("vehicle", "show", "--vehicle", str(p), "--json")
     assert r.returncode == 2
     assert "mass" in r.stderr and r.stdout == ""

@@ -1,4 +1,4 @@
-"""``msagv experiment case1|case2|case3|pareto|ridge``: the paper's Section 4 and more.
+"""The experiments of ``msagv experiment case1|case2|case3|pareto|ridge``: the paper's Section 4 and more.
 
 * ``case1``: the Case 1 curve, 12 t, 35/25/15/5 km/h, all five methods (paper Table 1).
 * ``case2``: the straight line, 12 t, 10 km/h, heading 60 degrees off at the start
@@ -28,15 +28,12 @@ second underlined), ``summary.json`` (rows, the issue's targets, timings),
 
 from __future__ import annotations
 
-import argparse
 import json
-import math
 import os
-import sys
 import time
 from pathlib import Path
 
-from .experiments_runs import METHODS, RunSpec, run_all
+from .runs import METHODS, RunSpec, run_all
 
 EXPERIMENTS = ("case1", "case2", "case3", "pareto", "ridge")
 CASE1_SPEEDS = (35.0, 25.0, 15.0, 5.0)  # km/h, the paper's row order
@@ -148,8 +145,8 @@ def _group_value(group: str) -> float:
 
 
 def report_case(experiment: str, results: list[dict], out: Path, run_summary: dict) -> dict:
-    from .experiments_paper import paper_table
-    from .experiments_report import (check_targets, markdown_table, plot_errors, plot_omega,
+    from .paper import paper_table
+    from .tables import (check_targets, markdown_table, plot_errors, plot_omega,
                                      plot_trajectories, table_rows, targets_markdown, write_csv)
 
     rows = table_rows(results)
@@ -187,7 +184,7 @@ def report_case(experiment: str, results: list[dict], out: Path, run_summary: di
 
 
 def report_pareto(results: list[dict], out: Path, run_summary: dict) -> dict:
-    from .experiments_report import fmt, lower_front, plot_pareto, wear_at
+    from .tables import fmt, lower_front, plot_pareto, wear_at
 
     fronts: dict[str, dict] = {}
     for r in results:
@@ -269,7 +266,7 @@ def report_pareto(results: list[dict], out: Path, run_summary: dict) -> dict:
 
 
 def report_ridge(results: list[dict], out: Path, run_summary: dict) -> dict:
-    from .experiments_report import fmt
+    from .tables import fmt
 
     cells: dict[tuple, dict] = {}
     for r in results:
@@ -313,19 +310,6 @@ def report_ridge(results: list[dict], out: Path, run_summary: dict) -> dict:
     return summary
 
 
-# ---- entry point ------------------------------------------------------------------------------
-def _floats(text: str | None, name: str):
-    if text is None:
-        return None
-    try:
-        vals = tuple(float(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise ValueError(f"{name}: expected comma-separated numbers, got '{text}'") from None
-    if not vals or any(not (math.isfinite(v) and v >= 0) for v in vals):
-        raise ValueError(f"{name}: expected finite numbers >= 0, got '{text}'")
-    return vals
-
-
 def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None = None,
                    force: bool = False, progress: bool = True, duration: float | None = None,
                    speeds=None, masses_t=None, methods=None, vehicle: str | None = None,
@@ -358,54 +342,3 @@ def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None
     if name == "ridge":
         return report_ridge(results, out, summ)
     return report_case(name, results, out, summ)
-
-
-def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="msagv experiment", description=__doc__.splitlines()[0])
-    ap.add_argument("experiment", choices=EXPERIMENTS)
-    ap.add_argument("--out", metavar="DIR", help="output directory (default runs/<experiment>)")
-    ap.add_argument("--jobs", type=int, metavar="N", help="parallel runs (default: all cores)")
-    ap.add_argument("--json", action="store_true", help="print the table (pareto: the fronts) as JSON")
-    ap.add_argument("--duration", type=float, metavar="S",
-                    help="shorten every run to S seconds of vehicle time (default: the whole reference)")
-    ap.add_argument("--speeds", metavar="KMH,...", help="subset/override of the speeds")
-    ap.add_argument("--masses", metavar="T,...", help="case3: loads in tonnes (default 8,12,16,20)")
-    ap.add_argument("--methods", metavar="NAME,...",
-                    help=f"subset of {','.join(METHODS)} (pareto: of the baselines)")
-    ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
-    ap.add_argument("--force", action="store_true", help="redo runs even if finished")
-    ap.add_argument("--two-scales", metavar="S,...", help="pareto: factors on TWO's L")
-    ap.add_argument("--smooth-scales", metavar="S,...", help="pareto: factors on NTWO's R_dw, R_dd")
-    ap.add_argument("--ridge-scales", metavar="S,...",
-                    help="pareto: factors of NTWO's R_ow, R_od; ridge: the levels (default 0,0.1,1)")
-    ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
-                    help="progress bar over finished runs on stderr (default on)")
-    a = ap.parse_args(argv)
-    try:
-        if a.jobs is not None and a.jobs < 1:
-            raise ValueError("--jobs must be >= 1")
-        methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
-        summary = run_experiment(
-            a.experiment, a.out, jobs=a.jobs, force=a.force, progress=a.progress,
-            duration=a.duration, speeds=_floats(a.speeds, "--speeds"),
-            masses_t=_floats(a.masses, "--masses"), methods=methods, vehicle=a.vehicle,
-            two_scales=_floats(a.two_scales, "--two-scales"),
-            smooth_scales=_floats(a.smooth_scales, "--smooth-scales"),
-            ridge_scales=_floats(a.ridge_scales, "--ridge-scales"))
-    except (ValueError, FileNotFoundError) as e:
-        print(f"msagv experiment: {e}", file=sys.stderr)
-        return 2
-    out = Path(summary["out"])
-    r = summary["runs"]
-    print(f"msagv experiment {a.experiment}: {r['runs']} runs ({r['executed']} run now, "
-          f"{r['reused']} reused, {r['failed']} failed) in {r['total_wall_s']:.1f} s; "
-          f"outputs in {out}", file=sys.stderr)
-    if a.json:
-        print(json.dumps(summary))
-    elif a.experiment == "pareto":
-        print((out / "pareto.md").read_text())
-    elif a.experiment == "ridge":
-        print((out / "ridge.md").read_text())
-    else:
-        print((out / "table.md").read_text())
-    return 0

@@ -12,24 +12,18 @@ import argparse
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that is free right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from bridge.process import free_port
 
 
 def msagv_cmd(*args: str) -> list[str]:
     """The command line running ``msagv ARGS`` with this Python."""
-    return [sys.executable, "-m", "bridge.cli", *args]
+    return [sys.executable, "-m", "msagv", *args]
 
 
 def stop_process(p: subprocess.Popen, grace: float = 2.0) -> int:
@@ -60,7 +54,7 @@ def run_demo(duration: float = 20.0, speed: str = "15", run_mode: str = "realtim
              quiet: bool = True, extra_plant: list[str] | None = None,
              extra_controller: list[str] | None = None, timeout: float | None = None) -> dict:
     """Run plant + controller; returns ``{"metrics", "plant", "controller", "recording"}``."""
-    from .report import evaluate
+    from experiments.recorded import evaluate
 
     work = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="msagv-demo-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -107,8 +101,7 @@ def run_demo(duration: float = 20.0, speed: str = "15", run_mode: str = "realtim
 
 def main(argv: list[str]) -> int:
     from controller.metrics import format_table
-
-    from .run_cmd import plot_run
+    from experiments.plots import plot_run
 
     ap = argparse.ArgumentParser(prog="msagv demo", description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0, metavar="S",

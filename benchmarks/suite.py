@@ -1,4 +1,4 @@
-"""``msagv bench``: every benchmark of the project, as percentiles and ratios.
+"""The benchmark suite behind ``msagv bench``: every benchmark, as percentiles and ratios.
 
 Sections (each is also its own module, runnable with ``python -m benchmarks.<name>``):
 
@@ -23,8 +23,6 @@ section. ``--quick`` shortens every section (for a smoke test, not for figures).
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import sys
@@ -118,38 +116,21 @@ def _summary(name: str, r: dict) -> str:
     return name
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="msagv bench", description=__doc__.splitlines()[0])
-    ap.add_argument("sections", nargs="*", metavar="SECTION",
-                    help=f"which benchmarks (default all): {', '.join(SECTIONS)}")
-    ap.add_argument("--json", action="store_true", help="print one JSON object")
-    ap.add_argument("--quick", action="store_true",
-                    help="short runs (a smoke test; the figures are not meaningful)")
-    ap.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
-    a = ap.parse_args(argv)
-    bad = [s for s in a.sections if s not in SECTIONS]
+def run(sections: list[str], quick: bool = False, echo=print) -> dict:
+    """Run ``sections`` (all by default); ``echo(line)`` gets each section's one-line
+    summary as it finishes. Returns one object with a key per section and the machine."""
+    bad = [s for s in sections if s not in SECTIONS]
     if bad:
-        print(f"msagv bench: unknown section(s) {', '.join(bad)} (known: {', '.join(SECTIONS)})",
-              file=sys.stderr)
-        return 2
-    sections = a.sections or list(SECTIONS)
+        raise ValueError(f"unknown section(s) {', '.join(bad)} (known: {', '.join(SECTIONS)})")
+    sections = list(sections) or list(SECTIONS)
     result = {"machine": _machine()}
     print(f"msagv bench: {result['machine']['cores']} cores ({result['machine']['cpu']}), "
           f"load {result['machine']['loadavg_at_start']}", file=sys.stderr)
     for name in sections:
         t0 = time.perf_counter()
         print(f"msagv bench: {name} ...", file=sys.stderr, flush=True)
-        r = run_section(name, a.quick)
+        r = run_section(name, quick)
         r["wall_s"] = time.perf_counter() - t0
         result[name] = r
-        print(_summary(name, r), file=sys.stderr if a.json else sys.stdout, flush=True)
-    if a.out:
-        with open(a.out, "w") as f:
-            json.dump(result, f, indent=1)
-    if a.json:
-        print(json.dumps(result))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+        echo(_summary(name, r))
+    return result

@@ -75,6 +75,17 @@ class RunSpec:
     def from_dict(cls, d: dict) -> "RunSpec":
         return cls(**d)
 
+    def scenario(self):
+        """The run as a :class:`experiments.scenario.Scenario` (one core per run: the runs
+        themselves are parallel, so the rollouts stay serial unless the spec says)."""
+        from .scenario import Scenario
+
+        settings = dict(self.settings)
+        settings.setdefault("threads", 1)
+        return Scenario(vehicle=self.vehicle, mass_kg=self.mass_kg, case=self.case,
+                        speed=self.speed_kmh, duration=self.duration, settings=settings,
+                        period=PERIOD)
+
     def estimated_steps(self) -> int:
         """Control periods this run will take (for scheduling the longest first)."""
         if self.duration is not None:
@@ -85,11 +96,13 @@ class RunSpec:
 
 
 def code_digest() -> str:
-    """SHA-256 over the source of controller/ and plant/ (and the built-in vehicle)."""
+    """SHA-256 over the source that determines a run: plant/, controller/ (with their
+    data) and the scenario assembly."""
     root = Path(__file__).resolve().parent.parent
     h = hashlib.sha256()
     files = sorted(list((root / "controller").glob("*.py")) + list((root / "plant").glob("*.py"))
-                   + list((root / "plant" / "data").glob("*.toml")))
+                   + list((root / "plant" / "data").glob("*.toml"))
+                   + [root / "experiments" / "scenario.py"])
     for p in files:
         h.update(p.relative_to(root).as_posix().encode())
         h.update(p.read_bytes())
@@ -97,20 +110,11 @@ def code_digest() -> str:
 
 
 def build_vehicle(spec: RunSpec):
-    from plant.vehicle import load_vehicle
-
-    vehicle = load_vehicle(spec.vehicle)
-    if spec.mass_kg is not None:
-        vehicle = vehicle.replace(mass=float(spec.mass_kg))
-    return vehicle
+    return spec.scenario().resolve_vehicle()
 
 
 def build_settings(spec: RunSpec):
-    from controller.models import MPCSettings
-
-    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in spec.settings.items()}
-    kw.setdefault("threads", 1)  # one core per run: the runs themselves are parallel
-    return MPCSettings(**kw)
+    return spec.scenario().mpc_settings()
 
 
 def config_of(spec: RunSpec, digest: str | None = None) -> dict:
@@ -144,9 +148,6 @@ def execute(spec_d: dict, out_dir: str, key: str) -> dict:
     (a diverging plant, refused commands) are stored as a failed run: they are as
     deterministic as a result."""
     from controller.loop import closed_loop
-    from controller.mpc import MPC
-    from controller.reference import make_case
-    from plant.stepping import Plant
 
     spec = RunSpec.from_dict(spec_d)
     runs = Path(out_dir) / "runs"
@@ -154,12 +155,11 @@ def execute(spec_d: dict, out_dir: str, key: str) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     res = {"key": key, "spec": spec.to_dict(), "status": "ok", "error": None, "metrics": None}
     try:
-        vehicle = build_vehicle(spec)
-        settings = build_settings(spec)
-        ref, init = make_case(spec.case, spec.speed_kmh)
+        scenario = spec.scenario()
+        scenario.duration = None  # the reference's own length, then clipped to the spec's
+        built = scenario.build()
+        plant, mpc, ref = built.plant, built.controller, built.reference
         duration = ref.duration if spec.duration is None else min(spec.duration, ref.duration)
-        plant = Plant(vehicle, initial=init(vehicle))
-        mpc = MPC(vehicle, settings, ref)
         log = closed_loop(plant, mpc, ref, duration, period=PERIOD, progress=False)
         tmp = runs / f"{key}.csv.tmp{os.getpid()}"
         log.to_csv(tmp)

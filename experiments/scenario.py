@@ -1,0 +1,288 @@
+"""One description of a closed-loop run, and the one place that assembles it.
+
+A :class:`Scenario` names everything that determines a run: the vehicle (a TOML file, or
+the built-in paper vehicle, with an optional mass), the reference (the paper's Case 1
+curve or Case 2 line at a speed, or a ``t,x,y,phi`` CSV), the initial state (on the
+reference unless ``from_rest``, plus overrides), the controller (MPC settings and solver),
+the plant (the built-in stepping plant, or an FMU with its name mapping and parameters),
+the duration and the control period. It is built from command-line options
+(:mod:`msagv.args`), from an experiment's run spec (:mod:`experiments.runs`) or from a
+TOML file (:meth:`Scenario.from_file`), and :meth:`Scenario.build` turns it into the plant,
+the controller and the reference that every caller (``msagv run``, ``msagv plant``,
+``msagv controller``, the experiments, the benchmarks) then connects its own way.
+
+Errors name the problem and come as the model's own exceptions (``VehicleError``,
+``ReferenceError``, ``PlantError``, ``ControllerError``, ``FmuHostError``, all
+``ValueError`` or ``RuntimeError`` subclasses) or :class:`ScenarioError`.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+SOLVERS = ("sa", "ipopt")  # the annealer (controller.mpc) or IPOPT (controller.ipopt)
+CASES = ("curve", "line")
+PERIOD = 0.01  # s, the paper's control period T
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be built (the message names the field)."""
+
+
+@dataclass
+class Built:
+    """What :meth:`Scenario.build` returns: connect ``plant`` and ``controller`` your way."""
+
+    plant: Any  # plant.Plant or fmu_build.host.FmuPlant (plant.interface.PlantInterface)
+    controller: Any  # controller.mpc.MPC or controller.ipopt.IpoptMPC
+    reference: Any  # controller.reference.Reference
+    vehicle: Any  # plant.vehicle.Vehicle
+    initial: dict  # the plant's initial state by signal name
+    duration: float  # s of vehicle time to run
+
+    def close(self) -> None:
+        """Free what the plant holds (an FMU instance); a no-op for the native plant."""
+        close = getattr(self.plant, "close", None)
+        if close is not None:
+            close()
+
+
+@dataclass
+class Scenario:
+    """A closed-loop run, described (see the module docstring).
+
+    vehicle : path of a vehicle TOML, a :class:`plant.vehicle.Vehicle`, or None (the
+        built-in paper vehicle; for an FMU plant: the vehicle inside the FMU).
+    mass_kg : override of the vehicle's mass [kg] (for an FMU: its ``mass`` parameter).
+    case : 'curve' (paper Case 1) or 'line' (Case 2), unless ``trajectory`` is given.
+    trajectory : a ``t,x,y,phi`` CSV to track instead of a case.
+    speed : the case's speed in km/h, or a profile ``'t:kmh,t:kmh,...'`` (None: the case's
+        default, 15 km/h on the curve, 10 on the line). Not with a trajectory.
+    initial : initial-state overrides by signal name (``vx``, ``phi``, ``delta_11``, ...).
+    from_rest : start at rest at the origin (plus ``initial``) instead of on the reference.
+    duration : vehicle time [s] (None: the reference's nominal duration).
+    settings : :class:`controller.models.MPCSettings` fields that differ from the defaults.
+    solver : 'sa' (simulated annealing) or 'ipopt'.
+    fmu, fmu_map, fmu_params : an FMI 2.0 co-simulation FMU as the plant, its name mapping
+        file and its parameters by our names.
+    period : control period T [s].
+    """
+
+    vehicle: Any = None
+    mass_kg: float | None = None
+    case: str | None = None
+    trajectory: str | None = None
+    speed: str | float | None = None
+    initial: dict = field(default_factory=dict)
+    from_rest: bool = False
+    duration: float | None = None
+    settings: dict = field(default_factory=dict)
+    solver: str = "sa"
+    fmu: str | None = None
+    fmu_map: str | None = None
+    fmu_params: dict = field(default_factory=dict)
+    period: float = PERIOD
+
+    def __post_init__(self):
+        if self.trajectory is not None and self.case is not None:
+            raise ScenarioError("give a case or a trajectory, not both")
+        if self.trajectory is not None and self.speed is not None:
+            raise ScenarioError("speed applies to a case; a trajectory CSV carries its own "
+                                "timing")
+        if self.case is not None and self.case not in CASES + ("case1", "case2"):
+            raise ScenarioError(f"case: expected one of {', '.join(CASES)}, got '{self.case}'")
+        if self.solver not in SOLVERS:
+            raise ScenarioError(f"solver: expected one of {', '.join(SOLVERS)}, got "
+                                f"'{self.solver}'")
+        if self.duration is not None and not (math.isfinite(self.duration) and self.duration > 0):
+            raise ScenarioError(f"duration: must be > 0, got {self.duration}")
+        if not (math.isfinite(self.period) and self.period > 0):
+            raise ScenarioError(f"period: must be > 0, got {self.period}")
+        if self.mass_kg is not None and not (math.isfinite(self.mass_kg) and self.mass_kg > 0):
+            raise ScenarioError(f"mass: must be > 0 kg, got {self.mass_kg}")
+        if self.fmu_map is not None and self.fmu is None:
+            raise ScenarioError("--map applies to --fmu: a name mapping needs an FMU plant")
+
+    # ---- the parts -----------------------------------------------------------------------
+    def resolve_vehicle(self, given=None):
+        """The vehicle: ``given`` (e.g. the one a plant serves as its params, or the FMU's),
+        else the scenario's, with ``mass_kg`` applied."""
+        from plant.vehicle import Vehicle, load_vehicle
+
+        if given is not None:
+            v = given
+        elif isinstance(self.vehicle, Vehicle):
+            v = self.vehicle
+        else:
+            v = load_vehicle(self.vehicle)
+        if self.mass_kg is not None and v.mass != self.mass_kg:
+            v = v.replace(mass=float(self.mass_kg))
+        return v
+
+    def reference(self):
+        """``(reference, initial_state_fn)``: ``initial_state_fn(vehicle)`` starts on it."""
+        from controller.reference import from_csv, make_case
+
+        if self.trajectory is not None:
+            ref = from_csv(self.trajectory)
+            return ref, ref.initial_state
+        return make_case(self.case or "curve", self.speed)
+
+    def initial_state(self, vehicle, start_fn) -> dict[str, float]:
+        """The plant's initial state: on the reference (``start_fn(vehicle)``), or at rest
+        with ``from_rest``; then the ``initial`` overrides."""
+        st = {} if self.from_rest else dict(start_fn(vehicle))
+        st.update({k: float(v) for k, v in self.initial.items()})
+        return st
+
+    def mpc_settings(self, **override):
+        """The :class:`controller.models.MPCSettings` of this scenario (plus ``override``)."""
+        from controller.models import MPCSettings
+
+        known = set(MPCSettings.field_names())
+        kw = {}
+        for k, v in dict(self.settings, **override).items():
+            if k not in known:
+                raise ScenarioError(f"settings: unknown setting '{k}' (known: "
+                                    f"{', '.join(sorted(known))})")
+            kw[k] = tuple(v) if isinstance(v, list) else v
+        return MPCSettings(**kw)
+
+    def make_controller(self, vehicle, reference, period: float | None = None, *,
+                        options=None, **override):
+        """The MPC for ``solver``: :class:`controller.mpc.MPC` (sa) or
+        :class:`controller.ipopt.IpoptMPC` (ipopt, with its ``options``), same interface;
+        ``override``: settings fields on top of the scenario's."""
+        settings = self.mpc_settings(**override)
+        T = self.period if period is None else period
+        if self.solver == "ipopt":
+            from controller.ipopt import IpoptMPC, check_supported
+
+            check_supported(settings)
+            return IpoptMPC(vehicle, settings, reference, period=T, options=options)
+        from controller.mpc import MPC
+
+        return MPC(vehicle, settings, reference, period=T)
+
+    def check_solver(self) -> None:
+        """Fail early (before any plant or network) if the solver cannot serve the settings
+        (IPOPT without CasADi, or with a baseline's prediction model)."""
+        if self.solver == "ipopt":
+            from controller.ipopt import check_supported
+
+            check_supported(self.mpc_settings())
+
+    def make_plant(self):
+        """``(plant, vehicle, reference, initial)``: the plant at its initial state."""
+        ref, start = self.reference()
+        if self.fmu is not None:
+            from fmu_build.host import FmuPlant
+
+            given = None
+            if self.vehicle is not None:
+                given = self.resolve_vehicle()
+            params = dict(self.fmu_params)
+            if self.mass_kg is not None:
+                params.setdefault("mass", float(self.mass_kg))
+            plant = FmuPlant(self.fmu, given, mapping=self.fmu_map, parameters=params)
+            try:
+                vehicle = plant.vehicle
+                initial = self.initial_state(vehicle, start)
+                plant.reset(initial)
+            except BaseException:
+                plant.close()
+                raise
+            return plant, vehicle, ref, initial
+        from plant.stepping import Plant
+
+        vehicle = self.resolve_vehicle()
+        initial = self.initial_state(vehicle, start)
+        return Plant(vehicle, initial=initial), vehicle, ref, initial
+
+    def run_duration(self, reference) -> float:
+        return float(self.duration) if self.duration is not None else float(reference.duration)
+
+    def build(self) -> Built:
+        """Plant, controller and reference, ready to connect (close ``Built`` when done)."""
+        self.check_solver()
+        plant, vehicle, ref, initial = self.make_plant()
+        try:
+            ctl = self.make_controller(vehicle, ref)
+        except BaseException:
+            close = getattr(plant, "close", None)
+            if close is not None:
+                close()
+            raise
+        return Built(plant, ctl, ref, vehicle, initial, self.run_duration(ref))
+
+    def describe(self) -> str:
+        """One line naming the scenario (for titles and logs)."""
+        where = (f"trajectory {Path(self.trajectory).name}" if self.trajectory
+                 else f"{self.case or 'curve'}" + (f" at {self.speed} km/h" if self.speed else ""))
+        s = self.settings
+        return (f"{where}, {str(s.get('method', 'two')).upper()} ({s.get('model', 'mf')}"
+                f"{', ipopt' if self.solver == 'ipopt' else ''})")
+
+    # ---- as data -------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """Plain data (the vehicle as its file path or its description)."""
+        from plant.vehicle import Vehicle
+
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        if isinstance(self.vehicle, Vehicle):
+            d["vehicle"] = self.vehicle.to_dict()
+        d["settings"] = {k: (list(v) if isinstance(v, tuple) else v)
+                         for k, v in self.settings.items()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], base: str | Path | None = None) -> "Scenario":
+        """A scenario from plain data (a TOML file's tables). Relative file paths are taken
+        relative to ``base`` (the scenario file's folder). Unknown keys are refused."""
+        from plant.vehicle import vehicle_from_dict
+
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ScenarioError(f"{unknown[0]}: unknown key (known: {', '.join(sorted(known))})")
+        kw = dict(d)
+        for k in ("trajectory", "fmu", "fmu_map"):
+            if kw.get(k) is not None:
+                kw[k] = _resolve(kw[k], base)
+        v = kw.get("vehicle")
+        if isinstance(v, Mapping):
+            kw["vehicle"] = vehicle_from_dict(v)
+        elif v is not None:
+            kw["vehicle"] = _resolve(v, base)
+        for k in ("initial", "settings", "fmu_params"):
+            if k in kw and not isinstance(kw[k], Mapping):
+                raise ScenarioError(f"{k}: expected a table")
+            if k in kw:
+                kw[k] = dict(kw[k])
+        return cls(**kw)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "Scenario":
+        """Read a scenario TOML file (keys as the fields; see docs/SCENARIOS.md)."""
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"scenario file not found: {p}")
+        try:
+            data = tomllib.loads(p.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise ScenarioError(f"{p}: not valid TOML: {e}") from None
+        try:
+            return cls.from_dict(data, base=p.parent)
+        except (ScenarioError, TypeError) as e:
+            raise ScenarioError(f"{p}: {e}") from None
+
+
+def _resolve(path, base) -> str:
+    p = Path(str(path))
+    if base is not None and not p.is_absolute():
+        p = Path(base) / p
+    return str(p)

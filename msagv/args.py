@@ -1,0 +1,174 @@
+"""The command line's shared options: one builder per group, and their conversion into a
+:class:`experiments.scenario.Scenario`, MPC settings and Zenoh session options.
+
+Argument parsing lives only here and in the commands of this package; the parts below
+(plant, controller, bridge, fmu_build, experiments) take typed objects.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from bridge.session import DEFAULT_ID, DEFAULT_LEASE_MS, SessionOptions, check_id
+from experiments.scenario import SOLVERS, Scenario
+
+
+class OptionError(ValueError):
+    """A malformed option value (the message names the option)."""
+
+
+def parse_assignments(text: str | None, what: str = "--initial") -> dict[str, float]:
+    """``name=value,name=value`` -> ``{name: value}`` (values must be finite numbers)."""
+    out: dict[str, float] = {}
+    if not text:
+        return out
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "=" not in part:
+            raise OptionError(f"{what}: expected name=value, got '{part}'")
+        k, v = (s.strip() for s in part.split("=", 1))
+        try:
+            val = float(v)
+        except ValueError:
+            raise OptionError(f"{what}: {k}: '{v}' is not a number") from None
+        if not math.isfinite(val):
+            raise OptionError(f"{what}: {k}: must be finite, got {v}")
+        out[k] = val
+    return out
+
+
+# ---- the scenario ------------------------------------------------------------------------
+def add_case_args(ap: argparse.ArgumentParser, default_case: str = "curve") -> None:
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--case", choices=["curve", "line"], default=None,
+                   help=f"the paper's Case 1 (curve) or Case 2 (line) (default: {default_case})")
+    g.add_argument("--trajectory", metavar="FILE", help="a t,x,y,phi CSV to track instead")
+    ap.add_argument("--speed", metavar="KMH",
+                    help="speed in km/h, or a profile 't:kmh,t:kmh,...' (default: 15 curve, 10 line)")
+    ap.add_argument("--mass", type=float, metavar="KG", help="override the vehicle's mass")
+    ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
+    ap.add_argument("--duration", type=float, metavar="S",
+                    help="vehicle time to run (default: the whole reference)")
+    ap.add_argument("--initial", metavar="name=value,...",
+                    help="override initial-state values (default: start on the reference)")
+
+
+def add_mpc_args(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--method", choices=["two", "ntwo"], default="two",
+                    help="two: with the wear term (the paper's); ntwo: L = 0")
+    ap.add_argument("--model", choices=["mf", "dugoff", "kinematic", "tct"], default="mf",
+                    help="prediction model (mf: the paper's; others: the baselines)")
+    ap.add_argument("--seed", type=int, default=0, help="annealer seed")
+    ap.add_argument("--iterations", type=int, help="annealing iterations per solve")
+    ap.add_argument("--chains", type=int, help="annealing chains")
+    ap.add_argument("--deadline-ms", type=float,
+                    help="wall-clock budget per solve (anytime); default: fixed iterations only")
+    ap.add_argument("--threads", type=int, help="numba threads for the rollout (default 1)")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="any MPCSettings field, e.g. --set L=0.05,0.05,0.05 --set N_p=12")
+    ap.add_argument("--solver", choices=SOLVERS, default="sa",
+                    help="horizon solver: sa (simulated annealing, default) or ipopt (CasADi + "
+                         "IPOPT, exact derivatives; --model mf only, needs msagv[ipopt]; the "
+                         "annealer options are ignored, --deadline-ms is IPOPT's wall-time limit)")
+
+
+def add_fmu_args(ap: argparse.ArgumentParser, positional: bool) -> None:
+    """The options that choose an FMU as the plant: the FMU (``msagv fmu simulate FILE``
+    or ``msagv plant --fmu FILE``), its name mapping file and its parameters."""
+    if positional:
+        ap.add_argument("fmu", metavar="FILE.fmu", help="an FMI 2.0 co-simulation FMU")
+    else:
+        ap.add_argument("--fmu", metavar="FILE", help="host this FMI 2.0 co-simulation FMU "
+                                                      "instead of the built-in plant")
+    ap.add_argument("--map", metavar="FILE", dest="fmu_map",
+                    help="the FMU's name mapping (TOML: [map] our_name = \"their_name\", "
+                         "optional prefix); see docs/FMU.md")
+    ap.add_argument("--param", metavar="name=value,...", dest="fmu_params",
+                    help="FMU parameters by our names, e.g. mass=16000,tire_lateral_mu=0.6")
+
+
+def settings_from_args(a) -> dict:
+    """The MPC settings the options ask for, as MPCSettings fields (checked by the
+    Scenario when it builds them)."""
+    from controller.models import MPCSettings
+
+    kw = {"method": a.method, "model": a.model, "seed": a.seed}
+    for k in ("iterations", "chains", "threads"):
+        if getattr(a, k, None) is not None:
+            kw[k] = getattr(a, k)
+    if getattr(a, "deadline_ms", None) is not None:
+        kw["deadline_ms"] = a.deadline_ms
+    base = MPCSettings()
+    for item in getattr(a, "set", []) or []:
+        if "=" not in item:
+            raise OptionError(f"--set: expected NAME=VALUE, got '{item}'")
+        k, v = item.split("=", 1)
+        k = k.strip()
+        if k not in MPCSettings.field_names():
+            raise OptionError(f"--set: unknown setting '{k}' (known: "
+                              f"{', '.join(MPCSettings.field_names())})")
+        cur = getattr(base, k)
+        try:
+            if isinstance(cur, tuple):
+                kw[k] = tuple(type(cur[0])(x) for x in v.split(","))
+            elif isinstance(cur, bool):
+                kw[k] = v.lower() in ("1", "true", "yes", "on")
+            elif cur is None:
+                kw[k] = float(v)
+            else:
+                kw[k] = type(cur)(v)
+        except ValueError:
+            raise OptionError(f"--set: {k}: cannot parse '{v}'") from None
+    MPCSettings(**kw)  # a bad value is named now, before anything is built
+    return kw
+
+
+def scenario_from_args(a, default_case: str = "curve") -> Scenario:
+    """The :class:`Scenario` of the case, MPC and FMU options present on ``a``."""
+    has = lambda k: getattr(a, k, None)  # noqa: E731 - options a command may lack
+    case = None
+    if not has("trajectory"):
+        case = has("case") or default_case
+    fmu = has("fmu")
+    settings = settings_from_args(a) if hasattr(a, "method") else {}
+    return Scenario(vehicle=has("vehicle"), mass_kg=has("mass"), case=case,
+                    trajectory=has("trajectory"), speed=has("speed"),
+                    initial=parse_assignments(has("initial")),
+                    from_rest=bool(has("from_rest")), duration=has("duration"),
+                    settings=settings, solver=has("solver") or "sa", fmu=fmu,
+                    fmu_map=has("fmu_map"),
+                    fmu_params=parse_assignments(has("fmu_params"), "--param"))
+
+
+# ---- the Zenoh session -------------------------------------------------------------------
+def add_session_args(ap: argparse.ArgumentParser, router: bool = False) -> None:
+    g = ap.add_argument_group("Zenoh session")
+    if not router:
+        g.add_argument("--id", default=DEFAULT_ID,
+                       help=f"vehicle id: keys msagv/ID/... (default {DEFAULT_ID}); several "
+                            f"vehicles share one bus by id")
+        g.add_argument("--mode", choices=["peer", "client"], default="peer",
+                       help="zenoh session mode (client: through a router, e.g. msagv router)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)")
+    g.add_argument("--zenoh-config", metavar="FILE",
+                   help="a zenoh JSON5 config file (the options above are applied on top)")
+    g.add_argument("--lease-ms", type=int, default=DEFAULT_LEASE_MS,
+                   help=f"transport lease [ms]: how soon a dead process is noticed "
+                        f"(default {DEFAULT_LEASE_MS})")
+    if not router:
+        g.add_argument("--rt-priority", type=int, default=0, metavar="N",
+                       help="run under SCHED_FIFO priority N (1-99; needs CAP_SYS_NICE), so "
+                            "a loaded machine delays the periods less (default 0: off)")
+
+
+def options_from_args(a, router: bool = False) -> SessionOptions:
+    return SessionOptions(id=check_id(getattr(a, "id", DEFAULT_ID)), connect=list(a.connect),
+                          listen=list(a.listen),
+                          mode="router" if router else a.mode,
+                          config_file=a.zenoh_config, lease_ms=a.lease_ms)

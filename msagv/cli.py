@@ -1,0 +1,268 @@
+"""The ``msagv`` entry point: one dispatcher over every sub-command.
+
+Each command's module is imported only when that command runs (``msagv vehicle show``
+does not pay for compiling the controller or importing zenoh); the imports are plain
+``import`` statements, so the import graph stays visible to tools. The small commands
+(``vehicle``, ``plant replay``, ``report``, ``fmu``, ``bench``) live here; ``run``,
+``plant``/``controller``/``router``, ``experiment`` and ``demo`` in their own modules.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+COMMANDS = {
+    "demo": "plant and controller as two processes over Zenoh (Case 1, 15 km/h)",
+    "vehicle": "vehicle show [--vehicle FILE] [--json]",
+    "plant": "the plant as a Zenoh process; 'plant replay' for open-loop CSV replay",
+    "controller": "the MPC as a Zenoh process",
+    "router": "a Zenoh router for plants and controllers on several machines",
+    "run": "in-process closed loop (controller at 100 Hz on the stepping plant)",
+    "report": "the paper's metrics and plots from a recording",
+    "experiment": "the paper's Cases 1-3, the Pareto front and the ridge study",
+    "fmu": "fmu build | fmu simulate",
+    "bench": "benchmarks (plant, rollout, controller, optimality, transport, fmu)",
+}
+
+
+def _usage() -> str:
+    lines = ["usage: msagv COMMAND [options]   (msagv COMMAND --help for a command's options)", "",
+             "commands:"]
+    for name, text in COMMANDS.items():
+        lines.append(f"  {name:<11} {text}")
+    return "\n".join(lines)
+
+
+def _dispatch(cmd: str, rest: list[str]) -> int:
+    if cmd == "demo":
+        from .demo import main
+        return main(rest)
+    if cmd == "vehicle":
+        return vehicle_main(rest)
+    if cmd == "plant":
+        if rest[:1] == ["replay"]:
+            return replay_main(rest[1:])
+        from .nodes import plant_main
+        return plant_main(rest)
+    if cmd == "controller":
+        from .nodes import controller_main
+        return controller_main(rest)
+    if cmd == "router":
+        from .nodes import router_main
+        return router_main(rest)
+    if cmd == "run":
+        from .run import main
+        return main(rest)
+    if cmd == "report":
+        return report_main(rest)
+    if cmd == "experiment":
+        from .experiment import main
+        return main(rest)
+    if cmd == "fmu":
+        return fmu_main(rest)
+    if cmd == "bench":
+        return bench_main(rest)
+    raise AssertionError(cmd)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0
+    cmd, rest = argv[0], argv[1:]
+    if cmd not in COMMANDS:
+        print(f"msagv: unknown command '{cmd}'\n\n{_usage()}", file=sys.stderr)
+        return 2
+    return int(_dispatch(cmd, rest) or 0)
+
+
+# ---- msagv vehicle show -----------------------------------------------------------------
+def vehicle_main(argv: list[str]) -> int:
+    from plant.vehicle import VehicleError, load_vehicle
+
+    ap = argparse.ArgumentParser(prog="msagv vehicle", description="Show a vehicle description.")
+    ap.add_argument("action", choices=["show"])
+    ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
+    ap.add_argument("--json", action="store_true", help="print the resolved description as JSON")
+    a = ap.parse_args(argv)
+    try:
+        v = load_vehicle(a.vehicle)
+    except (VehicleError, FileNotFoundError) as e:
+        print(f"msagv vehicle show: {e}", file=sys.stderr)
+        return 2
+    d = v.to_dict()
+    d["derived"] = {"n_axles": v.n_axles, "n_wheels": v.n_wheels, "normal_load_N": v.normal_load,
+                    "wheel_x": v.wheel_x.tolist(), "wheel_y": v.wheel_y.tolist()}
+    if a.json:
+        print(json.dumps(d, indent=2))
+    else:
+        print(f"{v.name}: {v.n_axles} axles, {v.mass:g} kg, I_vz {v.yaw_inertia:g} kg m^2, "
+              f"r_w {v.wheel_radius:g} m, F_N {v.normal_load:.0f} N per wheel")
+        print(f"  axles at x = {list(v.axle_x)} m, wheels at y = +/-{v.half_track:g} m")
+        for part in ("longitudinal", "lateral", "dugoff"):
+            print(f"  tire.{part}: {d['tire'][part]}")
+        print(f"  limits: {d['limits']}")
+        print(f"  k_t = {v.steer_loss_kt:g} m; plant options: {d['plant']}")
+    return 0
+
+
+# ---- msagv plant replay -----------------------------------------------------------------
+def replay_main(argv: list[str]) -> int:
+    from plant.replay import read_inputs, replay, write_signals
+    from plant.vehicle import load_vehicle
+
+    from .args import parse_assignments
+    from .errors import USAGE_ERRORS
+
+    ap = argparse.ArgumentParser(
+        prog="msagv plant replay",
+        description="Open-loop replay: held commands from a CSV through the stepping plant.")
+    ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in)")
+    ap.add_argument("--inputs", metavar="U.csv", required=True,
+                    help="columns t, omega_w_ij, omega_s_ij; row k held until row k+1")
+    ap.add_argument("--out", metavar="S.csv", required=True, help="signals at the input times")
+    ap.add_argument("--initial", metavar="name=value,...", help="initial state, e.g. vx=5,phi=0.2")
+    ap.add_argument("--rtol", type=float, default=1e-8, help="integrator relative tolerance")
+    a = ap.parse_args(argv)
+    try:
+        v = load_vehicle(a.vehicle)
+        t, U = read_inputs(a.inputs, v)
+        names, S = replay(v, t, U, parse_assignments(a.initial), rtol=a.rtol)
+    except USAGE_ERRORS as e:
+        print(f"msagv plant replay: {e}", file=sys.stderr)
+        return 2
+    write_signals(a.out, names, S)
+    print(f"wrote {len(t)} rows x {len(names)} signals to {a.out}", file=sys.stderr)
+    return 0
+
+
+# ---- msagv report ------------------------------------------------------------------------
+def report_main(argv: list[str]) -> int:
+    from pathlib import Path
+
+    from bridge.recording import RecordingError
+    from controller.metrics import format_table
+    from experiments.recorded import ReportError, evaluate
+
+    ap = argparse.ArgumentParser(prog="msagv report",
+                                 description="The paper's metrics and plots from a recording "
+                                             "(msagv plant/controller --record FILE).")
+    ap.add_argument("recording", metavar="FILE")
+    ap.add_argument("--run", type=int, default=-1,
+                    help="which plant run of the recording, 0 = first (default: the last)")
+    ap.add_argument("--json", action="store_true",
+                    help="print the metrics (keys as msagv run --json) plus 'recording' info")
+    ap.add_argument("--plot", metavar="FILE", help="write a PNG (path, errors, wear power)")
+    ap.add_argument("--log", metavar="FILE", help="write the per-step log as CSV")
+    a = ap.parse_args(argv)
+    try:
+        m, info, log, ref = evaluate(a.recording, a.run)
+    except (RecordingError, ReportError, KeyError, TypeError) as e:
+        print(f"msagv report: {e}", file=sys.stderr)
+        return 2
+    if a.log:
+        log.to_csv(a.log)
+    if a.plot:
+        from experiments.plots import plot_run
+
+        plot_run(log, ref, a.plot, title=f"{ref.name} over Zenoh ({info['run_mode']}, "
+                                         f"{info['role']} recording)")
+    if a.json:
+        print(json.dumps(dict(m, recording=info)))
+    else:
+        print(format_table(m, f"{ref.name}: {info['recording']} ({info['role']}, "
+                              f"{info['run_mode']}, run {info['run']} of {info['runs']})"))
+        lat = info["latency_ms"]
+        print(f"  answered   {info['answered']} of {info['steps']} states; rejected messages "
+              f"{info['rejected']}")
+        if lat["p50"] is not None:
+            print(f"  latency    p50 {lat['p50']:.3f}  p99 {lat['p99']:.3f}  max {lat['max']:.3f} ms "
+                  f"(state -> command, without the solve; as recorded)")
+        if a.plot:
+            print(f"  plot       {Path(a.plot)}")
+    return 0
+
+
+# ---- msagv fmu build | simulate ----------------------------------------------------------
+FMU_USAGE = """usage: msagv fmu build [--vehicle FILE] -o FILE.fmu [--prefix P] [--initial name=value,...]
+       msagv fmu simulate FILE.fmu [msagv run's options]   (the closed loop against an FMU)"""
+
+
+def fmu_main(argv: list[str]) -> int:
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(FMU_USAGE)
+        return 0
+    sub, rest = argv[0], argv[1:]
+    if sub == "build":
+        return fmu_build_main(rest)
+    if sub == "simulate":
+        from .run import main as run_main
+
+        return run_main(rest, prog="msagv fmu simulate", fmu=True)
+    print(f"msagv fmu: unknown sub-command '{sub}'\n{FMU_USAGE}", file=sys.stderr)
+    return 2
+
+
+def fmu_build_main(argv: list[str]) -> int:
+    from fmu_build.build import FmuBuildError, build_fmu
+    from plant.vehicle import load_vehicle
+
+    from .args import parse_assignments
+    from .errors import USAGE_ERRORS
+
+    ap = argparse.ArgumentParser(
+        prog="msagv fmu build",
+        description="Package the plant as an FMI 2.0 co-simulation FMU (pythonfmu). The FMU "
+                    "bundles the plant package and the vehicle; it runs in the importer's "
+                    "Python, which needs numpy and numba (see docs/FMU.md).")
+    ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
+    ap.add_argument("-o", "--output", metavar="FILE.fmu", required=True, help="the FMU to write")
+    ap.add_argument("--prefix", default="",
+                    help="put in front of every variable name (e.g. 'agv0.'); the host then "
+                         "needs a mapping file")
+    ap.add_argument("--initial", metavar="name=value,...",
+                    help="start values of the initial-state parameters, e.g. vx=2,phi=0.1")
+    a = ap.parse_args(argv)
+    try:
+        vehicle = load_vehicle(a.vehicle)
+        initial = parse_assignments(a.initial)
+        out = build_fmu(a.output, vehicle, prefix=a.prefix, initial=initial)
+    except USAGE_ERRORS + (FmuBuildError,) as e:
+        print(f"msagv fmu build: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {out} ({vehicle.name}, {vehicle.n_axles} axles)", file=sys.stderr)
+    return 0
+
+
+# ---- msagv bench --------------------------------------------------------------------------
+def bench_main(argv: list[str] | None = None) -> int:
+    from benchmarks import suite
+
+    ap = argparse.ArgumentParser(prog="msagv bench", description=suite.__doc__.splitlines()[0])
+    ap.add_argument("sections", nargs="*", metavar="SECTION",
+                    help=f"which benchmarks (default all): {', '.join(suite.SECTIONS)}")
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--quick", action="store_true",
+                    help="short runs (a smoke test; the figures are not meaningful)")
+    ap.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    a = ap.parse_args(argv)
+    echo = (lambda line: print(line, file=sys.stderr, flush=True)) if a.json else \
+        (lambda line: print(line, flush=True))
+    try:
+        result = suite.run(a.sections, a.quick, echo)
+    except ValueError as e:
+        print(f"msagv bench: {e}", file=sys.stderr)
+        return 2
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(result, f, indent=1)
+    if a.json:
+        print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,251 @@
+"""``msagv plant``, ``msagv controller`` and ``msagv router``: the Zenoh processes.
+
+Each command parses its options, builds its part of the scenario
+(:class:`experiments.scenario.Scenario`) and hands typed objects to the transport
+(:func:`bridge.plant_node.serve`, :func:`bridge.controller_node.serve`,
+:func:`bridge.router.serve`), which knows nothing of the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import sys
+import threading
+
+from bridge import messages as M
+from bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtime_priority,
+                            setup_logging)
+
+from .args import (add_case_args, add_fmu_args, add_mpc_args, add_session_args,
+                   options_from_args, scenario_from_args)
+from .errors import USAGE_ERRORS
+
+
+def _realtime_priority(a, log: logging.Logger) -> None:
+    if a.rt_priority:
+        why = set_realtime_priority(a.rt_priority)
+        if why:
+            log.warning("%s", why)
+
+
+# ---- msagv plant --------------------------------------------------------------------------
+def plant_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="msagv plant",
+        description="The plant as a Zenoh process (state out, commands in, params queryable, "
+                    "liveliness token). 'msagv plant replay' is the open-loop CSV replay.")
+    ap.add_argument("--run-mode", choices=list(M.RUN_MODES), default="lockstep",
+                    help="lockstep: step when the command for the current state arrives "
+                         "(deterministic); realtime: step on the wall clock at 1/T "
+                         "(default lockstep)")
+    add_case_args(ap)
+    ap.add_argument("--from-rest", action="store_true",
+                    help="start at rest at the origin (+ --initial), as 'plant replay', "
+                         "instead of on the reference")
+    add_fmu_args(ap, positional=False)
+    ap.add_argument("--period", type=float, default=0.01, help="control period T [s] (0.01)")
+    ap.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                    help="lockstep: longest wait for a command; realtime: for the first one "
+                         "(default 10)")
+    ap.add_argument("--wait", type=float, default=60.0, metavar="S",
+                    help="wait this long for a controller at start, 0 = forever (default 60)")
+    ap.add_argument("--stale-ms", type=float, default=50.0,
+                    help="realtime: a command older than this puts the plant in its safe "
+                         "behaviour (default 50)")
+    ap.add_argument("--safe-decel", type=float, default=2.0, metavar="M/S2",
+                    help="realtime safe behaviour: wheel ramp-down at the rim (default 2)")
+    ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
+    ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
+    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
+    add_session_args(ap)
+    return ap
+
+
+def plant_main(argv: list[str]) -> int:
+    from bridge.plant_node import PlantConfig, serve
+    from bridge.recording import Recorder
+
+    a = plant_parser().parse_args(argv)
+    setup_logging("msagv plant", a.id, a.quiet)
+    log = logging.getLogger("msagv.plant")
+    _realtime_priority(a, log)
+    sig = StopOnSignal(threading.Event())
+    sig.install()
+    plant = None
+    try:
+        opts = options_from_args(a)
+        scenario = scenario_from_args(a)
+        plant, vehicle, ref, initial = scenario.make_plant()
+        duration = scenario.run_duration(ref)
+        cfg = PlantConfig(run_mode=a.run_mode, period=a.period,
+                          steps=int(round(duration / a.period)) if duration > 0 else 0,
+                          timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
+                          safe_decel=a.safe_decel)
+        rec = None
+        if a.record:
+            try:
+                rec = Recorder(a.record, {
+                    "role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),
+                    "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
+                    "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
+                    "fmu": a.fmu, "argv": list(argv)})
+            except OSError as e:
+                raise ValueError(f"--record: {e}") from None
+    except USAGE_ERRORS as e:
+        print(f"msagv plant: {e}", file=sys.stderr)
+        if plant is not None and hasattr(plant, "close"):
+            plant.close()
+        return EXIT_USAGE
+    try:
+        summary, rc = serve(plant, cfg, opts, recorder=rec, signals=sig)
+    finally:
+        if hasattr(plant, "close"):
+            plant.close()
+    _plant_report(summary, a.json)
+    if a.fmu:
+        # Everything is flushed and closed: leave without the interpreter's and the shared
+        # libraries' exit handlers. A pythonfmu binary and Zenoh's static destructors in one
+        # process intermittently aborted at exit ('corrupted double-linked list', in
+        # zenoh_shm's cleanup) after a complete, correct run.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc
+
+
+def _plant_report(s: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(s), flush=True)
+        return
+    c, r = s["commands"], s["rejected"]
+    lines = [f"plant {s['id']}: {s['run_mode']}, {s['steps']} steps ({s['t_end']:.2f} s)"
+             f"{'' if s['completed'] else ' (incomplete)'}",
+             f"  commands   accepted {c['accepted']}, late {c['late']}, lost {c['lost']}, "
+             f"stale {c['stale']}, duplicate {c['duplicate']}",
+             f"  rejected   {r['total']} {r['by_reason'] if r['total'] else ''}"]
+    lat = s["latency_ms"]
+    if lat["n"]:
+        lines.append(f"  latency    p50 {lat['p50']:.3f} ms  p99 {lat['p99']:.3f} ms  "
+                     f"max {lat['max']:.3f} ms (state -> command, without the solve)")
+    if s["run_mode"] == "realtime":
+        j = s["period_jitter_ms"]
+        lines.append(f"  periods    missed {s['missed_periods']}, jitter p50 "
+                     f"{(j['p50'] or 0):.3f} p99 {(j['p99'] or 0):.3f} max {(j['max'] or 0):.3f} ms")
+        sf = s["safe"]
+        lines.append(f"  safe       events {sf['events']}, periods {sf['periods']}, "
+                     f"resumes {sf['resumes']}")
+    print("\n".join(lines), file=sys.stderr, flush=True)
+
+
+# ---- msagv controller ---------------------------------------------------------------------
+def controller_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="msagv controller",
+        description="The MPC as a Zenoh process: answers each state with a command.")
+    add_case_args(ap)
+    add_mpc_args(ap)
+    ap.add_argument("--wait", type=float, default=60.0, metavar="S",
+                    help="wait this long for the plant's params at start, 0 = forever "
+                         "(default 60; not needed with --vehicle)")
+    ap.add_argument("--max-age-ms", type=float, metavar="MS",
+                    help="never send a command for a state older than this (default: "
+                         "50 against a realtime plant, none in lockstep)")
+    ap.add_argument("--on-plant-loss", choices=["wait", "exit"], default="wait",
+                    help="when the plant's token disappears: wait for it (default) or exit 3")
+    ap.add_argument("--exit-at-end", action="store_true",
+                    help="exit after the plant's last state (end = true)")
+    ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
+    ap.add_argument("--json", action="store_true", help="print the summary as JSON at exit")
+    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
+    add_session_args(ap)
+    return ap
+
+
+def controller_main(argv: list[str]) -> int:
+    from bridge.controller_node import ControllerConfig, realtime_defaults, serve
+    from bridge.recording import Recorder
+
+    a = controller_parser().parse_args(argv)
+    setup_logging("msagv controller", a.id, a.quiet)
+    log = logging.getLogger("msagv.controller")
+    _realtime_priority(a, log)
+    if a.initial is not None:
+        print("msagv controller: --initial applies to msagv plant", file=sys.stderr)
+        return EXIT_USAGE
+    if a.duration is not None:
+        print("msagv controller: --duration applies to msagv plant", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        opts = options_from_args(a)
+        scenario = scenario_from_args(a)
+        scenario.check_solver()  # ipopt without CasADi or with model != mf: exit 2
+        if a.vehicle:
+            scenario.resolve_vehicle()  # a bad file fails before any network
+    except USAGE_ERRORS as e:
+        print(f"msagv controller: {e}", file=sys.stderr)
+        return EXIT_USAGE
+
+    def make_mpc(params):
+        vehicle = scenario.resolve_vehicle(params.vehicle if params else None)
+        ref, _ = scenario.reference()
+        deadline, _ = realtime_defaults(params.run_mode if params else None,
+                                        a.deadline_ms, a.max_age_ms)
+        override = {} if deadline is None else {"deadline_ms": deadline}
+        if deadline is not None and a.deadline_ms is None:
+            log.info("realtime plant: solve budget %g ms (--deadline-ms)", deadline)
+        return scenario.make_controller(vehicle, ref, period=params.period if params else 0.01,
+                                        **override)
+
+    def open_recorder(mpc, params):
+        if not a.record:
+            return None
+        ref = mpc.reference
+        return Recorder(a.record, {
+            "role": "controller", "id": opts.id, "vehicle": mpc.vehicle.to_dict(),
+            "period": mpc.period, "run_mode": params.run_mode if params else None,
+            "reference": dict(ref.to_message(), name=ref.name),
+            "settings": dataclasses.asdict(mpc.settings), "solver": scenario.solver,
+            "argv": list(argv)})
+
+    sig = StopOnSignal(threading.Event())
+    cfg = ControllerConfig(a.max_age_ms, a.on_plant_loss, a.exit_at_end)
+    summary, rc = serve(opts, make_mpc, cfg, fetch=not a.vehicle, wait_s=a.wait,
+                        open_recorder=open_recorder, stop=sig.event,
+                        on_signal_install=sig.install)
+    if a.json:
+        print(json.dumps(summary), flush=True)
+    elif "answered" in summary:
+        sm = summary["solve_ms"]
+        print(f"controller {opts.id}: answered {summary['answered']}, skipped "
+              f"{summary['skipped']}, rejected {summary['rejected']['total']}, solve p50 "
+              f"{(sm['p50'] or 0):.2f} p99 {(sm['p99'] or 0):.2f} ms ({summary['exit_reason']})",
+              file=sys.stderr)
+    return rc
+
+
+# ---- msagv router -------------------------------------------------------------------------
+def router_main(argv: list[str]) -> int:
+    from bridge.router import serve
+    from bridge.session import ROUTER_PORT, SessionError
+
+    ap = argparse.ArgumentParser(
+        prog="msagv router",
+        description=f"A Zenoh router (a session in router mode); listens on "
+                    f"tcp/127.0.0.1:{ROUTER_PORT} unless --listen is given (use "
+                    f"--listen tcp/0.0.0.0:{ROUTER_PORT} for other machines).")
+    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
+    add_session_args(ap, router=True)
+    a = ap.parse_args(argv)
+    setup_logging("msagv router", "-", a.quiet)
+    sig = StopOnSignal(threading.Event())
+    sig.install()
+    try:
+        opts = options_from_args(a, router=True)
+    except SessionError as e:
+        print(f"msagv router: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    return serve(opts, sig.event) or EXIT_OK

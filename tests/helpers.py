@@ -1,0 +1,179 @@
+"""Helpers shared by the test modules (fixtures are in conftest.py): the command line as a
+subprocess, loopback endpoints, a set of processes a test starts and always stops, a 3-axle
+vehicle unlike the built-in one, and editing TOML texts line by line.
+
+``tests/`` is not a package: pytest puts it on ``sys.path``, so modules import this as
+``import helpers`` (as they import ``reference_model``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def msagv(*args) -> list[str]:
+    """The command line running ``msagv ARGS`` with this Python (no installed script needed)."""
+    return [sys.executable, "-m", "msagv", *[str(a) for a in args]]
+
+
+def run_msagv(*args, timeout: float = 120, **kw) -> subprocess.CompletedProcess:
+    """``msagv ARGS`` to completion, output captured as text."""
+    return subprocess.run(msagv(*args), capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free right now (the standard library only, so the
+    protocol test's client stays free of the project's code)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def ep(port: int) -> str:
+    """The loopback TCP endpoint of ``port``."""
+    return f"tcp/127.0.0.1:{port}"
+
+
+def stop(p: subprocess.Popen, grace: float = 5.0) -> None:
+    """SIGTERM, then SIGKILL after ``grace`` seconds (by the process's own id)."""
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(grace)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(5)
+
+
+class Procs:
+    """Processes of one test: output to files, SIGTERM then SIGKILL at the end."""
+
+    def __init__(self, tmp: Path):
+        self.tmp = tmp
+        self.p: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, args: list[str]) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        out = (self.tmp / f"{name}.out").open("w")
+        err = (self.tmp / f"{name}.err").open("w")
+        self.p[name] = subprocess.Popen(args, stdout=out, stderr=err, env=env, cwd=self.tmp)
+        out.close()
+        err.close()
+        return self.p[name]
+
+    def wait(self, name: str, timeout: float) -> int:
+        try:
+            return self.p[name].wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"{name} still running after {timeout} s; stderr:\n"
+                                 f"{self.err(name)[-3000:]}") from None
+
+    def out(self, name: str) -> str:
+        return (self.tmp / f"{name}.out").read_text()
+
+    def err(self, name: str) -> str:
+        return (self.tmp / f"{name}.err").read_text()
+
+    def json(self, name: str) -> dict:
+        lines = [ln for ln in self.out(name).splitlines() if ln.startswith("{")]
+        assert lines, f"{name} printed no JSON; stderr:\n{self.err(name)[-3000:]}"
+        return json.loads(lines[-1])
+
+    def stop_all(self) -> None:
+        for p in self.p.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 5
+        for p in self.p.values():
+            try:
+                p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+
+
+# ---- vehicles as TOML text -----------------------------------------------------------------
+BUILTIN_TOML = (ROOT / "plant" / "data" / "paper-2axle.toml").read_text()
+
+# A 3-axle vehicle unlike the built-in one: axles not centred on the CG, other tires.
+THREE_AXLE_TOML = """\
+name = "test-3axle"
+mass = 18500.0            # kg
+yaw_inertia = 150000.0    # kg m^2
+wheel_radius = 0.45       # m
+axle_x = [4.0, 0.5, -3.0] # m, front first
+half_track = 1.1          # m
+steer_loss_kt = 0.025     # m
+
+[tire.longitudinal]
+B = 10.0
+C = 1.6
+mu = 0.85
+E = 0.1
+
+[tire.lateral]
+B = 8.0
+C = 1.35
+mu = 0.85
+E = -0.3
+
+[tire.dugoff]
+C_s = 360000.0
+C_alpha = 240000.0
+mu = 0.85
+
+[limits]
+omega_s_min = -0.7
+omega_s_max = 0.7
+omega_w_max = 30.0
+delta_min = -1.4
+delta_max = 1.4
+"""
+
+
+def edit_toml(text: str, table: str, key: str, value: str | None) -> str:
+    """Replace the value of ``key`` in ``[table]`` ('' = top level); None deletes the line."""
+    out, current, hits = [], "", 0
+    for line in text.splitlines():
+        m = re.match(r"^\s*\[([^\]]+)\]", line)
+        if m:
+            current = m.group(1).strip()
+        elif current == table and re.match(rf"^\s*{re.escape(key)}\s*=", line):
+            hits += 1
+            if value is None:
+                continue
+            line = f"{key} = {value}"
+        out.append(line)
+    assert hits == 1, f"{table}.{key} not found exactly once"
+    return "\n".join(out) + "\n"
+
+
+def add_toml(text: str, table: str, line: str) -> str:
+    """Insert ``line`` into ``[table]`` ('' = top level, before the first table)."""
+    lines = text.splitlines()
+    if table == "":
+        i = next(k for k, s in enumerate(lines) if s.startswith("["))
+    else:
+        i = lines.index(next(s for s in lines if re.match(rf"^\[{re.escape(table)}\]", s))) + 1
+    lines.insert(i, line)
+    return "\n".join(lines) + "\n"
+
+
+def drop_toml_table(text: str, table: str) -> str:
+    out, skipping = [], False
+    for line in text.splitlines():
+        m = re.match(r"^\s*\[([^\]]+)\]", line)
+        if m:
+            skipping = m.group(1).strip() == table
+        if not skipping:
+            out.append(line)
+    return "\n".join(out) + "\n"
