@@ -8,9 +8,10 @@ vectors, as the annealer makes once per iteration: ``batch`` = the default
 * ``numba_serial``: :func:`controller.rollout.rollout_batch` (the controller's default);
 * ``numba_parallel``: :func:`controller.rollout.rollout_batch_parallel`, numba threads =
   the cores available to this process;
-* ``c_fast``: ``benchmarks/rollout_ref.c`` (the same prediction, operation for
-  operation), ``gcc -O3 -march=native -ffast-math`` (numba compiles these kernels with
-  fastmath and for the host CPU);
+* ``c_fast``: ``controller/mirrors/rollout_ref.c`` (the same prediction, operation for
+  operation; its indices from a header generated from :mod:`plant.layout`),
+  ``gcc -O3 -march=native -ffast-math`` (numba compiles these kernels with fastmath and
+  for the host CPU);
 * ``c_strict``: the same source, ``gcc -O3 -march=native -ffp-contract=off`` (IEEE order:
   reproduces the numba results to rounding, see tests/test_rollout_ref.py).
 
@@ -61,10 +62,13 @@ from numpy.ctypeslib import ndpointer
 
 from controller import MPCSettings, make_case
 from controller import rollout as _ro
+from controller.mirrors import C_REFERENCE
 from controller.models import MagicFormulaModel
 from plant import default_vehicle, n_axle_vehicle
+from plant import layout as lay
 
-SOURCE = Path(__file__).with_name("rollout_ref.c")
+SOURCE = C_REFERENCE
+HEADER = "msagv_layout.h"  # generated next to the build from plant.layout.c_header()
 SYMBOL = "rollout_batch_mf"
 COMMON_FLAGS = ["-std=c99", "-O3", "-march=native", "-fPIC"]
 VARIANTS = {
@@ -121,8 +125,10 @@ class CRollout:
         """Checked call: shapes as the numba kernel expects them, outputs written in place."""
         B, D = Z.shape
         nw, Np = wx.shape[0], block.shape[0]
-        if (x0.shape != (6 + nw,) or ref.shape[0] < Np or ref.shape[1:] != (6,)
-                or wy.shape != (nw,) or poses.shape != (B, Np, 3) or wear.shape != (B, Np, 3)
+        if (x0.shape != (lay.x0_size(nw),) or ref.shape[0] < Np
+                or ref.shape[1:] != (lay.N_REF,) or P.shape != (lay.N_PARAMS,)
+                or S.shape != (lay.N_SETTINGS,) or wy.shape != (nw,)
+                or poses.shape != (B, Np, lay.N_POSE) or wear.shape != (B, Np, lay.N_WEAR)
                 or cmds.shape != (B, 2, nw) or D % (2 * nw)
                 or (Np and not 0 <= block.min() <= block.max() < D // (2 * nw))):
             raise ValueError("rollout_ref: inconsistent shapes or block indices")
@@ -155,7 +161,9 @@ def build_c_rollout(variant: str = "strict", workdir: str | Path | None = None) 
         # compile with the variant's flags, link without them: gcc links crtfastmath.o into
         # a shared library linked with -ffast-math, which sets flush-to-zero and
         # denormals-are-zero for the whole process when the library is loaded
-        for cmd in ([cc, *flags, "-c", "-o", str(obj_path), str(SOURCE)],
+        # the layout's indices: a header generated from plant/layout.py for this build
+        (Path(workdir) / HEADER).write_text(lay.c_header())
+        for cmd in ([cc, *flags, "-I", str(workdir), "-c", "-o", str(obj_path), str(SOURCE)],
                     [cc, "-shared", "-o", str(lib_path), str(obj_path), "-lm"]):
             try:
                 res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)

@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from plant import layout as lay
 from plant.dynamics import pack_params
 from plant.vehicle import Vehicle
 
@@ -146,17 +147,23 @@ class Rollout(NamedTuple):
 
 
 def pack_settings(vehicle: Vehicle, s: MPCSettings) -> np.ndarray:
-    lim, dg, la = vehicle.limits, vehicle.tire_dugoff, vehicle.tire_lateral
+    """The kernels' settings vector ``S`` (layout ``plant.layout.S_*``): the MPC's own
+    settings only; every vehicle value (limits, Dugoff) is in ``P`` (``pack_params``)."""
+    dg, la = vehicle.tire_dugoff, vehicle.tire_lateral
     # cornering stiffness per wheel as each model sees it: MF slope at 0 is B C D
     if s.model == "kinematic" or not s.ff_cornering:
         k_alpha = 0.0
     else:
         c_alpha = dg.C_alpha if s.model == "dugoff" else la.B * la.C * la.mu * vehicle.normal_load
         k_alpha = vehicle.mass / (vehicle.n_wheels * c_alpha)
-    S = np.array([s.dt, s.K_servo, s.K_pos, s.K_phi, s.v_fb_max, s.r_fb_max, lim.omega_w_max,
-                  lim.omega_s_min, lim.omega_s_max, lim.delta_min, lim.delta_max, dg.C_s,
-                  dg.C_alpha, dg.mu, k_alpha], dtype=np.float64)
-    assert S.size == _ro.N_SETTINGS
+    S = np.full(lay.N_SETTINGS, np.nan)
+    S[lay.S_DT] = s.dt
+    S[lay.S_K_SERVO] = s.K_servo
+    S[lay.S_K_POS] = s.K_pos
+    S[lay.S_K_PHI] = s.K_phi
+    S[lay.S_V_FB_MAX] = s.v_fb_max
+    S[lay.S_R_FB_MAX] = s.r_fb_max
+    S[lay.S_K_ALPHA] = k_alpha
     return S
 
 
@@ -181,7 +188,7 @@ class PredictionModel:
 
     def allocate(self, batch: int) -> Rollout:
         Np, nw = self.settings.N_p, self.n_wheels
-        return Rollout(np.empty((batch, Np, 3)), np.empty((batch, Np, 3)),
+        return Rollout(np.empty((batch, Np, lay.N_POSE)), np.empty((batch, Np, lay.N_WEAR)),
                        np.empty((batch, 2, nw)))
 
     def rollout(self, x0: np.ndarray, ref: np.ndarray, Z: np.ndarray,
@@ -192,7 +199,7 @@ class PredictionModel:
             Z = Z[None, :]
         if Z.shape[1] != self.dim:
             raise ValueError(f"rollout: decision vectors must have {self.dim} entries, got {Z.shape[1]}")
-        if ref.shape != (self.settings.N_p + 1, 6):
+        if ref.shape != (self.settings.N_p + 1, lay.N_REF):
             raise ValueError(f"rollout: reference must have shape ({self.settings.N_p + 1}, 6)")
         out = out if out is not None and out.poses.shape[0] == Z.shape[0] else self.allocate(Z.shape[0])
         fn = _ro.rollout_batch if self.settings.threads <= 1 else _ro.rollout_batch_parallel

@@ -10,11 +10,12 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numba
 import numpy as np
 
+from plant import layout as lay
 from plant.vehicle import Vehicle
 
 from . import rollout as _ro
@@ -47,11 +48,18 @@ class MPC:
     settings : :class:`MPCSettings` (method 'two' or 'ntwo', model, horizon, budgets).
     reference : optional default reference for :meth:`step`.
     period : control period T [s] (the time a command is held by the plant).
+    on_solve : optional observer, also settable as the attribute ``on_solve``: called after
+        every solve of :meth:`step` as ``on_solve(state, z_prev, command)`` with the state
+        mapping given to ``step``, the previous solution ``z_prev`` (the decision vector
+        before the solve: the warm start's source; do not modify it) and the returned
+        :class:`Command`; the new solution is ``self.z``. Its time is not in ``solve_ms``.
     """
 
     def __init__(self, vehicle: Vehicle, settings: MPCSettings | None = None,
-                 reference: Reference | None = None, period: float = T_CONTROL):
+                 reference: Reference | None = None, period: float = T_CONTROL,
+                 on_solve: Callable[[Mapping, np.ndarray, "Command"], None] | None = None):
         self.vehicle = vehicle
+        self.on_solve = on_solve
         self.settings = settings or MPCSettings()
         self.reference = reference
         if not period > 0:
@@ -121,22 +129,32 @@ class MPC:
         """One MPC solve: commands to hold over the next control period."""
         t0 = time.perf_counter()
         x0, R, zprev, warm = self.horizon_problem(state, reference)
+        z_prev = self.z
+        self.z, cost, iterations = self._solve(x0, R, zprev, warm, t0)
+        om_w, om_s = self.commands_for(x0, R[0], self.z)
+        ms = (time.perf_counter() - t0) * 1000.0
+        self.solve_times_ms.append(ms)
+        cmd = Command(om_w, om_s, ms, cost, iterations)
+        if self.on_solve is not None:
+            self.on_solve(state, z_prev, cmd)
+        return cmd
+
+    def _solve(self, x0, R, zprev, warm, t0: float) -> tuple[np.ndarray, float, int]:
+        """The solver of :meth:`step` (the annealer): ``(z, cost, iterations)`` for the
+        horizon problem; ``t0`` is the solve's start (the deadline counts from it)."""
         s = self.settings
         if s.threads > 1:
             numba.set_num_threads(min(s.threads, numba.config.NUMBA_NUM_THREADS))
         deadline = None if s.deadline_ms is None else s.deadline_ms / 1000.0 - (time.perf_counter() - t0)
         res = self._sa.solve(x0, R, zprev, warm, self.rng, deadline)
-        self.z = res.x
-        om_w, om_s = self.commands_for(x0, R[0], res.x)
-        ms = (time.perf_counter() - t0) * 1000.0
-        self.solve_times_ms.append(ms)
-        return Command(om_w, om_s, ms, res.cost, res.iterations)
+        return res.x, res.cost, res.iterations
 
     def commands_for(self, x0: np.ndarray, ref0: np.ndarray, z: np.ndarray):
         """The policy's commands at state ``x0`` over one control period T (bounded)."""
         om_w = np.empty(self.nw)
         om_s = np.empty(self.nw)
-        _ro.commands_from_policy(x0[:3].copy(), x0[6:].copy(), ref0, z, 0, self.nw,
+        _ro.commands_from_policy(x0[lay.X0_X:lay.X0_PHI + 1].copy(), x0[lay.X0_DELTA:].copy(),
+                                 ref0, z, 0, self.nw,
                                  self.model.P, self.model.S, self.model.wx, self.model.wy,
                                  self.period, om_w, om_s)
         return om_w, om_s

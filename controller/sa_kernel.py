@@ -1,34 +1,81 @@
 """The MPC's simulated annealing, compiled: the whole solver loop runs in numba.
 
-:func:`controller.annealer.anneal` is the readable, generic annealer (any batch cost
-function). For the MPC its per-iteration Python work (proposals, clipping, Metropolis,
-book-keeping on small arrays) cost about 1.5 ms of a 10 ms solve, time not spent in
-rollouts. This module runs the *same algorithm on the same random draws* inside one
-compiled kernel: each iteration proposes one move per chain, predicts and costs all of
-them (:func:`controller.rollout._simulate` + :func:`controller.rollout.candidate_cost`,
-fused per chain), and applies the Metropolis test. ``tests/test_controller.py`` checks
-that it returns what :func:`anneal` returns on the MPC's cost for the same seed.
+The algorithm (docs/CONTROLLER.md, "Simulated annealing", says what each choice bought):
+
+* **Chains**: Metropolis chains; chain 0 starts at the warm start, chain 1 at zero offsets
+  (the pure feed-forward), the rest at the warm start plus a Gaussian spread.
+* **One batch per iteration**: each iteration proposes one move per chain, predicts and
+  costs all of them (:func:`controller.rollout._simulate` +
+  :func:`controller.rollout.candidate_cost`, fused per chain), then applies the Metropolis
+  test to each.
+* **Proposals**: Gaussian steps with a per-coordinate scale ``sigma``, times a per-chain
+  factor, shrinking geometrically to ``sigma_final`` of their start over the budget, and
+  clipped to the box. The per-chain factors start on a geometric ladder from ``ladder``
+  to 1 and adapt: x ``adapt_up`` after an accepted move, x ``adapt_down`` after a rejected
+  one, kept within [SCALE_MIN, SCALE_MAX].
+* **Acceptance**: Metropolis, ``exp(-(J' - J) / T)`` with a temperature relative to the
+  best cost so far, ``T_i = J_best * t_start (t_end / t_start)^(i / (I - 1))``.
+* **Exploitation**: every ``restart_every`` iterations the worst quarter of the chains
+  (at least one) restarts from the best point found.
+* **Budgets**: a fixed iteration count runs in one kernel call (deterministic: same seed,
+  same result); with a wall-clock deadline the kernel is called in chunks of up to
+  ``CHUNK`` iterations, sized from the time per iteration measured so far, the clock read
+  between chunks, and the cooling follows the elapsed fraction of the deadline.
+* **Seeding**: every random number of a solve is drawn up front from the
+  ``numpy.random.Generator`` passed in.
+
+``tests/annealer_reference.py`` is the same algorithm written plainly for any batch cost
+function; ``tests/test_controller.py`` checks that this kernel returns what it returns on
+the MPC's cost for the same seed (the same random draws).
 
 Two variants: serial (default; predictable when other processes share the cores) and
 ``parallel`` (the chains of an iteration spread over numba's threads with ``prange``).
-
-Budgets as in :func:`anneal`: a fixed iteration count runs in one kernel call; with a
-wall-clock deadline the kernel is called in chunks of up to ``CHUNK`` iterations, sized
-from the time per iteration measured so far, and the clock is read between chunks.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
 
-from .annealer import SCALE_MAX, SCALE_MIN, AnnealResult, ladder_factors
+import plant.tire as _tire
+from plant import layout as lay
+
+from . import rollout as _ro
 from .rollout import _simulate, candidate_cost
 
 CHUNK = 16  # iterations per kernel call under a deadline (the clock is read between calls)
+SCALE_MIN, SCALE_MAX = 1e-4, 10.0  # bounds of the adaptive per-chain step factors
+
+# stale-cache guard (plant.layout): the layout and the kernels compiled into these
+_STAMP = lay.kernel_stamp(_ro.__file__, _tire.__file__)
+
+
+@njit(cache=True)
+def _layout_stamp():
+    return _STAMP
+
+
+lay.drop_stale_cache(_layout_stamp, _STAMP, __file__)
+
+
+@dataclass
+class AnnealResult:
+    x: np.ndarray  # best point (D,)
+    cost: float  # its cost
+    iterations: int  # iterations run
+    evaluations: int  # candidate evaluations (incl. the initial ones)
+    accepted: float  # fraction of proposals accepted
+
+
+def ladder_factors(chains: int, ladder: float) -> np.ndarray:
+    """Initial per-chain step factors: geometric from ``ladder`` (chain 0) to 1."""
+    if not 0.0 < ladder <= 1.0:
+        raise ValueError(f"anneal: ladder must be in (0, 1], got {ladder}")
+    return np.geomspace(ladder, 1.0, chains) if chains > 1 else np.ones(1)
 
 
 def _make_evaluate(parallel: bool):
@@ -52,8 +99,8 @@ def _make_iterate(evaluate, name: str):
                 best_x, best, scale, noise, unif, it0, fracs, sigma, lower, upper, log_sf,
                 t_start, log_tr, restart_every, n_restart, iterations, up, down, poses, wear,
                 cmds):
-        """Iterations ``it0 .. it0 + len(fracs) - 1`` of :func:`controller.annealer.anneal`
-        (``fracs``: the schedule's progress fraction of each). ``best`` = [best_J,
+        """Iterations ``it0 .. it0 + len(fracs) - 1`` of the annealing (module docstring;
+        ``fracs``: the schedule's progress fraction of each). ``best`` = [best_J,
         accepted count] is updated in place, as are X, J, best_x and the per-chain step
         factors ``scale``."""
         C, D = X.shape
@@ -105,7 +152,7 @@ iterate_parallel = _make_iterate(evaluate_parallel, "iterate_parallel")
 class CompiledAnnealer:
     """Simulated annealing of one MPC horizon problem, with preallocated buffers.
 
-    Parameters mirror :func:`controller.annealer.anneal`; ``model`` is a
+    Parameters as the reference annealer's (``tests/annealer_reference.py``); ``model`` is a
     :class:`controller.models.PredictionModel`, ``Q, L, R`` the cost weights.
     """
 
@@ -147,7 +194,8 @@ class CompiledAnnealer:
     def solve(self, x0: np.ndarray, ref: np.ndarray, zprev: np.ndarray, warm: np.ndarray,
               rng: np.random.Generator, deadline_s: float | None = None) -> AnnealResult:
         """Minimise the horizon cost from ``warm`` (clipped to the box); ``deadline_s``
-        optional wall-clock budget. Draws exactly the random numbers :func:`anneal` draws."""
+        optional wall-clock budget. Draws exactly the random numbers the reference annealer
+        (``tests/annealer_reference.py``) draws."""
         t0 = time.perf_counter()
         m = self.model
         C, D, I = self.chains, m.dim, self.iterations

@@ -1,24 +1,10 @@
 """Planar n-axle swerve-drive dynamics (paper eq. 2-8, 17-18) as compiled kernels.
 
-Layouts (documented because the kernels take plain arrays):
-
-* parameter vector ``P`` (float64), built by :func:`pack_params`::
-
-    0 m [kg]        1 I_vz [kg m^2]   2 r_w [m]        3 g [m/s^2]     4 k_t [m]
-    5 v_eps [m/s]   6..9 longitudinal MF (B, C, mu, E)  10..13 lateral MF (B, C, mu, E)
-    14 cg_height [m]   15 wheel_lag [s]   16 steer_lag [s]   17 delta_min   18 delta_max
-
-* wheel positions ``wx, wy`` (2n,), order 11, 12, 21, 22, ...
-
-* plant state ``y`` (9 + 6n,)::
-
-    0 x, 1 y, 2 phi, 3 vx, 4 vy, 5 r            (velocities in G, eq. 20)
-    6 .. 6+2n              delta_ij
-    6+2n, +1, +2           W_s, W_alpha, W_t    (wear work, integrated exactly)
-    9+2n .. 9+4n           actual wheel speed   (only used with wheel_lag > 0)
-    9+4n .. 9+6n           actual steering rate (only used with steer_lag > 0)
-
-* per-wheel auxiliary outputs ``aux`` (2n, N_AUX), columns given by ``AUX_*``.
+The kernels take plain arrays; their layouts are named in :mod:`plant.layout`: the
+parameter vector ``P`` (built by :func:`pack_params`), the plant state ``y`` (``Y_*``,
+:func:`~plant.layout.y_wear`, ...) and the per-wheel outputs ``aux`` (``AUX_*``). Wheel
+positions ``wx, wy`` (nw,) are in the order 11, 12, 21, 22, ... The tire, slip and wear
+equations are those of :mod:`plant.tire`, inlined.
 """
 
 from __future__ import annotations
@@ -26,29 +12,56 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .tire import magic_formula, slip_angle, slip_ratio, wheel_velocity
+from . import layout as lay
+from .layout import (AUX_ALPHA, AUX_DDELTA, AUX_FN, AUX_FX, AUX_FY, AUX_OMEGA_W,  # noqa: F401
+                     AUX_PALPHA, AUX_PS, AUX_PT, AUX_S, AUX_VWX, AUX_VWY, N_AUX, N_PARAMS,
+                     P_CG_HEIGHT, P_DELTA_MAX, P_DELTA_MIN, P_DUGOFF_C_ALPHA, P_DUGOFF_C_S,
+                     P_DUGOFF_MU, P_G, P_K_T, P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B,
+                     P_LON_C, P_LON_E, P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN,
+                     P_OMEGA_W_MAX, P_STEER_LAG, P_V_EPS, P_WHEEL_LAG, P_WHEEL_RADIUS,
+                     P_YAW_INERTIA, WEAR_ALPHA, WEAR_S, WEAR_T, Y_DELTA, Y_PHI, Y_R, Y_VX,
+                     Y_VY, Y_X, Y_Y, state_size, y_omega_s, y_omega_w, y_wear)
+from . import tire
+from .tire import (V_EPS_DEFAULT, magic_formula, slip_angle, slip_ratio, wear_power_angle,
+                   wear_power_slip, wear_power_steer, wheel_to_body, wheel_velocity)
 from .vehicle import G_ACCEL, Vehicle
-from .tire import V_EPS_DEFAULT
 
-N_PARAMS = 19
-AUX_VWX, AUX_VWY, AUX_S, AUX_ALPHA, AUX_FX, AUX_FY, AUX_FN, AUX_DDELTA = range(8)
-AUX_PS, AUX_PALPHA, AUX_PT, AUX_OMEGA_W = 8, 9, 10, 11
-N_AUX = 12
+# stale-cache guard (plant.layout): the layout and the inlined tire functions
+_STAMP = lay.kernel_stamp(tire.__file__)
+
+
+@njit(cache=True)
+def _layout_stamp():
+    return _STAMP
+
+
+lay.drop_stale_cache(_layout_stamp, _STAMP, __file__)
 
 
 def pack_params(vehicle: Vehicle, v_eps: float = V_EPS_DEFAULT) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(P, wx, wy)`` for the kernels from a :class:`Vehicle`."""
-    lo, la, lim, po = vehicle.tire_longitudinal, vehicle.tire_lateral, vehicle.limits, vehicle.plant
-    P = np.array([
-        vehicle.mass, vehicle.yaw_inertia, vehicle.wheel_radius, G_ACCEL, vehicle.steer_loss_kt,
-        v_eps, lo.B, lo.C, lo.mu, lo.E, la.B, la.C, la.mu, la.E,
-        po.cg_height, po.wheel_lag, po.steer_lag, lim.delta_min, lim.delta_max,
-    ], dtype=np.float64)
+    """``(P, wx, wy)`` for the kernels from a :class:`Vehicle` (``P``: every value of the
+    vehicle once, layout ``plant.layout.P_*``)."""
+    lo, la, dg = vehicle.tire_longitudinal, vehicle.tire_lateral, vehicle.tire_dugoff
+    lim, po = vehicle.limits, vehicle.plant
+    P = np.full(N_PARAMS, np.nan)
+    P[P_MASS] = vehicle.mass
+    P[P_YAW_INERTIA] = vehicle.yaw_inertia
+    P[P_WHEEL_RADIUS] = vehicle.wheel_radius
+    P[P_G] = G_ACCEL
+    P[P_K_T] = vehicle.steer_loss_kt
+    P[P_V_EPS] = v_eps
+    P[[P_LON_B, P_LON_C, P_LON_MU, P_LON_E]] = lo.B, lo.C, lo.mu, lo.E
+    P[[P_LAT_B, P_LAT_C, P_LAT_MU, P_LAT_E]] = la.B, la.C, la.mu, la.E
+    P[[P_DUGOFF_C_S, P_DUGOFF_C_ALPHA, P_DUGOFF_MU]] = dg.C_s, dg.C_alpha, dg.mu
+    P[P_OMEGA_W_MAX] = lim.omega_w_max
+    P[P_OMEGA_S_MIN] = lim.omega_s_min
+    P[P_OMEGA_S_MAX] = lim.omega_s_max
+    P[P_DELTA_MIN] = lim.delta_min
+    P[P_DELTA_MAX] = lim.delta_max
+    P[P_CG_HEIGHT] = po.cg_height
+    P[P_WHEEL_LAG] = po.wheel_lag
+    P[P_STEER_LAG] = po.steer_lag
     return P, np.ascontiguousarray(vehicle.wheel_x), np.ascontiguousarray(vehicle.wheel_y)
-
-
-def state_size(n_wheels: int) -> int:
-    return 9 + 3 * n_wheels
 
 
 @njit(cache=True)
@@ -58,25 +71,23 @@ def _tire_pass(y, om_w, om_s, FN, P, wx, wy, aux):
     Returns the summed force and moment in B (eq. 5): (F_Bx, F_By, M_z).
     """
     nw = wx.shape[0]
-    phi, vx, vy, r = y[2], y[3], y[4], y[5]
+    phi, vx, vy, r = y[Y_PHI], y[Y_VX], y[Y_VY], y[Y_R]
     c, s = np.cos(phi), np.sin(phi)
     vbx = c * vx + s * vy  # body velocity in B (R(phi)^T of eq. 2)
     vby = -s * vx + c * vy
-    r_w, k_t, v_eps = P[2], P[4], P[5]
-    dmin, dmax = P[17], P[18]
+    r_w, k_t, v_eps = P[P_WHEEL_RADIUS], P[P_K_T], P[P_V_EPS]
+    dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
     fbx = 0.0
     fby = 0.0
     mz = 0.0
     for k in range(nw):
-        d = y[6 + k]
+        d = y[Y_DELTA + k]
         vwx, vwy = wheel_velocity(vbx, vby, r, wx[k], wy[k], d)
         sl = slip_ratio(om_w[k], r_w, vwx, v_eps)
         al = slip_angle(vwx, vwy, v_eps)
-        Fx = magic_formula(sl, P[6], P[7], P[8] * FN[k], P[9])    # eq. (11)
-        Fy = magic_formula(al, P[10], P[11], P[12] * FN[k], P[13])  # eq. (12)
-        cd, sd = np.cos(d), np.sin(d)
-        Fbx = cd * Fx - sd * Fy  # eq. (4)
-        Fby = sd * Fx + cd * Fy
+        Fx = magic_formula(sl, P[P_LON_B], P[P_LON_C], P[P_LON_MU] * FN[k], P[P_LON_E])  # eq. (11)
+        Fy = magic_formula(al, P[P_LAT_B], P[P_LAT_C], P[P_LAT_MU] * FN[k], P[P_LAT_E])  # eq. (12)
+        Fbx, Fby = wheel_to_body(Fx, Fy, d)  # eq. (4)
         fbx += Fbx
         fby += Fby
         mz += wx[k] * Fby - wy[k] * Fbx  # eq. (5)
@@ -84,45 +95,46 @@ def _tire_pass(y, om_w, om_s, FN, P, wx, wy, aux):
         dd = om_s[k]
         if (d >= dmax and dd > 0.0) or (d <= dmin and dd < 0.0):
             dd = 0.0
-        aux[k, 0] = vwx
-        aux[k, 1] = vwy
-        aux[k, 2] = sl
-        aux[k, 3] = al
-        aux[k, 4] = Fx
-        aux[k, 5] = Fy
-        aux[k, 6] = FN[k]
-        aux[k, 7] = dd
-        aux[k, 8] = abs(Fx * (om_w[k] * r_w - vwx))  # eq. (13)
-        aux[k, 9] = abs(Fy * vwy)                    # eq. (14)
-        aux[k, 10] = abs(k_t * FN[k] * dd)           # eq. (15), actual rate
-        aux[k, 11] = om_w[k]
+        aux[k, AUX_VWX] = vwx
+        aux[k, AUX_VWY] = vwy
+        aux[k, AUX_S] = sl
+        aux[k, AUX_ALPHA] = al
+        aux[k, AUX_FX] = Fx
+        aux[k, AUX_FY] = Fy
+        aux[k, AUX_FN] = FN[k]
+        aux[k, AUX_DDELTA] = dd
+        aux[k, AUX_PS] = wear_power_slip(Fx, om_w[k], r_w, vwx)  # eq. (13)
+        aux[k, AUX_PALPHA] = wear_power_angle(Fy, vwy)  # eq. (14)
+        aux[k, AUX_PT] = wear_power_steer(k_t, FN[k], dd)  # eq. (15), actual rate
+        aux[k, AUX_OMEGA_W] = om_w[k]
     return fbx, fby, mz
+
+
+@njit(cache=True, inline="always")
+def _lagged(u, y, dy, i, tau):
+    """The actual value of a command ``u`` whose first-order lag state is ``y[i]``; writes
+    its derivative (0 without a lag, when the actual value is the command)."""
+    if tau > 0.0:
+        dy[i] = (u - y[i]) / tau
+        return y[i]
+    dy[i] = 0.0
+    return u
 
 
 @njit(cache=True)
 def evaluate(y, u_w, u_s, P, wx, wy, aux, dy):
     """Right-hand side dy/dt of the plant state; fills ``aux`` with per-wheel outputs."""
     nw = wx.shape[0]
-    m, Iz, g = P[0], P[1], P[3]
-    h_cg, tau_w, tau_s = P[14], P[15], P[16]
-    iw = 6 + nw
-    ilw = 9 + nw
-    ils = 9 + 2 * nw
+    m, Iz, g = P[P_MASS], P[P_YAW_INERTIA], P[P_G]
+    h_cg, tau_w, tau_s = P[P_CG_HEIGHT], P[P_WHEEL_LAG], P[P_STEER_LAG]
+    iw = y_wear(nw)
+    ilw = y_omega_w(nw)
+    ils = y_omega_s(nw)
     om_w = np.empty(nw)
     om_s = np.empty(nw)
     for k in range(nw):
-        if tau_w > 0.0:
-            om_w[k] = y[ilw + k]
-            dy[ilw + k] = (u_w[k] - y[ilw + k]) / tau_w
-        else:
-            om_w[k] = u_w[k]
-            dy[ilw + k] = 0.0
-        if tau_s > 0.0:
-            om_s[k] = y[ils + k]
-            dy[ils + k] = (u_s[k] - y[ils + k]) / tau_s
-        else:
-            om_s[k] = u_s[k]
-            dy[ils + k] = 0.0
+        om_w[k] = _lagged(u_w[k], y, dy, ilw + k, tau_w)
+        om_s[k] = _lagged(u_s[k], y, dy, ils + k, tau_s)
     FN = np.empty(nw)
     fn0 = m * g / nw  # Assumption 2: F_N = m g / (2n)
     for k in range(nw):
@@ -150,25 +162,25 @@ def evaluate(y, u_w, u_s, P, wx, wy, aux, dy):
                 dF += -m * h_cg * ax * (wx[k] - xbar) / sxx
             FN[k] = max(fn0 + dF, 0.0)
         fbx, fby, mz = _tire_pass(y, om_w, om_s, FN, P, wx, wy, aux)
-    phi = y[2]
+    phi = y[Y_PHI]
     c, s = np.cos(phi), np.sin(phi)
-    dy[0] = y[3]  # eq. (21) in continuous time
-    dy[1] = y[4]
-    dy[2] = y[5]
-    dy[3] = (c * fbx - s * fby) / m  # eq. (17): R(phi) F_B / m
-    dy[4] = (s * fbx + c * fby) / m
-    dy[5] = mz / Iz
+    dy[Y_X] = y[Y_VX]  # eq. (21) in continuous time
+    dy[Y_Y] = y[Y_VY]
+    dy[Y_PHI] = y[Y_R]
+    dy[Y_VX] = (c * fbx - s * fby) / m  # eq. (17): R(phi) F_B / m
+    dy[Y_VY] = (s * fbx + c * fby) / m
+    dy[Y_R] = mz / Iz
     ps = 0.0
     pa = 0.0
     pt = 0.0
     for k in range(nw):
-        dy[6 + k] = aux[k, 7]  # eq. (19) in continuous time, with the steering stop
-        ps += aux[k, 8]
-        pa += aux[k, 9]
-        pt += aux[k, 10]
-    dy[iw] = ps  # eq. (16), integrated: W = int P dt (eq. 28-30 without sampling)
-    dy[iw + 1] = pa
-    dy[iw + 2] = pt
+        dy[Y_DELTA + k] = aux[k, AUX_DDELTA]  # eq. (19) in continuous time, with the stop
+        ps += aux[k, AUX_PS]
+        pa += aux[k, AUX_PALPHA]
+        pt += aux[k, AUX_PT]
+    dy[iw + WEAR_S] = ps  # eq. (16), integrated: W = int P dt (eq. 28-30 without sampling)
+    dy[iw + WEAR_ALPHA] = pa
+    dy[iw + WEAR_T] = pt
 
 
 # Dormand-Prince 5(4) tableau (Dormand & Prince 1980), as MATLAB's ode45.
@@ -194,7 +206,7 @@ def integrate(y, t0, t1, u_w, u_s, P, wx, wy, rtol, atol, h_init, max_steps, sta
     """
     n = y.shape[0]
     nw = wx.shape[0]
-    aux = np.empty((nw, 12))
+    aux = np.empty((nw, N_AUX))
     k1 = np.empty(n)
     k2 = np.empty(n)
     k3 = np.empty(n)
@@ -204,7 +216,7 @@ def integrate(y, t0, t1, u_w, u_s, P, wx, wy, rtol, atol, h_init, max_steps, sta
     k7 = np.empty(n)
     yt = np.empty(n)
     y5 = np.empty(n)
-    dmin, dmax = P[17], P[18]
+    dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
     t = t0
     h = h_init if h_init > 0.0 else (t1 - t0)
     evaluate(y, u_w, u_s, P, wx, wy, aux, k1)
@@ -249,12 +261,12 @@ def integrate(y, t0, t1, u_w, u_s, P, wx, wy, rtol, atol, h_init, max_steps, sta
             for i in range(n):
                 y[i] = y5[i]
             clipped = False
-            for k in range(nw):
-                if y[6 + k] > dmax:
-                    y[6 + k] = dmax
+            for k in range(Y_DELTA, Y_DELTA + nw):
+                if y[k] > dmax:
+                    y[k] = dmax
                     clipped = True
-                elif y[6 + k] < dmin:
-                    y[6 + k] = dmin
+                elif y[k] < dmin:
+                    y[k] = dmin
                     clipped = True
             if clipped:
                 evaluate(y, u_w, u_s, P, wx, wy, aux, k1)

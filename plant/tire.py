@@ -1,9 +1,13 @@
-"""Tire and wear models of the paper (eq. 9, 10, 13-16, Magic Formula f) and Dugoff's model.
+"""Tire and wear models of the paper (eq. 6-10, 13-15, Magic Formula f) and Dugoff's model:
+the one implementation of each, shared by the plant and the controller's prediction.
 
 Every function is compiled with numba and written with elementwise numpy operations, so
 the same function serves one wheel (floats) and batches (arrays with any leading axes,
-broadcast against each other). The dynamics and the controller's rollouts call the same
-functions on scalars inside their kernels.
+broadcast against each other; :func:`magic_formula_and_slope` and :func:`slip_jacobian`
+are for scalars). The kernels of :mod:`plant.dynamics` and :mod:`controller.rollout` call
+them on scalars; they are declared ``inline="always"``, so numba inlines them into each
+kernel and compiles them with that kernel's flags (the plant's exact maths, the
+prediction's ``fastmath``).
 """
 
 from __future__ import annotations
@@ -14,8 +18,10 @@ from numba import njit
 # Regularisation speed of the slip definitions [m/s]; see slip_ratio / slip_angle.
 V_EPS_DEFAULT = 0.1
 
+_kernel = njit(cache=True, inline="always")
 
-@njit(cache=True)
+
+@_kernel
 def magic_formula(xi, B, C, D, E):
     """Pacejka Magic Formula, paper's unnumbered f after eq. (12).
 
@@ -26,31 +32,40 @@ def magic_formula(xi, B, C, D, E):
     return D * np.sin(C * np.arctan(Bx - E * (Bx - np.arctan(Bx))))
 
 
-@njit(cache=True)
-def magic_formula_slope(xi, B, C, D, E):
-    """d f / d xi of :func:`magic_formula` (used by the linearly implicit predictor)."""
+@_kernel
+def magic_formula_and_slope(xi, B, C, D, E):
+    """``(f, df/dxi)`` of :func:`magic_formula` at a scalar ``xi``, sharing their
+    transcendental terms (the prediction's Jacobian needs both); ``E = 0`` skips the inner
+    arctan."""
     Bx = B * xi
-    at = np.arctan(Bx)
-    arg = Bx - E * (Bx - at)
+    arg = Bx - E * (Bx - np.arctan(Bx)) if E != 0.0 else Bx
+    ca = C * np.arctan(arg)
     darg = B * (1.0 - E) + E * B / (1.0 + Bx * Bx)
-    return D * np.cos(C * np.arctan(arg)) * C * darg / (1.0 + arg * arg)
+    return D * np.sin(ca), D * np.cos(ca) * C * darg / (1.0 + arg * arg)
 
 
-@njit(cache=True)
+@_kernel
+def slip_denominator(v_wx, v_eps):
+    """``sqrt(v_wx^2 + v_eps^2)``: the regularised |v_wx| of eq. (9) and (10)."""
+    return np.sqrt(v_wx * v_wx + v_eps * v_eps)
+
+
+@_kernel
 def slip_angle(v_wx, v_wy, v_eps):
     """Slip angle alpha_ij [rad], paper eq. (9).
 
     Eq. (9) reads ``alpha = delta - arctan(v_By / v_Bx)``, which equals
     ``-arctan(v_wy / v_wx)`` in the wheel frame W_ij. DEVIATION(eq. 9): we evaluate
-    ``-atan2(v_wy, sqrt(v_wx^2 + v_eps^2))``: the lateral force then opposes the lateral
-    velocity for forward *and* reversing wheels, a wheel moving sideways gets a finite
-    angle, and a wheel at rest gets alpha = 0 with a finite slope (no division by zero).
-    Above a few v_eps it is eq. (9) to within (v_eps / v_wx)^2 / 2.
+    ``-arctan(v_wy / sqrt(v_wx^2 + v_eps^2))`` (= ``-atan2(v_wy, sqrt(...))``, the
+    denominator being > 0): the lateral force then opposes the lateral velocity for
+    forward *and* reversing wheels, a wheel moving sideways gets a finite angle, and a
+    wheel at rest gets alpha = 0 with a finite slope (no division by zero). Above a few
+    v_eps it is eq. (9) to within (v_eps / v_wx)^2 / 2.
     """
-    return -np.arctan2(v_wy, np.sqrt(v_wx * v_wx + v_eps * v_eps))
+    return -np.arctan(v_wy / slip_denominator(v_wx, v_eps))
 
 
-@njit(cache=True)
+@_kernel
 def slip_ratio(omega_w, r_w, v_wx, v_eps):
     """Slip ratio s_ij [-], paper eq. (10): ``(omega_w r_w - v_wx) / |v_wx|``.
 
@@ -58,10 +73,20 @@ def slip_ratio(omega_w, r_w, v_wx, v_eps):
     rest gives a finite slip (a spinning wheel on a standing vehicle saturates the force
     instead of producing inf/NaN). For |v_wx| >> v_eps this is eq. (10).
     """
-    return (omega_w * r_w - v_wx) / np.sqrt(v_wx * v_wx + v_eps * v_eps)
+    return (omega_w * r_w - v_wx) / slip_denominator(v_wx, v_eps)
 
 
-@njit(cache=True)
+@_kernel
+def slip_jacobian(omega_w, r_w, v_wx, v_wy, v_eps):
+    """Derivatives of :func:`slip_ratio` and :func:`slip_angle` with respect to the wheel
+    velocity at scalars: ``(ds/dv_wx, dalpha/dv_wx, dalpha/dv_wy)`` (ds/dv_wy = 0)."""
+    d2 = v_wx * v_wx + v_eps * v_eps
+    d = np.sqrt(d2)
+    q = d2 + v_wy * v_wy
+    return -1.0 / d - (omega_w * r_w - v_wx) * v_wx / (d2 * d), v_wy * v_wx / (d * q), -d / q
+
+
+@_kernel
 def wheel_velocity(vbx, vby, r, x_w, y_w, delta):
     """Velocity of wheel ij in its own frame W_ij, paper eq. (6)-(8).
 
@@ -75,19 +100,27 @@ def wheel_velocity(vbx, vby, r, x_w, y_w, delta):
     return c * vx_b + s * vy_b, -s * vx_b + c * vy_b  # eq. (8), R(delta)^T
 
 
-@njit(cache=True)
+@_kernel
+def wheel_to_body(Fx, Fy, delta):
+    """Tire force (Fx, Fy) in W_ij rotated into B, paper eq. (4): ``R(delta) F_W``."""
+    c = np.cos(delta)
+    s = np.sin(delta)
+    return c * Fx - s * Fy, s * Fx + c * Fy
+
+
+@_kernel
 def wear_power_slip(Fx, omega_w, r_w, v_wx):
     """Slip-ratio wear power P_s,ij [W], paper eq. (13): |Fx (omega_w r_w - v_wx)|."""
     return np.abs(Fx * (omega_w * r_w - v_wx))
 
 
-@njit(cache=True)
+@_kernel
 def wear_power_angle(Fy, v_wy):
     """Slip-angle wear power P_alpha,ij [W], paper eq. (14): |Fy v_wy|."""
     return np.abs(Fy * v_wy)
 
 
-@njit(cache=True)
+@_kernel
 def wear_power_steer(k_t, F_N, omega_s):
     """Steering wear power P_t,ij [W], paper eq. (15): |k_t F_N omega_s|.
 
@@ -122,14 +155,3 @@ def dugoff_forces(s, alpha, F_N, C_s, C_alpha, mu):
     lc = np.minimum(lam, 1.0)
     f = lc * (2.0 - lc)
     return C_s * s / one_s * f, C_alpha * ta / one_s * f
-
-
-def tire_forces(vehicle, s, alpha, F_N=None):
-    """Magic Formula forces (Fx, Fy) [N] for a :class:`plant.vehicle.Vehicle`, eq. (11), (12).
-
-    ``F_N`` defaults to the static load m g / (2n). Works on scalars and arrays.
-    """
-    FN = vehicle.normal_load if F_N is None else F_N
-    lo, la = vehicle.tire_longitudinal, vehicle.tire_lateral
-    return (magic_formula(s, lo.B, lo.C, lo.mu * FN, lo.E),
-            magic_formula(alpha, la.B, la.C, la.mu * FN, la.E))

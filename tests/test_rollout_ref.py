@@ -1,4 +1,4 @@
-"""The C reference rollout (benchmarks/rollout_ref.c) predicts exactly what the numba kernel
+"""The C reference rollout (controller/mirrors/rollout_ref.c) predicts exactly what the numba kernel
 does: poses, wear powers and first commands of model 0 (Magic Formula) on random states,
 references and decision vectors, for 1, 2 and 3 axles.
 

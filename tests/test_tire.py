@@ -16,8 +16,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plant import default_vehicle
-from plant.tire import (dugoff_forces, magic_formula, slip_angle, slip_ratio, tire_forces,
-                        wear_power_angle, wear_power_slip, wear_power_steer, wheel_velocity)
+from plant.tire import (dugoff_forces, magic_formula, magic_formula_and_slope, slip_angle,
+                        slip_jacobian, slip_ratio, wear_power_angle, wear_power_slip,
+                        wear_power_steer, wheel_to_body, wheel_velocity)
 
 V_EPS = 0.1
 D = 23544.0  # N, 0.8 * 29430
@@ -64,6 +65,22 @@ def test_magic_formula_slope_at_zero_is_BCD():
     h = 1e-7
     slope = (magic_formula(h, *LAT) - magic_formula(-h, *LAT)) / (2 * h)
     assert slope == pytest.approx(7.69 * 1.3 * 23544.0, rel=1e-6)
+    assert magic_formula_and_slope(0.0, *LAT)[1] == pytest.approx(7.69 * 1.3 * 23544.0,
+                                                                  rel=1e-12)
+    assert magic_formula_and_slope(0.0, *LON)[1] == pytest.approx(9.09 * 1.65 * 23544.0,
+                                                                  rel=1e-12)
+
+
+@pytest.mark.parametrize("coef", [LAT, LON, (3.0, 2.0, 1.0, 1.0)], ids=["lat", "lon", "E=1"])
+@pytest.mark.parametrize("xi", [-1.0, -0.2, -0.03, 0.0, 0.05, 0.2, 1.0, 4.0])
+def test_magic_formula_and_slope_is_value_and_derivative(coef, xi):
+    # the value is magic_formula's; the slope is its central difference (step 1e-6:
+    # truncation ~ f''' h^2 / 6, far below the tolerance)
+    f, df = magic_formula_and_slope(xi, *coef)
+    assert f == pytest.approx(magic_formula(xi, *coef), rel=1e-13, abs=1e-9)
+    h = 1e-6
+    fd = (magic_formula(xi + h, *coef) - magic_formula(xi - h, *coef)) / (2 * h)
+    assert df == pytest.approx(fd, rel=1e-6, abs=1e-6 * abs(coef[2]))
 
 
 @settings(max_examples=200, deadline=None)
@@ -155,6 +172,33 @@ def test_slip_ratio_hand_values():
     assert slip_ratio(0.0, 0.5, -3.0, V_EPS) == pytest.approx(3.0 / math.sqrt(9.01), rel=1e-12)
 
 
+@pytest.mark.parametrize("om, vwx, vwy", [(20.0, 9.5, 0.3), (0.0, 5.0, -1.0), (2.0, 0.0, 2.0),
+                                           (0.0, -3.0, 0.5), (10.0, 0.02, -0.01)])
+def test_slip_jacobian_is_the_derivative_of_the_slips(om, vwx, vwy):
+    # central differences of slip_ratio and slip_angle in v_wx and v_wy
+    ds_dx, da_dx, da_dy = slip_jacobian(om, 0.5, vwx, vwy, V_EPS)
+    h = 1e-6
+    fd = lambda f, a, b: (f(a) - f(b)) / (2 * h)  # noqa: E731
+    assert ds_dx == pytest.approx(fd(lambda v: slip_ratio(om, 0.5, v, V_EPS), vwx + h, vwx - h),
+                                  rel=1e-6, abs=1e-6)
+    assert da_dx == pytest.approx(fd(lambda v: slip_angle(v, vwy, V_EPS), vwx + h, vwx - h),
+                                  rel=1e-6, abs=1e-6)
+    assert da_dy == pytest.approx(fd(lambda v: slip_angle(vwx, v, V_EPS), vwy + h, vwy - h),
+                                  rel=1e-6, abs=1e-6)
+
+
+def test_wheel_to_body_hand_values():
+    # eq. (4): R(delta) (Fx, Fy); delta = 0.3: cos = 0.9553364891, sin = 0.2955202067
+    # F_Bx = 0.9553364891 * 1000 - 0.2955202067 * 500 = 955.3364891 - 147.7601033 = 807.5763857
+    # F_By = 0.2955202067 * 1000 + 0.9553364891 * 500 = 295.5202067 + 477.6682446 = 773.1884513
+    fbx, fby = wheel_to_body(1000.0, 500.0, 0.3)
+    assert fbx == pytest.approx(807.5763857, rel=1e-9)
+    assert fby == pytest.approx(773.1884513, rel=1e-9)
+    # and back: R(delta)^T undoes it (wheel_velocity with r = 0 is R(delta)^T)
+    fx, fy = wheel_velocity(fbx, fby, 0.0, 0.0, 0.0, 0.3)
+    assert (fx, fy) == pytest.approx((1000.0, 500.0), rel=1e-12)
+
+
 # ---- wear powers, eq. (13)-(15) ---------------------------------------------------------
 def test_wear_powers_hand_values():
     # eq. 13: |Fx (omega_w r_w - v_wx)| = |1000 * (20 * 0.5 - 9.5)| = 1000 * 0.5 = 500 W
@@ -203,6 +247,15 @@ def test_dugoff_never_exceeds_friction_limit(s, alpha, F_N, C_s, C_alpha, mu):
     assert math.hypot(fx, fy) <= mu * F_N * (1.0 + 1e-12)
     # forces point along the slips
     assert fx * s >= 0.0
+
+
+def tire_forces(vehicle, s, alpha, F_N=None):
+    """Magic Formula forces (Fx, Fy) [N] of eq. (11), (12) with a vehicle's coefficients;
+    ``F_N`` defaults to the static load m g / (2n)."""
+    FN = vehicle.normal_load if F_N is None else F_N
+    lo, la = vehicle.tire_longitudinal, vehicle.tire_lateral
+    return (magic_formula(s, lo.B, lo.C, lo.mu * FN, lo.E),
+            magic_formula(alpha, la.B, la.C, la.mu * FN, la.E))
 
 
 def test_tire_forces_uses_vehicle_coefficients():

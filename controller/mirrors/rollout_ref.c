@@ -1,12 +1,17 @@
 /*
- * Single-thread C reference of controller/rollout.py's batch rollout, model 0 (MODEL_MF:
- * Magic Formula tires, linearly implicit trapezoidal velocity step).
+ * MIRROR: single-thread C reference of controller/rollout.py's batch rollout, model 0
+ * (MODEL_MF: Magic Formula tires, linearly implicit trapezoidal velocity step).
  *
  * Written operation for operation after the numba kernels commands_from_policy,
- * _mf_and_slope, _tire_wheel (MF branch), _solve3 and _simulate (dynamic branch,
- * model 0), with the same expression order, so that a build without -ffast-math
+ * _tire_mf (with plant/tire.py's slip_ratio, slip_angle, slip_jacobian,
+ * magic_formula_and_slope and wear powers), _solve3, _rigid_body_step and _simulate
+ * (model 0), with the same expression order, so that a build without -ffast-math
  * reproduces the numba result to rounding. Used by benchmarks/rollout_bench.py (the
- * throughput the hardware allows) and tests/test_rollout_ref.py (equivalence).
+ * throughput the hardware allows) and pinned by tests/test_rollout_ref.py (equivalence).
+ *
+ * The indices into P, S, x0, ref and the outputs are plant/layout.py's names, from the
+ * header msagv_layout.h that benchmarks/rollout_bench.py generates from it
+ * (plant.layout.c_header) next to the build.
  *
  * Layouts (row-major, as in the module docstring of controller/rollout.py):
  *   x0     (6 + nw)       x, y, phi, vx, vy, r (velocities in G), then delta_ij
@@ -26,6 +31,8 @@
  */
 #include <math.h>
 
+#include "msagv_layout.h"
+
 #define RR_PI 3.14159265358979323846
 #define RR_THETA 0.5
 
@@ -42,32 +49,32 @@ static inline void rr_commands_from_policy(const double *x, const double *delta,
                                            const double *wx, const double *wy, double dt,
                                            double *om_w, double *om_s)
 {
-    const double r_w = P[2];
-    const double phi = x[2];
-    const double ex = refk[0] - x[0];
-    const double ey = refk[1] - x[1];
-    double cx = S[2] * ex;
-    double cy = S[2] * ey;
+    const double r_w = P[P_WHEEL_RADIUS];
+    const double phi = x[POSE_PHI];
+    const double ex = refk[REF_X] - x[POSE_X];
+    const double ey = refk[REF_Y] - x[POSE_Y];
+    double cx = S[S_K_POS] * ex;
+    double cy = S[S_K_POS] * ey;
     const double cn = sqrt(cx * cx + cy * cy);
-    if (cn > S[4]) {
-        cx *= S[4] / cn;
-        cy *= S[4] / cn;
+    if (cn > S[S_V_FB_MAX]) {
+        cx *= S[S_V_FB_MAX] / cn;
+        cy *= S[S_V_FB_MAX] / cn;
     }
-    const double vdx = refk[3] + cx;
-    const double vdy = refk[4] + cy;
-    double cr = S[3] * rr_wrap(refk[2] - phi);
-    if (cr > S[5])
-        cr = S[5];
-    else if (cr < -S[5])
-        cr = -S[5];
-    const double rd = refk[5] + cr;
+    const double vdx = refk[REF_VX] + cx;
+    const double vdy = refk[REF_VY] + cy;
+    double cr = S[S_K_PHI] * rr_wrap(refk[REF_PHI] - phi);
+    if (cr > S[S_R_FB_MAX])
+        cr = S[S_R_FB_MAX];
+    else if (cr < -S[S_R_FB_MAX])
+        cr = -S[S_R_FB_MAX];
+    const double rd = refk[REF_R] + cr;
     const double c = cos(phi);
     const double s = sin(phi);
     const double ub = c * vdx + s * vdy;
     const double vb = -s * vdx + c * vdy;
-    const double kservo = (1.0 - exp(-S[1] * dt)) / dt;
-    const double dmin = S[9], dmax = S[10];
-    const double acorner = S[14] * sqrt(vdx * vdx + vdy * vdy) * rd;
+    const double kservo = (1.0 - exp(-S[S_K_SERVO] * dt)) / dt;
+    const double dmin = P[P_DELTA_MIN], dmax = P[P_DELTA_MAX];
+    const double acorner = S[S_K_ALPHA] * sqrt(vdx * vdx + vdy * vdy) * rd;
     for (int k = 0; k < nw; ++k) {
         const double wvx = ub - rd * wy[k];
         const double wvy = vb + rd * wx[k];
@@ -84,16 +91,16 @@ static inline void rr_commands_from_policy(const double *x, const double *delta,
         double w = wff + z[base + k];
         if (w < 0.0)
             w = 0.0;
-        else if (w > S[6])
-            w = S[6];
+        else if (w > P[P_OMEGA_W_MAX])
+            w = P[P_OMEGA_W_MAX];
         double tgt = dff + z[base + nw + k];
         if (tgt > dmax)
             tgt = dmax;
         else if (tgt < dmin)
             tgt = dmin;
         double ws = kservo * (tgt - delta[k]);
-        double lo = S[7];
-        double hi = S[8];
+        double lo = P[P_OMEGA_S_MIN];
+        double hi = P[P_OMEGA_S_MAX];
         const double lo2 = (dmin - delta[k]) / dt;
         const double hi2 = (dmax - delta[k]) / dt;
         if (lo2 > lo)
@@ -125,7 +132,7 @@ static inline void rr_solve3(const double A[3][3], const double *b, double *out)
     out[2] = (a * (e * b[2] - b[1] * h) - bb * (d * b[2] - b[1] * g) + b[0] * (d * h - e * g)) / det;
 }
 
-/* controller.rollout._mf_and_slope: Magic Formula value *f and slope *df. */
+/* plant.tire.magic_formula_and_slope: Magic Formula value *f and slope *df. */
 static inline void rr_mf_and_slope(double xi, double B, double C, double D, double E,
                                    double *f, double *df)
 {
@@ -137,12 +144,12 @@ static inline void rr_mf_and_slope(double xi, double B, double C, double D, doub
     *df = D * cos(ca) * C * darg / (1.0 + arg * arg);
 }
 
-/* controller.rollout._tire_wheel, model 0 (Magic Formula) branch.
+/* controller.rollout._tire_mf (plant.tire's slip_ratio, slip_angle, slip_jacobian).
  * out = (Fx, Fy, dFx/dvwx, dFx/dvwy, dFy/dvwx, dFy/dvwy, slip s, slip angle alpha). */
 static inline void rr_tire_wheel_mf(double vwx, double vwy, double omw, double FN,
                                     const double *P, double *out)
 {
-    const double r_w = P[2], v_eps = P[5];
+    const double r_w = P[P_WHEEL_RADIUS], v_eps = P[P_V_EPS];
     const double d2 = vwx * vwx + v_eps * v_eps;
     const double d = sqrt(d2);
     const double sl = (omw * r_w - vwx) / d;
@@ -152,8 +159,8 @@ static inline void rr_tire_wheel_mf(double vwx, double vwy, double omw, double F
     const double da_dx = vwy * vwx / (d * q);
     const double da_dy = -d / q;
     double Fx, dFx_ds, Fy, dFy_da;
-    rr_mf_and_slope(sl, P[6], P[7], P[8] * FN, P[9], &Fx, &dFx_ds);
-    rr_mf_and_slope(al, P[10], P[11], P[12] * FN, P[13], &Fy, &dFy_da);
+    rr_mf_and_slope(sl, P[P_LON_B], P[P_LON_C], P[P_LON_MU] * FN, P[P_LON_E], &Fx, &dFx_ds);
+    rr_mf_and_slope(al, P[P_LAT_B], P[P_LAT_C], P[P_LAT_MU] * FN, P[P_LAT_E], &Fy, &dFy_da);
     const double dFx_da = 0.0;
     const double dFy_ds = 0.0;
     out[0] = Fx;
@@ -166,7 +173,7 @@ static inline void rr_tire_wheel_mf(double vwx, double vwy, double omw, double F
     out[7] = al;
 }
 
-/* controller.rollout._simulate with model == 0, for one candidate z (D,).
+/* controller.rollout._simulate with model == 0 (_rigid_body_step), for one candidate z (D,).
  * delta, om_w, om_s: caller-provided work arrays of nw entries. */
 static inline void rr_simulate_mf(int nw, int Np, const double *x0, const double *ref,
                                   const double *z, const long *block, const double *P,
@@ -174,29 +181,30 @@ static inline void rr_simulate_mf(int nw, int Np, const double *x0, const double
                                   double *poses, double *wear, double *cmds,
                                   double *delta, double *om_w, double *om_s)
 {
-    const double dt = S[0];
-    const double m = P[0], Iz = P[1], r_w = P[2], g = P[3], k_t = P[4];
+    const double dt = S[S_DT];
+    const double m = P[P_MASS], Iz = P[P_YAW_INERTIA], r_w = P[P_WHEEL_RADIUS], g = P[P_G],
+                 k_t = P[P_K_T];
     const double FN = m * g / nw; /* Assumption 2 */
     double X[3], V[3], tw[8], A[3][3], F[3], du[3];
-    X[0] = x0[0];
-    X[1] = x0[1];
-    X[2] = x0[2];
-    V[0] = x0[3];
-    V[1] = x0[4];
-    V[2] = x0[5];
+    X[POSE_X] = x0[X0_X];
+    X[POSE_Y] = x0[X0_Y];
+    X[POSE_PHI] = x0[X0_PHI];
+    V[0] = x0[X0_VX];
+    V[1] = x0[X0_VY];
+    V[2] = x0[X0_R];
     for (int j = 0; j < nw; ++j)
-        delta[j] = x0[6 + j];
+        delta[j] = x0[X0_DELTA + j];
     for (int k = 0; k < Np; ++k) {
         const long base = block[k] * 2 * nw;
-        rr_commands_from_policy(X, delta, ref + 6 * k, z, base, nw, P, S, wx, wy, dt,
+        rr_commands_from_policy(X, delta, ref + N_REF * k, z, base, nw, P, S, wx, wy, dt,
                                 om_w, om_s);
         if (k == 0) {
             for (int j = 0; j < nw; ++j) {
-                cmds[j] = om_w[j];
-                cmds[nw + j] = om_s[j];
+                cmds[CMD_W * nw + j] = om_w[j];
+                cmds[CMD_S * nw + j] = om_s[j];
             }
         }
-        const double phi = X[2];
+        const double phi = X[POSE_PHI];
         const double c = cos(phi);
         const double s = sin(phi);
         const double ub = c * V[0] + s * V[1];
@@ -271,22 +279,22 @@ static inline void rr_simulate_mf(int nw, int Np, const double *x0, const double
         const double v0x = V[0], v0y = V[1];
         const double r1 = r + du[2];
         /* trapezoidal heading and position updates (DEVIATION eq. 21) */
-        X[2] += 0.5 * dt * (r + r1);
-        const double c1 = cos(X[2]);
-        const double s1 = sin(X[2]);
+        X[POSE_PHI] += 0.5 * dt * (r + r1);
+        const double c1 = cos(X[POSE_PHI]);
+        const double s1 = sin(X[POSE_PHI]);
         V[0] = c1 * (ub + du[0]) - s1 * (vb + du[1]); /* back to G (eq. 20) */
         V[1] = s1 * (ub + du[0]) + c1 * (vb + du[1]);
         V[2] = r1;
-        X[0] += 0.5 * dt * (v0x + V[0]);
-        X[1] += 0.5 * dt * (v0y + V[1]);
+        X[POSE_X] += 0.5 * dt * (v0x + V[0]);
+        X[POSE_Y] += 0.5 * dt * (v0y + V[1]);
         for (int j = 0; j < nw; ++j)
             delta[j] += dt * om_s[j]; /* eq. (19) */
-        poses[3 * k + 0] = X[0];
-        poses[3 * k + 1] = X[1];
-        poses[3 * k + 2] = X[2];
-        wear[3 * k + 0] = ps;
-        wear[3 * k + 1] = pa;
-        wear[3 * k + 2] = pt;
+        poses[N_POSE * k + POSE_X] = X[POSE_X];
+        poses[N_POSE * k + POSE_Y] = X[POSE_Y];
+        poses[N_POSE * k + POSE_PHI] = X[POSE_PHI];
+        wear[N_WEAR * k + WEAR_S] = ps;
+        wear[N_WEAR * k + WEAR_ALPHA] = pa;
+        wear[N_WEAR * k + WEAR_T] = pt;
     }
 }
 
@@ -301,6 +309,6 @@ void rollout_batch_mf(int B, int nw, int Np, const double *x0, const double *ref
     double delta[nw], om_w[nw], om_s[nw]; /* C99 VLAs: once per call, on the stack */
     for (int b = 0; b < B; ++b)
         rr_simulate_mf(nw, Np, x0, ref, Z + (long)b * D, block, P, S, wx, wy,
-                       poses + (long)b * Np * 3, wear + (long)b * Np * 3,
+                       poses + (long)b * Np * N_POSE, wear + (long)b * Np * N_WEAR,
                        cmds + (long)b * 2 * nw, delta, om_w, om_s);
 }

@@ -1,59 +1,21 @@
-"""Simulated annealing over a box, with several chains evaluated together.
+"""The generic, readable simulated annealer: the reference the compiled one is tested against.
 
-Each iteration proposes one move per chain and evaluates all proposals in ONE call of
-the batch cost function (for the MPC: one batch rollout). Design choices (see
-docs/CONTROLLER.md, which also gives what each choice bought on the MPC's problem):
-
-* **Chains**: ``chains`` Metropolis chains; chain 0 starts at the warm start, chain 1 at
-  the origin (the pure feed-forward for the MPC), the rest at the warm start plus a
-  Gaussian spread.
-* **Proposals**: Gaussian steps with a per-coordinate scale ``sigma``, times a per-chain
-  factor, shrinking geometrically to ``sigma_final`` of their start over the budget, and
-  clipped to the box (so no candidate is ever outside the bounds). The per-chain factors
-  start on a geometric ladder from ``ladder`` to 1 (some chains search near, some far)
-  and adapt: x ``adapt_up`` after an accepted move, x ``adapt_down`` after a rejected one
-  (the classic success rule of evolution strategies), kept within [1e-4, 10].
-* **Acceptance**: Metropolis, ``exp(-(J' - J) / T)`` with a temperature relative to the
-  best cost so far (scale-free: the same settings work for any weights),
-  ``T_i = J_best * t_start (t_end / t_start)^(i / (I - 1))`` (geometric cooling).
-* **Exploitation**: every ``restart_every`` iterations the worst quarter of the chains
-  (at least one) restarts from the best point found.
-* **Budgets**: a fixed iteration count (deterministic: same seed, same result) and/or a
-  wall-clock deadline (anytime: the best point so far is returned when time runs out; the
-  cooling then follows the elapsed fraction of the deadline).
-* **Seeding**: all randomness comes from the ``numpy.random.Generator`` passed in.
-
-``ladder = 1`` and ``adapt_up = adapt_down = 1`` give plain annealing with a fixed
-proposal schedule.
+:class:`controller.sa_kernel.CompiledAnnealer` runs this algorithm on the MPC's cost inside
+one numba kernel; ``tests/test_controller.py`` checks that both return the same answer for
+the same seed (same random draws), and tests this one on small known problems. Only tests
+call it, so it lives here. The algorithm is described in :mod:`controller.sa_kernel` and
+docs/CONTROLLER.md ("Simulated annealing").
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-
-@dataclass
-class AnnealResult:
-    x: np.ndarray  # best point (D,)
-    cost: float  # its cost
-    iterations: int  # iterations run
-    evaluations: int  # candidate evaluations (incl. the initial ones)
-    accepted: float  # fraction of proposals accepted
-
-
-SCALE_MIN, SCALE_MAX = 1e-4, 10.0  # bounds of the adaptive per-chain step factors
-
-
-def ladder_factors(chains: int, ladder: float) -> np.ndarray:
-    """Initial per-chain step factors: geometric from ``ladder`` (chain 0) to 1."""
-    if not 0.0 < ladder <= 1.0:
-        raise ValueError(f"anneal: ladder must be in (0, 1], got {ladder}")
-    return np.geomspace(ladder, 1.0, chains) if chains > 1 else np.ones(1)
+from controller.sa_kernel import SCALE_MAX, SCALE_MIN, AnnealResult, ladder_factors
 
 
 def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.ndarray,
