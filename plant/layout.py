@@ -18,7 +18,7 @@ only (prediction step, servo and feedback gains, the cornering feed-forward gain
 Plant state ``y`` (:mod:`plant.dynamics`, ``9 + 3 nw`` entries for ``nw`` wheels)::
 
     Y_X .. Y_R             x, y, phi, vx, vy, r   (velocities in G, eq. 20)
-    y_delta(nw) ..         delta_ij               (nw entries, from Y_DELTA)
+    Y_DELTA ..             delta_ij               (nw entries)
     y_wear(nw) + WEAR_*    W_s, W_alpha, W_t      (wear work, integrated)
     y_omega_w(nw) ..       actual wheel speeds    (nw; used with wheel_lag > 0)
     y_omega_s(nw) ..       actual steering rates  (nw; used with steer_lag > 0)
@@ -95,12 +95,6 @@ Y_DELTA = 6           # first steering angle
 N_BODY = 6            # x .. r
 N_WEAR = 3            # W_s, W_alpha, W_t (and P_s, P_alpha, P_t)
 WEAR_S, WEAR_ALPHA, WEAR_T = 0, 1, 2  # within a wear block (y_wear, predicted wear)
-
-
-@_offset
-def y_delta(nw):
-    """First index of the steering angles in ``y`` (and ``x0``)."""
-    return Y_DELTA
 
 
 @_offset
