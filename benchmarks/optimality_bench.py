@@ -31,53 +31,61 @@ T = 0.01
 RUNS = (("curve", 15.0), ("curve", 25.0), ("curve", 35.0), ("line", 10.0))
 
 
+def _scenario(case: str, speed: float, settings=None, **kw):
+    from dataclasses import asdict
+
+    from experiments.scenario import Scenario
+
+    return Scenario(case=case, speed=speed, period=T,
+                    settings={} if settings is None else asdict(settings), **kw)
+
+
 def sample_states(n_states: int, settings=None, seconds: float = 6.0) -> list[dict]:
     """``n_states`` samples ``{case, speed, k, state, z}`` spread evenly over the runs."""
-    from controller import MPC, MPCSettings, make_case
     from controller.loop import closed_loop
-    from plant import Plant, default_vehicle
 
-    v = default_vehicle()
     per_run = int(np.ceil(n_states / len(RUNS)))
     out = []
     for case, speed in RUNS:
-        ref, init = make_case(case, speed)
-        dur = min(seconds, ref.duration)
+        b = _scenario(case, speed, settings).build()
+        dur = min(seconds, b.reference.duration)
         n = int(round(dur / T))
         pick = set(np.linspace(5, n - 1, per_run).astype(int).tolist())
-        plant = Plant(v, initial=init(v))
-        mpc = MPC(v, settings or MPCSettings(), ref)
-
-        # record (state, previous solution) just before each picked solve
         z_before = {}
-        orig_step = mpc.step
 
-        def step(state, reference=None, _orig=orig_step, _z=z_before, _mpc=mpc):
+        def record(state, z_prev, result, _z=z_before, _pick=pick):
+            # (state, previous solution) of each picked solve, through the MPC's hook
             k = int(round(state["t"] / T))
-            if k in pick:
-                _z[k] = (dict(state), _mpc.z.copy())
-            return _orig(state, reference)
+            if k in _pick:
+                _z[k] = (dict(state), np.array(z_prev, copy=True))
 
-        mpc.step = step
-        closed_loop(plant, mpc, ref, dur, period=T, progress=False)
+        b.controller.on_solve = record
+        closed_loop(b.plant, b.controller, b.reference, dur, period=T, progress=False)
         for k in sorted(z_before):
             st, z = z_before[k]
             out.append({"case": case, "speed": speed, "k": k, "state": st, "z": z})
     return out[:n_states]
 
 
-def bench_optimality(n_states: int = 200, settings=None) -> dict:
-    from controller import MPC, MPCSettings, make_case
-    from controller.ipopt import REFERENCE_OPTIONS, IpoptMPC
-    from plant import default_vehicle
+def _solvers(settings, solver: str = "sa", options=None) -> dict:
+    """One controller per run of :data:`RUNS` on the paper vehicle; ``options``: IPOPT's."""
+    out = {}
+    for c, sp in RUNS:
+        sc = _scenario(c, sp, settings, solver=solver)
+        out[(c, sp)] = sc.make_controller(sc.resolve_vehicle(), sc.reference()[0],
+                                          options=options)
+    return out
 
-    v = default_vehicle()
+
+def bench_optimality(n_states: int = 200, settings=None) -> dict:
+    from controller import MPCSettings
+    from controller.ipopt import REFERENCE_OPTIONS
+
     s = settings or MPCSettings()
     t0 = time.perf_counter()
     samples = sample_states(n_states, s)
-    refs = {(c, sp): make_case(c, sp)[0] for c, sp in RUNS}
-    sa = {key: MPC(v, s, r) for key, r in refs.items()}
-    ip = {key: IpoptMPC(v, s, r, options=REFERENCE_OPTIONS) for key, r in refs.items()}
+    sa = _solvers(s)
+    ip = _solvers(s, solver="ipopt", options=REFERENCE_OPTIONS)
     for m in sa.values():
         m.warmup()
     rows = []
@@ -144,20 +152,17 @@ def bench_ablation(n_states: int = 40, seeds=(1, 2), settings=None) -> dict:
     is already within ~0.1 % of the optimum, so every variant would look the same there;
     from a weaker solver's loop the warm starts leave work to do, which is what tells the
     variants apart."""
-    from controller import MPC, MPCSettings, make_case
-    from controller.ipopt import REFERENCE_OPTIONS, IpoptMPC
+    from controller import MPCSettings
+    from controller.ipopt import REFERENCE_OPTIONS
     from controller.sa_kernel import CompiledAnnealer
-    from plant import default_vehicle
 
-    v = default_vehicle()
     s = settings or MPCSettings()
     t0 = time.perf_counter()
     _, C0, I0, lad0, up0, down0, _ = ABLATION[0]
     plain = s.with_(chains=C0, iterations=I0, ladder=lad0, adapt_up=up0, adapt_down=down0)
     samples = sample_states(n_states, plain)
-    refs = {(c, sp): make_case(c, sp)[0] for c, sp in RUNS}
-    mpcs = {key: MPC(v, s, r) for key, r in refs.items()}
-    ip = {key: IpoptMPC(v, s, r, options=REFERENCE_OPTIONS) for key, r in refs.items()}
+    mpcs = _solvers(s)
+    ip = _solvers(s, solver="ipopt", options=REFERENCE_OPTIONS)
     ratios = {row[0]: [] for row in ABLATION}
     for smp in samples:
         key = (smp["case"], smp["speed"])

@@ -272,7 +272,7 @@ def test_ipopt_closed_loop_tracks():
 # ---- (e) errors: no CasADi, a baseline model --------------------------------------------
 def test_without_casadi_a_clear_error(monkeypatch, capsys):
     import controller.ipopt as ip
-    from bridge import run_cmd
+    from msagv import run as run_cmd
 
     monkeypatch.setattr(ip, "ca", None)
     ref, _ = make_case("curve", 15.0)
@@ -288,7 +288,7 @@ def test_without_casadi_a_clear_error(monkeypatch, capsys):
 
 @needs_casadi
 def test_ipopt_rejects_baseline_models(capsys):
-    from bridge import run_cmd
+    from msagv import run as run_cmd
     from controller.ipopt import IpoptMPC
 
     with pytest.raises(ControllerError, match="'mf' only"):
@@ -302,14 +302,14 @@ def test_ipopt_rejects_baseline_models(capsys):
 def test_controller_process_solver_errors_exit_2():
     """``msagv controller`` checks --solver before opening any session: exit 2 at once
     (without the check it would wait for a plant's params, then exit 3)."""
-    code = ("import sys; sys.modules['casadi'] = None; from bridge.cli import main; "
+    code = ("import sys; sys.modules['casadi'] = None; from msagv.cli import main; "
             "sys.exit(main(sys.argv[1:]))")
     base = ["controller", "--solver", "ipopt", "--wait", "1", "-q"]
     no_ca = subprocess.run([sys.executable, "-c", code, *base], capture_output=True, text=True,
                            timeout=120)
     assert no_ca.returncode == 2 and "CasADi" in no_ca.stderr, no_ca.stderr
     if HAVE_CASADI:
-        bad = subprocess.run([sys.executable, "-m", "bridge.cli", *base, "--model", "tct"],
+        bad = subprocess.run([sys.executable, "-m", "msagv", *base, "--model", "tct"],
                              capture_output=True, text=True, timeout=120)
         assert bad.returncode == 2 and "'mf' only" in bad.stderr, bad.stderr
 
@@ -319,7 +319,7 @@ def test_controller_process_solver_errors_exit_2():
 def test_msagv_run_solver_ipopt_json(capfd):
     """``msagv run --solver ipopt --json`` prints the metric keys of ``--solver sa``. capfd
     (file-descriptor level), so anything CasADi/IPOPT printed to stdout would break the JSON."""
-    from bridge import run_cmd
+    from msagv import run as run_cmd
 
     argv = ["--case", "curve", "--speed", "15", "--duration", "1", "--json"]
     assert run_cmd.main(argv + ["--solver", "ipopt"]) == 0
@@ -338,8 +338,8 @@ def test_msagv_run_solver_ipopt_json(capfd):
 def test_controller_process_ipopt_lockstep_equals_in_process(capfd):
     """``msagv controller --solver ipopt`` over Zenoh in lockstep gives the run of
     ``msagv run --solver ipopt`` in-process (same commands, so the same metrics)."""
-    from bridge import run_cmd
-    from bridge.demo import run_demo
+    from msagv import run as run_cmd
+    from msagv.demo import run_demo
 
     r = run_demo(duration=1.0, speed="15", run_mode="lockstep", deadline_ms=None,
                  extra_controller=["--solver", "ipopt"])
