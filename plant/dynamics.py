@@ -111,14 +111,12 @@ def _tire_pass(y, om_w, om_s, FN, P, wx, wy, aux):
 
 
 @njit(cache=True, inline="always")
-def _lagged(u, y, dy, i, tau):
-    """The actual value of a command ``u`` whose first-order lag state is ``y[i]``; writes
-    its derivative (0 without a lag, when the actual value is the command)."""
+def _lagged(u, actual, tau):
+    """A command ``u`` behind a first-order lag with state ``actual``: ``(the value in
+    effect, d actual/dt)``; without a lag the command itself and 0."""
     if tau > 0.0:
-        dy[i] = (u - y[i]) / tau
-        return y[i]
-    dy[i] = 0.0
-    return u
+        return actual, (u - actual) / tau
+    return u, 0.0
 
 
 @njit(cache=True)
@@ -133,8 +131,8 @@ def evaluate(y, u_w, u_s, P, wx, wy, aux, dy):
     om_w = np.empty(nw)
     om_s = np.empty(nw)
     for k in range(nw):
-        om_w[k] = _lagged(u_w[k], y, dy, ilw + k, tau_w)
-        om_s[k] = _lagged(u_s[k], y, dy, ils + k, tau_s)
+        om_w[k], dy[ilw + k] = _lagged(u_w[k], y[ilw + k], tau_w)
+        om_s[k], dy[ils + k] = _lagged(u_s[k], y[ils + k], tau_s)
     FN = np.empty(nw)
     fn0 = m * g / nw  # Assumption 2: F_N = m g / (2n)
     for k in range(nw):
