@@ -18,10 +18,62 @@ from .mpc import MPC
 from .reference import Reference
 
 
+# state-message fields that are not signals (DESIGN.md's envelope)
+_NOT_SIGNALS = {"t", "seq", "v", "end"}
+_BODY = ("x", "y", "phi", "vx", "vy", "r")
+_WEAR = ("W_s", "W_alpha", "W_t")
+
+
+def wheel_suffixes(n_wheels: int) -> list[str]:
+    """``['11', '12', '21', ...]``: the signal suffixes of ``n_wheels`` wheels (as
+    :attr:`plant.vehicle.Vehicle.wheel_names`)."""
+    return [f"{i}{j}" for i in range(1, n_wheels // 2 + 1) for j in (1, 2)]
+
+
+def _signal_row(st: dict, ref_row, outputs) -> dict:
+    """The columns of one log row beyond pose, reference pose, commands and wear work,
+    named as the signals (plant.stepping.signal_names): the body velocities, the
+    reference's velocities, ``delta_ij``, the actual wheel speeds ``omega_w_act_ij``, any
+    other field of the state message (per wheel: ``name_ij``), then the plant's outputs
+    (slips, forces, powers, ...; the actual rates as ``omega_w_act_ij``/``omega_s_act_ij``,
+    as the FMU names them)."""
+    row: dict = {}
+    for k in ("vx", "vy", "r"):
+        if k in st:
+            row[k] = float(st[k])
+    if len(ref_row) >= 6:
+        for k, v in zip(("vx_ref", "vy_ref", "r_ref"), ref_row[3:6]):
+            row[k] = float(v)
+    nw = len(st.get("delta", ()))
+    wheels = wheel_suffixes(nw)
+    for k, v in zip(wheels, st.get("delta", ())):
+        row[f"delta_{k}"] = float(v)
+    for k, v in zip(wheels, st.get("omega_w", ())):
+        row[f"omega_w_act_{k}"] = float(v)
+    for name, v in st.items():
+        if name in _NOT_SIGNALS or name in _BODY or name in _WEAR or name in ("delta", "omega_w"):
+            continue
+        if isinstance(v, (list, tuple)) and len(v) == nw:
+            for k, x in zip(wheels, v):
+                row[f"{name}_{k}"] = float(x)
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            row[name] = float(v)
+    for name, v in (outputs or {}).items():
+        for rate in ("omega_w_", "omega_s_"):
+            if name.startswith(rate) and not name.startswith(rate + "act_"):
+                name = rate + "act_" + name[len(rate):]
+        if name in row or name in _BODY or name in _WEAR:
+            continue
+        row[name] = float(v)
+    return row
+
+
 @dataclass
 class RunLog:
     """Per-step log of a closed-loop run (row k: the state at t_k and the command applied
-    over [t_k, t_k + T))."""
+    over [t_k, t_k + T)). ``signals`` holds each row's further columns (the full state,
+    the reference's velocities and, in process, the plant's outputs under the command),
+    named as the signals; :meth:`to_csv` writes them all."""
 
     t: list = field(default_factory=list)
     pose: list = field(default_factory=list)
@@ -33,8 +85,11 @@ class RunLog:
     cost: list = field(default_factory=list)
     W_final: tuple = (0.0, 0.0, 0.0)
     final_state: dict = field(default_factory=dict)
+    signals: list = field(default_factory=list)
+    #: the run was cut short (Ctrl-C): the rows so far, W_final from the last row
+    interrupted: bool = False
 
-    def append(self, st: dict, ref_row, cmd) -> None:
+    def append(self, st: dict, ref_row, cmd, outputs: dict | None = None) -> None:
         self.t.append(st["t"])
         self.pose.append((st["x"], st["y"], st["phi"]))
         self.ref.append(tuple(ref_row[:3]))
@@ -43,6 +98,14 @@ class RunLog:
         self.W.append((st.get("W_s", 0.0), st.get("W_alpha", 0.0), st.get("W_t", 0.0)))
         self.solve_ms.append(cmd.solve_ms)
         self.cost.append(cmd.cost)
+        self.signals.append(_signal_row(st, ref_row, outputs))
+
+    def cut_short(self) -> None:
+        """Mark the run as interrupted: the metrics cover the rows logged so far (the wear
+        work up to the last row's state)."""
+        self.interrupted = True
+        if self.W:
+            self.W_final = tuple(self.W[-1])
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(getattr(self, k)) for k in
@@ -53,30 +116,61 @@ class RunLog:
         return compute_metrics(np.asarray(self.pose), np.asarray(self.ref), W0, self.W_final,
                                self.solve_ms)
 
-    def to_csv(self, path) -> None:
+    def columns(self) -> tuple[list[str], np.ndarray]:
+        """``(names, data)`` of the per-step log: ``t``, the pose and the reference's pose,
+        the body velocities and the reference's, ``delta_ij``, the actual wheel speeds
+        ``omega_w_act_ij``, the commands ``omega_w_ij``, ``omega_s_ij`` (the plant's
+        inputs, so the CSV replays with ``msagv plant replay --inputs``), the further
+        signals, the wear work ``W_s, W_alpha, W_t``, ``solve_ms`` and ``cost``."""
         a = self.arrays()
-        nw = a["omega_w"].shape[1]
-        cols = ["t", "x", "y", "phi", "x_ref", "y_ref", "phi_ref"]
-        cols += [f"omega_w_{i}" for i in range(nw)] + [f"omega_s_{i}" for i in range(nw)]
-        cols += ["W_s", "W_alpha", "W_t", "solve_ms", "cost"]
-        data = np.column_stack([a["t"], a["pose"], a["ref"], a["omega_w"], a["omega_s"], a["W"],
-                                a["solve_ms"], a["cost"]])
+        n = len(self.t)
+        nw = a["omega_w"].shape[1] if a["omega_w"].ndim == 2 else 0
+        wheels = wheel_suffixes(nw)
+        extra: list[str] = []
+        for row in self.signals:
+            for k in row:
+                if k not in extra:
+                    extra.append(k)
+        front = [k for k in extra if k in ("vx", "vy", "r", "vx_ref", "vy_ref", "r_ref")
+                 or k.startswith(("delta_", "omega_w_act_"))]
+        rest = [k for k in extra if k not in front]
+        sig = np.full((n, len(extra)), np.nan)
+        index = {k: i for i, k in enumerate(front + rest)}
+        for i, row in enumerate(self.signals):
+            for k, v in row.items():
+                sig[i, index[k]] = v
+        cols = ["t", "x", "y", "phi", "x_ref", "y_ref", "phi_ref"] + front
+        cols += [f"omega_w_{k}" for k in wheels] + [f"omega_s_{k}" for k in wheels]
+        cols += rest + ["W_s", "W_alpha", "W_t", "solve_ms", "cost"]
+        parts = [a["t"].reshape(n, -1), a["pose"].reshape(n, -1), a["ref"].reshape(n, -1),
+                 sig[:, :len(front)], a["omega_w"].reshape(n, -1), a["omega_s"].reshape(n, -1),
+                 sig[:, len(front):], a["W"].reshape(n, -1), a["solve_ms"].reshape(n, -1),
+                 a["cost"].reshape(n, -1)]
+        return cols, np.column_stack(parts) if n else np.zeros((0, len(cols)))
+
+    def to_csv(self, path) -> None:
+        """The per-step log as CSV, one column per signal (:meth:`columns`)."""
+        cols, data = self.columns()
         np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt="%.10g")
 
 
 def closed_loop(plant, mpc: MPC, reference: Reference, duration: float, period: float = 0.01,
-                progress: bool | None = None, on_step=None) -> RunLog:
+                progress: bool | None = None, on_step=None, log: RunLog | None = None,
+                outputs: bool = True) -> RunLog:
     """Run the MPC on ``plant`` for ``duration`` seconds of vehicle time.
 
     The MPC is warmed up (kernels compiled) on the initial state first, so the first solve
     in the log is not a compiling one. ``progress`` shows a progress bar on stderr (default:
     when stderr is a terminal and the run is longer than 1000 steps). ``on_step(k, state,
-    cmd)`` is called after each command (for recording).
+    cmd)`` is called after each command (for recording). ``log``: a :class:`RunLog` to fill
+    (so a caller interrupted mid-run keeps the rows so far). ``outputs``: also log the
+    plant's outputs under each command (slips, forces, powers), if it has ``outputs()``.
     """
     n = int(round(duration / period))
     if n < 1:
         raise ValueError("closed_loop: duration must be at least one control period")
-    log = RunLog()
+    log = RunLog() if log is None else log
+    plant_outputs = getattr(plant, "outputs", None) if outputs else None
     st = plant.state_message()
     mpc.warmup(dict(st, t=st["t"]))
     if progress is None:
@@ -94,10 +188,11 @@ def closed_loop(plant, mpc: MPC, reference: Reference, duration: float, period: 
         st = plant.state_message()
         st["t"] = t
         cmd = mpc.step(st, reference)
-        log.append(st, reference.sample(t), cmd)
+        plant.set_inputs(cmd.omega_w, cmd.omega_s)
+        log.append(st, reference.sample(t), cmd,
+                   plant_outputs() if plant_outputs is not None else None)
         if on_step is not None:
             on_step(k, st, cmd)
-        plant.set_inputs(cmd.omega_w, cmd.omega_s)
         plant.do_step(plant.t, period)
         if bar is not None:
             bar.update(1)

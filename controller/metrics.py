@@ -74,9 +74,13 @@ def compute_metrics(pose, ref_pose, W_start, W_end, solve_ms=()) -> dict:
 def format_table(m: dict, title: str = "") -> str:
     """A small human-readable table of one run's metrics."""
     lines = [title] if title else []
-    lines.append(f"  Omega      {m['Omega']:.4g}")
-    lines.append(f"  W_tw [J]   {m['W_tw']:.4g}   (W_s {m['W_s']:.3g}, W_alpha {m['W_alpha']:.3g}, "
-                 f"W_t {m['W_t']:.3g})")
+    if m["W_tw"] is None:  # a plant without the optional wear fields
+        lines.append("  Omega      n/a (no wear work recorded)")
+        lines.append("  W_tw [J]   n/a (no wear work recorded)")
+    else:
+        lines.append(f"  Omega      {m['Omega']:.4g}")
+        lines.append(f"  W_tw [J]   {m['W_tw']:.4g}   (W_s {m['W_s']:.3g}, W_alpha "
+                     f"{m['W_alpha']:.3g}, W_t {m['W_t']:.3g})")
     lines.append(f"  e_bar      {m['e_bar']:.3f}   (e_x {m['e_x_cm']:.2f} cm, e_y {m['e_y_cm']:.2f} cm, "
                  f"e_phi {m['e_phi_deg']:.2f} deg)")
     sm = m["solve_ms"]

@@ -4,7 +4,10 @@ profile given in km/h.
 
 A :class:`Reference` is sampled at arbitrary times and returns the pose ``x, y, phi`` and
 the velocity ``vx, vy`` (in G) and yaw rate ``r`` the controller's feed-forward uses.
-Times beyond the end hold the final pose with zero velocity.
+Times beyond the last sample either hold the final pose with zero velocity
+(``after_end="hold"``, the default of the class) or continue it in a straight line at the
+last heading and velocity (``after_end="continue"``, what a scenario uses, see
+:class:`experiments.scenario.Scenario`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 KMH = 1.0 / 3.6
+AFTER_END = ("hold", "continue")
+HEADING_JUMP = math.pi / 2  # rad: a larger heading change between two CSV rows is refused
 
 
 class ReferenceError(ValueError):
@@ -98,8 +103,14 @@ class Reference:
     #: the run length the case is defined by [s]; the table may extend beyond it so the
     #: horizon never sees the trajectory's end (None: the whole table)
     nominal_duration: float | None = None
+    #: beyond the last sample: "hold" the final pose at zero velocity, or "continue" at the
+    #: last heading and velocity in a straight line (yaw rate 0)
+    after_end: str = "hold"
 
     def __post_init__(self):
+        if self.after_end not in AFTER_END:
+            raise ReferenceError(f"after_end: expected one of {', '.join(AFTER_END)}, got "
+                                 f"'{self.after_end}'")
         n = len(self.t)
         for k in ("x", "y", "phi", "vx", "vy", "r"):
             a = np.asarray(getattr(self, k), dtype=float)
@@ -120,9 +131,16 @@ class Reference:
             return float(self.nominal_duration)
         return float(self.t[-1] - self.t[0])
 
+    @property
+    def end_time(self) -> float:
+        """Vehicle time at which the trajectory ends: ``t[0] + duration`` (the last row of a
+        CSV; the end of a case's path, before the tail its table carries)."""
+        return float(self.t[0]) + self.duration
+
     def sample(self, times) -> np.ndarray:
-        """Rows ``(x, y, phi, vx, vy, r)`` at ``times`` (shape (..., 6)). Beyond the end:
-        the final pose, standing still."""
+        """Rows ``(x, y, phi, vx, vy, r)`` at ``times`` (shape (..., 6)). Beyond the last
+        sample: the final pose standing still (``after_end="hold"``), or the final pose
+        moved on at the final velocity, heading kept, yaw rate 0 (``"continue"``)."""
         times = np.asarray(times, dtype=float)
         tt = self.t
         idx = np.clip(np.searchsorted(tt, times, side="right") - 1, 0, len(tt) - 2)
@@ -130,22 +148,29 @@ class Reference:
         out = self._table[idx] * (1 - w) + self._table[idx + 1] * w
         after = times > tt[-1]
         if np.any(after):
-            out[after] = self._table[-1]
-            out[after, 3:] = 0.0
+            last = self._table[-1]
+            out[after] = last
+            if self.after_end == "continue":
+                dt = times[after] - tt[-1]
+                out[after, 0] = last[0] + last[3] * dt
+                out[after, 1] = last[1] + last[4] * dt
+                out[after, 5] = 0.0
+            else:
+                out[after, 3:] = 0.0
         return out
+
+    def with_after_end(self, after_end: str) -> "Reference":
+        """The same trajectory with another behaviour beyond its last sample."""
+        return Reference(self.t, self.x, self.y, self.phi, self.vx, self.vy, self.r,
+                         name=self.name, nominal_duration=self.nominal_duration,
+                         after_end=after_end)
 
     def initial_state(self, vehicle) -> dict[str, float]:
         """The plant state that starts exactly on the reference at t[0], moving with it,
         every wheel steered kinematically (pure rolling)."""
         x, y, phi, vx, vy, r = self.sample(self.t[0])
         st = {"x": x, "y": y, "phi": phi, "vx": vx, "vy": vy, "r": r}
-        c, s = math.cos(phi), math.sin(phi)
-        ub, vb = c * vx + s * vy, -s * vx + c * vy
-        lim = vehicle.limits
-        for k, xw, yw in zip(vehicle.wheel_names, vehicle.wheel_x, vehicle.wheel_y):
-            wvx, wvy = ub - r * yw, vb + r * xw
-            d = math.atan2(wvy, wvx) if math.hypot(wvx, wvy) > 1e-9 else 0.0
-            st[f"delta_{k}"] = min(max(d, lim.delta_min), lim.delta_max)
+        st.update(rolling_wheels(vehicle, phi, vx, vy, r)[0])
         return {k: float(v) for k, v in st.items()}
 
     def to_csv(self, path: str | Path) -> None:
@@ -159,6 +184,83 @@ class Reference:
         """As DESIGN.md's ``reference`` payload (t, x, y, phi arrays)."""
         return {"t": self.t.tolist(), "x": self.x.tolist(), "y": self.y.tolist(),
                 "phi": self.phi.tolist()}
+
+
+def rolling_wheels(vehicle, phi: float, vx: float, vy: float, r: float
+                   ) -> tuple[dict[str, float], dict[str, float]]:
+    """Pure rolling for the body motion ``(vx, vy)`` (in G) and yaw rate ``r`` at heading
+    ``phi``: ``({delta_ij}, {omega_w_ij})``, each wheel steered along its velocity (within
+    the steering limits; 0 for a wheel at rest) and turning at its speed over r_w."""
+    c, s = math.cos(phi), math.sin(phi)
+    ub, vb = c * vx + s * vy, -s * vx + c * vy
+    lim = vehicle.limits
+    delta, omega = {}, {}
+    for k, xw, yw in zip(vehicle.wheel_names, vehicle.wheel_x, vehicle.wheel_y):
+        wvx, wvy = ub - r * yw, vb + r * xw
+        speed = math.hypot(wvx, wvy)
+        d = math.atan2(wvy, wvx) if speed > 1e-9 else 0.0
+        delta[f"delta_{k}"] = float(min(max(d, lim.delta_min), lim.delta_max))
+        omega[f"omega_w_{k}"] = float(speed / vehicle.wheel_radius)
+    return delta, omega
+
+
+def wheel_speeds(reference: Reference, vehicle, t0: float, t1: float, dt: float = 0.01
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``(times, speeds)``: the rim speed [m/s] every wheel needs to roll along the
+    reference between ``t0`` and ``t1``, shape (K, 2n) (the body's velocity plus the yaw
+    rate's share at each wheel, in B)."""
+    times = np.arange(t0, t1 + dt / 2, dt)
+    R = reference.sample(times)
+    c, s = np.cos(R[:, 2]), np.sin(R[:, 2])
+    ub, vb = c * R[:, 3] + s * R[:, 4], -s * R[:, 3] + c * R[:, 4]
+    r = R[:, 5:6]
+    wx = ub[:, None] - r * np.asarray(vehicle.wheel_y)[None, :]
+    wy = vb[:, None] + r * np.asarray(vehicle.wheel_x)[None, :]
+    return times, np.hypot(wx, wy)
+
+
+def _wrap(a):
+    return a - 2 * np.pi * np.round(a / (2 * np.pi))
+
+
+def check_headings(t, x, y, phi, where: str = "trajectory", lines=None) -> None:
+    """Refuse headings that cannot be radians of a drivable path (``ReferenceError``
+    naming ``where`` and the CSV line): headings that follow the direction of travel when
+    read as degrees but not as radians, or a jump of more than 90 degrees between rows."""
+    t, x, y, phi = (np.asarray(a, dtype=float) for a in (t, x, y, phi))
+    if t.size < 2 or not np.all(np.diff(t) > 0):
+        return
+    if _looks_like_degrees(t, x, y, phi):
+        raise ReferenceError(
+            f"{where}: phi looks like degrees (read as degrees it follows the direction of "
+            f"travel, read as radians it does not): give phi in radians")
+    d = _wrap(np.diff(phi))
+    big = np.flatnonzero(np.abs(d) > HEADING_JUMP)
+    if big.size:
+        k = int(big[0])
+        at = f"{where}:{lines[k + 1]}" if lines is not None else f"{where}: row {k + 2}"
+        raise ReferenceError(
+            f"{at}: phi jumps by {math.degrees(abs(d[k])):.0f} deg from the previous row (at "
+            f"most 90 deg between rows; phi is the heading in radians)")
+
+
+def _looks_like_degrees(t, x, y, phi) -> bool:
+    """True when, on the moving segments where reading phi as degrees or as radians makes
+    a difference (> 5 deg), the degrees follow the direction of travel (median within
+    2 deg) and the radians do not (median more than 30 deg off)."""
+    dx, dy, dt = np.diff(x), np.diff(y), np.diff(t)
+    course = np.arctan2(dy, dx)
+
+    def mid(h):  # the heading half-way along each segment
+        return h[:-1] + 0.5 * _wrap(np.diff(h))
+
+    as_rad, as_deg = mid(phi), mid(np.radians(phi))
+    use = (np.hypot(dx, dy) / dt > 0.1) & (np.abs(_wrap(as_rad - as_deg)) > math.radians(5))
+    if np.count_nonzero(use) < 3:
+        return False
+    off_rad = math.degrees(float(np.median(np.abs(_wrap(as_rad - course)[use]))))
+    off_deg = math.degrees(float(np.median(np.abs(_wrap(as_deg - course)[use]))))
+    return off_deg < 2.0 and off_rad > 30.0
 
 
 def from_samples(t, x, y, phi, name: str = "trajectory") -> Reference:
@@ -186,7 +288,7 @@ def from_csv(path: str | Path) -> Reference:
     path = Path(path)
     if not path.is_file():
         raise ReferenceError(f"{path}: no such file")
-    rows = []
+    rows, lines = [], []
     with path.open(newline="") as f:
         rd = csv.reader(f)
         try:
@@ -209,9 +311,11 @@ def from_csv(path: str | Path) -> Reference:
             if rows and vals[0] <= rows[-1][0]:
                 raise ReferenceError(f"{path}:{ln}: t must increase strictly")
             rows.append(vals)
+            lines.append(ln)
     if len(rows) < 3:
         raise ReferenceError(f"{path}: needs at least 3 rows")
     a = np.array(rows)
+    check_headings(a[:, 0], a[:, 1], a[:, 2], a[:, 3], where=str(path), lines=lines)
     return from_samples(a[:, 0], a[:, 1], a[:, 2], a[:, 3], name=path.stem)
 
 

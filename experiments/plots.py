@@ -7,6 +7,24 @@ own figures (tables of runs, fronts) are in :mod:`experiments.tables`.
 from __future__ import annotations
 
 
+def run_title(info: dict, how: str | None = None) -> str:
+    """A figure title naming the scenario from a result's ``scenario`` block: reference,
+    speed, vehicle (axles, mass), method (model, solver) and, optionally, ``how`` it ran."""
+    parts = [info.get("reference") or info.get("case") or "run"]
+    sp = info.get("speed_kmh")
+    if sp is not None:
+        parts[0] += f" at {sp:g} km/h" if isinstance(sp, (int, float)) else f" at {sp} km/h"
+    v = info.get("vehicle") or {}
+    if v:
+        parts.append(f"{v.get('name')} ({v.get('axles')} axles, {v.get('mass_kg', 0) / 1000:g} t)")
+    if info.get("method"):
+        solver = ", IPOPT" if info.get("solver") == "ipopt" else ""
+        parts.append(f"{str(info['method']).upper()} ({info.get('model')}{solver})")
+    if how:
+        parts.append(how)
+    return ", ".join(parts)
+
+
 def plot_run(log, reference, path, title: str = "") -> None:
     """PNG: path vs reference, tracking errors and wear power over time."""
     import matplotlib

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import os
 import sys
@@ -28,6 +29,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+_log = logging.getLogger("msagv.experiment")
 SCHEMA = 1  # bump when the meaning of a stored result changes
 PERIOD = 0.01  # s, the paper's control period T
 
@@ -160,12 +162,16 @@ def execute(spec_d: dict, out_dir: str, key: str) -> dict:
         built = scenario.build()
         plant, mpc, ref = built.plant, built.controller, built.reference
         duration = ref.duration if spec.duration is None else min(spec.duration, ref.duration)
-        log = closed_loop(plant, mpc, ref, duration, period=PERIOD, progress=False)
+        # the state, commands and references only: the plant's outputs would triple the
+        # stored logs (msagv run --log has them)
+        log = closed_loop(plant, mpc, ref, duration, period=PERIOD, progress=False,
+                          outputs=False)
         tmp = runs / f"{key}.csv.tmp{os.getpid()}"
         log.to_csv(tmp)
         os.replace(tmp, runs / f"{key}.csv")
         m = log.metrics()
         res["metrics"] = m
+        res["warnings"] = list(built.warnings)
         res["duration"] = duration
         res["log"] = f"runs/{key}.csv"
     except Exception as e:  # noqa: BLE001 - stored and reported, never hidden
@@ -189,6 +195,15 @@ def _worker_init() -> None:
         numba.set_num_threads(1)
     except Exception:  # noqa: BLE001 - numba missing or already configured
         pass
+
+
+def _pool_worker_init() -> None:
+    # Ctrl-C goes to the whole process group: the parent reports and stops the workers,
+    # which would otherwise each print a KeyboardInterrupt traceback
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _worker_init()
 
 
 def load_result(out_dir: Path, key: str) -> dict | None:
@@ -236,6 +251,10 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
 
     def done(res):
         results[res["key"]] = res
+        _log.info("%s %s: %s (%.1f s)", res["spec"]["label"], res["spec"]["group"],
+                  res["status"] if res["status"] != "ok" else
+                  f"W_tw {res['metrics']['W_tw']:.4g} J, e_bar {res['metrics']['e_bar']:.3g}",
+                  res["wall_s"])
         if bar is not None:
             bar.set_postfix_str(f"{res['spec']['label']} {res['spec']['group']}", refresh=False)
             bar.update(1)
@@ -249,16 +268,19 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
 
         ctx = mp.get_context("spawn")  # fresh interpreters: no inherited numba/thread state
         with ProcessPoolExecutor(max_workers=min(jobs, len(order)), mp_context=ctx,
-                                 initializer=_worker_init) as pool:
+                                 initializer=_pool_worker_init) as pool:
             pending = {pool.submit(execute, todo[k].to_dict(), str(out_dir), k) for k in order}
             try:
                 while pending:
                     fin, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for f in fin:
                         done(f.result())
-            except BaseException:
+            except BaseException as e:
                 for f in pending:
                     f.cancel()
+                if isinstance(e, KeyboardInterrupt):  # stop the runs under way (unstored)
+                    for proc in list(getattr(pool, "_processes", {}).values()):
+                        proc.terminate()
                 raise
     if bar is not None:
         bar.close()

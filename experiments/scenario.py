@@ -26,7 +26,10 @@ from typing import Any, Mapping
 
 SOLVERS = ("sa", "ipopt")  # the annealer (controller.mpc) or IPOPT (controller.ipopt)
 CASES = ("curve", "line")
+AFTER_END = ("continue", "stop")  # past the reference's end: go on straight, or end the run
 PERIOD = 0.01  # s, the paper's control period T
+# top-level keys of a scenario file that are MPC settings (the rest go under [settings])
+SETTING_KEYS = ("method", "model", "seed")
 
 
 class ScenarioError(ValueError):
@@ -43,6 +46,7 @@ class Built:
     vehicle: Any  # plant.vehicle.Vehicle
     initial: dict  # the plant's initial state by signal name
     duration: float  # s of vehicle time to run
+    warnings: list = field(default_factory=list)  # one line each (experiments.checks)
 
     def close(self) -> None:
         """Free what the plant holds (an FMU instance); a no-op for the native plant."""
@@ -62,9 +66,17 @@ class Scenario:
     trajectory : a ``t,x,y,phi`` CSV to track instead of a case.
     speed : the case's speed in km/h, or a profile ``'t:kmh,t:kmh,...'`` (None: the case's
         default, 15 km/h on the curve, 10 on the line). Not with a trajectory.
-    initial : initial-state overrides by signal name (``vx``, ``phi``, ``delta_11``, ...).
+    initial : initial-state overrides by signal name (``vx``, ``phi``, ``delta_11``, ...),
+        plus ``u``: the forward speed in the body frame [m/s] (sets ``vx, vy`` along the
+        final heading, no sideways slip, and steers the wheels for pure rolling unless
+        ``delta_ij`` are given). With a vehicle whose wheels lag (``wheel_lag`` > 0) the
+        wheels start at the rolling speed of the initial state unless ``omega_w_ij`` are
+        given.
     from_rest : start at rest at the origin (plus ``initial``) instead of on the reference.
     duration : vehicle time [s] (None: the reference's nominal duration).
+    after_end : past the reference's end the reference goes on straight at its last
+        heading and speed; 'continue' runs the whole ``duration`` (with a warning if it
+        passes the end), 'stop' ends the run at the end.
     settings : :class:`controller.models.MPCSettings` fields that differ from the defaults.
     solver : 'sa' (simulated annealing) or 'ipopt'.
     fmu, fmu_map, fmu_params : an FMI 2.0 co-simulation FMU as the plant, its name mapping
@@ -80,6 +92,7 @@ class Scenario:
     initial: dict = field(default_factory=dict)
     from_rest: bool = False
     duration: float | None = None
+    after_end: str = "continue"
     settings: dict = field(default_factory=dict)
     solver: str = "sa"
     fmu: str | None = None
@@ -100,6 +113,9 @@ class Scenario:
                                 f"'{self.solver}'")
         if self.duration is not None and not (math.isfinite(self.duration) and self.duration > 0):
             raise ScenarioError(f"duration: must be > 0, got {self.duration}")
+        if self.after_end not in AFTER_END:
+            raise ScenarioError(f"after_end: expected one of {', '.join(AFTER_END)}, got "
+                                f"'{self.after_end}'")
         if not (math.isfinite(self.period) and self.period > 0):
             raise ScenarioError(f"period: must be > 0, got {self.period}")
         if self.mass_kg is not None and not (math.isfinite(self.mass_kg) and self.mass_kg > 0):
@@ -128,15 +144,35 @@ class Scenario:
         from controller.reference import from_csv, make_case
 
         if self.trajectory is not None:
-            ref = from_csv(self.trajectory)
+            ref = from_csv(self.trajectory).with_after_end("continue")
             return ref, ref.initial_state
-        return make_case(self.case or "curve", self.speed)
+        ref, start = make_case(self.case or "curve", self.speed)
+        # both after_end choices continue the reference, so the horizon near the end
+        # never sees a vehicle told to stand still
+        ref.after_end = "continue"
+        return ref, start
 
     def initial_state(self, vehicle, start_fn) -> dict[str, float]:
         """The plant's initial state: on the reference (``start_fn(vehicle)``), or at rest
         with ``from_rest``; then the ``initial`` overrides."""
+        from controller.reference import rolling_wheels
+
         st = {} if self.from_rest else dict(start_fn(vehicle))
-        st.update({k: float(v) for k, v in self.initial.items()})
+        given = {k: float(v) for k, v in self.initial.items()}
+        u = given.pop("u", None)
+        if u is not None and ({"vx", "vy"} & set(given)):
+            raise ScenarioError("initial: u (forward speed in the body frame) sets vx and vy; "
+                                "give u or vx/vy, not both")
+        st.update(given)
+        if u is not None:
+            phi, r = st.get("phi", 0.0), st.get("r", 0.0)
+            st["vx"], st["vy"] = u * math.cos(phi), u * math.sin(phi)
+            delta = rolling_wheels(vehicle, phi, st["vx"], st["vy"], r)[0]
+            st.update({k: v for k, v in delta.items() if k not in given})
+        if vehicle.plant.wheel_lag > 0:
+            omega = rolling_wheels(vehicle, st.get("phi", 0.0), st.get("vx", 0.0),
+                                   st.get("vy", 0.0), st.get("r", 0.0))[1]
+            st.update({k: v for k, v in omega.items() if k not in given})
         return st
 
     def mpc_settings(self, **override):
@@ -204,20 +240,34 @@ class Scenario:
         return Plant(vehicle, initial=initial), vehicle, ref, initial
 
     def run_duration(self, reference) -> float:
-        return float(self.duration) if self.duration is not None else float(reference.duration)
+        """Vehicle time to run: ``duration`` (default the reference's), ended at the
+        reference's end with ``after_end = "stop"``."""
+        d = float(self.duration) if self.duration is not None else float(reference.duration)
+        if self.after_end == "stop":
+            d = min(d, reference.end_time)
+        return d
+
+    def check(self, vehicle, reference) -> list[str]:
+        """Warnings about running this scenario (:mod:`experiments.checks`); raises
+        :class:`ScenarioError` for a request no vehicle can meet."""
+        from .checks import reference_checks
+
+        d = float(self.duration) if self.duration is not None else float(reference.duration)
+        return reference_checks(vehicle, reference, d, self.after_end)
 
     def build(self) -> Built:
         """Plant, controller and reference, ready to connect (close ``Built`` when done)."""
         self.check_solver()
         plant, vehicle, ref, initial = self.make_plant()
         try:
+            warnings = self.check(vehicle, ref)
             ctl = self.make_controller(vehicle, ref)
         except BaseException:
             close = getattr(plant, "close", None)
             if close is not None:
                 close()
             raise
-        return Built(plant, ctl, ref, vehicle, initial, self.run_duration(ref))
+        return Built(plant, ctl, ref, vehicle, initial, self.run_duration(ref), warnings)
 
     def describe(self) -> str:
         """One line naming the scenario (for titles and logs)."""
@@ -241,33 +291,90 @@ class Scenario:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], base: str | Path | None = None) -> "Scenario":
-        """A scenario from plain data (a TOML file's tables). Relative file paths are taken
-        relative to ``base`` (the scenario file's folder). Unknown keys are refused."""
-        from plant.vehicle import vehicle_from_dict
+        """A scenario from plain data (a TOML file's tables; see docs/SCENARIOS.md).
+        Relative file paths are taken relative to ``base`` (the scenario file's folder);
+        ``method``, ``model`` and ``seed`` may be given at the top level as well as under
+        ``settings``. Every key is checked here (type, range, files exist), so a bad
+        file fails naming its key before anything is built. Unknown keys are refused."""
+        from plant.vehicle import VehicleError, vehicle_from_dict
 
-        known = {f.name for f in fields(cls)}
+        known = {f.name for f in fields(cls)} | set(SETTING_KEYS)
         unknown = sorted(set(d) - known)
         if unknown:
             raise ScenarioError(f"{unknown[0]}: unknown key (known: {', '.join(sorted(known))})")
-        kw = dict(d)
-        for k in ("trajectory", "fmu", "fmu_map"):
-            if kw.get(k) is not None:
-                kw[k] = _resolve(kw[k], base)
-        v = kw.get("vehicle")
-        if isinstance(v, Mapping):
-            kw["vehicle"] = vehicle_from_dict(v)
-        elif v is not None:
-            kw["vehicle"] = _resolve(v, base)
+        kw = {k: v for k, v in d.items() if k not in SETTING_KEYS}
         for k in ("initial", "settings", "fmu_params"):
             if k in kw and not isinstance(kw[k], Mapping):
-                raise ScenarioError(f"{k}: expected a table")
+                raise ScenarioError(f"{k}: expected a table, got {kw[k]!r}")
             if k in kw:
                 kw[k] = dict(kw[k])
-        return cls(**kw)
+        settings = dict(kw.get("settings", {}))
+        for k in SETTING_KEYS:
+            if k in d:
+                if k in settings:
+                    raise ScenarioError(f"{k}: given at the top level and under [settings]")
+                settings[k] = d[k]
+        kw["settings"] = settings
+        for k in ("case", "solver", "after_end"):
+            if k in kw and not isinstance(kw[k], str):
+                raise ScenarioError(f"{k}: expected a string, got {kw[k]!r}")
+        for k in ("trajectory", "fmu", "fmu_map"):
+            if kw.get(k) is not None:
+                if not isinstance(kw[k], str):
+                    raise ScenarioError(f"{k}: expected a file path, got {kw[k]!r}")
+                kw[k] = _resolve(kw[k], base)
+                if not Path(kw[k]).is_file():
+                    raise ScenarioError(f"{k}: no such file {kw[k]}")
+        for k, what in (("duration", "seconds"), ("mass_kg", "kilograms"), ("period", "seconds")):
+            if k in kw and not _is_number(kw[k]):
+                raise ScenarioError(f"{k}: expected a number of {what}, got {kw[k]!r}")
+            if k in kw:
+                kw[k] = float(kw[k])
+        if "from_rest" in kw and not isinstance(kw["from_rest"], bool):
+            raise ScenarioError(f"from_rest: expected true or false, got {kw['from_rest']!r}")
+        for k in ("initial", "fmu_params"):
+            for name, v in kw.get(k, {}).items():
+                if not _is_number(v):
+                    raise ScenarioError(f"{k}.{name}: expected a number, got {v!r}")
+        if "speed" in kw:
+            sp = kw["speed"]
+            if not (_is_number(sp) or isinstance(sp, str)):
+                raise ScenarioError(f"speed: expected km/h or a profile 't:kmh,...', got {sp!r}")
+            from controller.reference import ReferenceError, SpeedProfile
+
+            try:
+                SpeedProfile.parse(sp)
+            except ReferenceError as e:
+                raise ScenarioError(f"speed: {e}") from None
+        v = kw.get("vehicle")
+        if isinstance(v, Mapping):
+            try:
+                kw["vehicle"] = vehicle_from_dict(v)
+            except VehicleError as e:
+                raise ScenarioError(f"vehicle.{e}") from None
+        elif v is not None:
+            if not isinstance(v, str):
+                raise ScenarioError(f"vehicle: expected a file path or a table, got {v!r}")
+            kw["vehicle"] = _resolve(v, base)
+            if not Path(kw["vehicle"]).is_file():
+                raise ScenarioError(f"vehicle: no such file {kw['vehicle']}")
+        sc = cls(**kw)
+        try:
+            sc.mpc_settings()  # a bad setting is named now
+        except (TypeError, ValueError) as e:
+            msg = str(e)
+            raise ScenarioError(msg if msg.startswith("settings") else f"settings: {msg}") from None
+        if isinstance(sc.vehicle, str):
+            try:
+                sc.resolve_vehicle()
+            except VehicleError as e:
+                raise ScenarioError(f"vehicle: {e}") from None
+        return sc
 
     @classmethod
     def from_file(cls, path: str | Path) -> "Scenario":
-        """Read a scenario TOML file (keys as the fields; see docs/SCENARIOS.md)."""
+        """Read a scenario TOML file (keys as the fields; see docs/SCENARIOS.md). Errors
+        are one line naming the file and the key."""
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"scenario file not found: {p}")
@@ -275,10 +382,16 @@ class Scenario:
             data = tomllib.loads(p.read_text())
         except tomllib.TOMLDecodeError as e:
             raise ScenarioError(f"{p}: not valid TOML: {e}") from None
+        except UnicodeDecodeError:
+            raise ScenarioError(f"{p}: not a text file") from None
         try:
             return cls.from_dict(data, base=p.parent)
         except (ScenarioError, TypeError) as e:
             raise ScenarioError(f"{p}: {e}") from None
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
 
 
 def _resolve(path, base) -> str:

@@ -144,6 +144,22 @@ def _group_value(group: str) -> float:
     return float(group.split()[0])
 
 
+def _stamp(summary: dict, results: list[dict]) -> dict:
+    """The fields every result document has (experiments.results): the package version,
+    the command and the warnings (failed runs, and each run's own warnings)."""
+    from .results import package_version
+
+    warnings = []
+    for r in results:
+        where = f"{r['spec']['label']} {r['spec']['group']}"
+        if r["status"] != "ok":
+            warnings.append(f"{where}: the run failed: {r.get('error')}")
+        warnings += [f"{where}: {w}" for w in r.get("warnings", [])]
+    head = {"version": package_version(), "command": "experiment",
+            "warnings": list(dict.fromkeys(warnings))}
+    return dict(head, **summary)
+
+
 def report_case(experiment: str, results: list[dict], out: Path, run_summary: dict) -> dict:
     from .paper import paper_table
     from .tables import (check_targets, markdown_table, plot_errors, plot_omega,
@@ -176,9 +192,15 @@ def report_case(experiment: str, results: list[dict], out: Path, run_summary: di
             plot_omega(rows, _group_value, "gross vehicle weight [t]", out / "omega_vs_load.png",
                        "Case 3: performance balance index against load")
             figures.append("omega_vs_load.png")
+    from .results import spec_info
+
+    for row, r in zip(rows, results):
+        row["scenario"] = spec_info(r["spec"], r.get("duration"))
+        row["warnings"] = list(r.get("warnings", []))
     summary = {"experiment": experiment, "columns": list(rows[0]["metrics"]) if rows else [],
                "rows": rows, "targets": targets, "runs": run_summary, "figures": figures,
                "out": str(out)}
+    summary = _stamp(summary, results)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
 
@@ -258,8 +280,8 @@ def report_pareto(results: list[dict], out: Path, run_summary: dict) -> dict:
     if any(r["status"] == "ok" for r in results):
         plot_pareto(fronts, out / "pareto.png")
         figures.append("pareto.png")
-    summary = {"experiment": "pareto", "fronts": fronts, "runs": run_summary,
-               "figures": figures, "out": str(out)}
+    summary = _stamp({"experiment": "pareto", "fronts": fronts, "runs": run_summary,
+                      "figures": figures, "out": str(out)}, results)
     (out / "pareto.json").write_text(json.dumps(summary, indent=1))
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
@@ -304,7 +326,8 @@ def report_ridge(results: list[dict], out: Path, run_summary: dict) -> dict:
             w.writerow([r["ridge"], r["R_ow"], r["R_od"], r["group"], r["NTWO"].get("W_tw"),
                         r["NTWO"].get("e_bar"), r["TWO"].get("W_tw"), r["TWO"].get("e_bar"),
                         r["cut_percent"]])
-    summary = {"experiment": "ridge", "rows": rows, "runs": run_summary, "out": str(out)}
+    summary = _stamp({"experiment": "ridge", "rows": rows, "runs": run_summary,
+                      "out": str(out)}, results)
     (out / "ridge.json").write_text(json.dumps(summary, indent=1))
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary

@@ -8,14 +8,87 @@ Argument parsing lives only here and in the commands of this package; the parts 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
+import os
+import sys
+import traceback
+from pathlib import Path
 
 from bridge.session import DEFAULT_ID, DEFAULT_LEASE_MS, SessionOptions, check_id
-from experiments.scenario import SOLVERS, Scenario
+from experiments.scenario import AFTER_END, SOLVERS, Scenario
+
+from . import __version__
 
 
 class OptionError(ValueError):
     """A malformed option value (the message names the option)."""
+
+
+# ---- every command -----------------------------------------------------------------------
+def add_common_args(ap: argparse.ArgumentParser) -> None:
+    """``-q``, ``-v`` and ``--version``, the same on every command."""
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_true",
+                   help="print only results, warnings and errors (no progress or notes)")
+    g.add_argument("-v", "--verbose", action="store_true",
+                   help="more detail: debug logging, and the traceback of an error")
+    ap.add_argument("--version", action="version", version=f"msagv {__version__}")
+
+
+def fail(prog: str, err: BaseException | str, a=None, code: int = 2) -> int:
+    """Report ``err`` in one line on stderr (with ``-v`` also the traceback of the
+    exception being handled); returns ``code`` (2: bad options or input)."""
+    if a is not None and getattr(a, "verbose", False) and sys.exc_info()[0] is not None:
+        traceback.print_exc(file=sys.stderr)
+    print(f"{prog}: {err}", file=sys.stderr)
+    return code
+
+
+def warn(prog: str, warnings, a=None) -> None:
+    """Each warning as one line on stderr (``-q`` does not hide warnings)."""
+    for w in warnings:
+        print(f"{prog}: warning: {w}", file=sys.stderr)
+
+
+def note(a, text: str) -> None:
+    """An informational line on stderr, unless ``-q``."""
+    if not getattr(a, "quiet", False):
+        print(text, file=sys.stderr)
+
+
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff",
+                 ".webp")
+
+
+def check_output(path, option: str, directory: bool = False, suffixes=None) -> None:
+    """Refuse an output path that cannot be written, before any work is done: a missing
+    or unwritable parent directory, a directory where a file is expected (or a file
+    where a directory is), an unknown file type. Creates nothing."""
+    if path is None:
+        return
+    p = Path(path)
+    if suffixes is not None and p.suffix.lower() not in suffixes:
+        raise OptionError(f"{option} {path}: the file name must end in one of "
+                          f"{', '.join(suffixes)}")
+    if directory:
+        if p.exists() and not p.is_dir():
+            raise OptionError(f"{option} {path}: exists and is not a directory")
+        q = p.absolute()
+        while not q.exists() and q != q.parent:  # the nearest existing ancestor
+            q = q.parent
+        if not q.is_dir():
+            raise OptionError(f"{option} {path}: {q} is not a directory")
+        if not os.access(q, os.W_OK | os.X_OK):
+            raise OptionError(f"{option} {path}: {q} is not writable")
+        return
+    if p.is_dir():
+        raise OptionError(f"{option} {path}: is a directory, expected a file name")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise OptionError(f"{option} {path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise OptionError(f"{option} {path}: not writable")
 
 
 def parse_assignments(text: str | None, what: str = "--initial") -> dict[str, float]:
@@ -42,26 +115,35 @@ def parse_assignments(text: str | None, what: str = "--initial") -> dict[str, fl
 
 # ---- the scenario ------------------------------------------------------------------------
 def add_case_args(ap: argparse.ArgumentParser, default_case: str = "curve") -> None:
+    ap.add_argument("--scenario", metavar="FILE",
+                    help="a scenario TOML (docs/SCENARIOS.md); the options below override it")
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--case", choices=["curve", "line"], default=None,
                    help=f"the paper's Case 1 (curve) or Case 2 (line) (default: {default_case})")
-    g.add_argument("--trajectory", metavar="FILE", help="a t,x,y,phi CSV to track instead")
+    g.add_argument("--trajectory", metavar="FILE",
+                   help="a t,x,y,phi CSV to track instead (t in s from the run's start, x, y "
+                        "in m, phi in rad; docs/SCENARIOS.md)")
     ap.add_argument("--speed", metavar="KMH",
                     help="speed in km/h, or a profile 't:kmh,t:kmh,...' (default: 15 curve, 10 line)")
-    ap.add_argument("--mass", type=float, metavar="KG", help="override the vehicle's mass")
+    ap.add_argument("--mass", type=float, metavar="KG", help="override the vehicle's mass [kg]")
     ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
     ap.add_argument("--duration", type=float, metavar="S",
                     help="vehicle time to run (default: the whole reference)")
+    ap.add_argument("--after-end", choices=list(AFTER_END), default=None,
+                    help="past the reference's end the reference goes on straight at its last "
+                         "heading and speed: 'continue' runs the whole --duration (warning "
+                         "past the end; the default), 'stop' ends the run at the end")
     ap.add_argument("--initial", metavar="name=value,...",
-                    help="override initial-state values (default: start on the reference)")
+                    help="override initial-state values (default: start on the reference); "
+                         "vx, vy are global, u= is the forward speed in the body frame")
 
 
 def add_mpc_args(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--method", choices=["two", "ntwo"], default="two",
-                    help="two: with the wear term (the paper's); ntwo: L = 0")
-    ap.add_argument("--model", choices=["mf", "dugoff", "kinematic", "tct"], default="mf",
-                    help="prediction model (mf: the paper's; others: the baselines)")
-    ap.add_argument("--seed", type=int, default=0, help="annealer seed")
+    ap.add_argument("--method", choices=["two", "ntwo"], default=None,
+                    help="two: with the wear term (the paper's; default); ntwo: L = 0")
+    ap.add_argument("--model", choices=["mf", "dugoff", "kinematic", "tct"], default=None,
+                    help="prediction model (mf: the paper's, default; others: the baselines)")
+    ap.add_argument("--seed", type=int, default=None, help="annealer seed (default 0)")
     ap.add_argument("--iterations", type=int, help="annealing iterations per solve")
     ap.add_argument("--chains", type=int, help="annealing chains")
     ap.add_argument("--deadline-ms", type=float,
@@ -69,7 +151,7 @@ def add_mpc_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--threads", type=int, help="numba threads for the rollout (default 1)")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="any MPCSettings field, e.g. --set L=0.05,0.05,0.05 --set N_p=12")
-    ap.add_argument("--solver", choices=SOLVERS, default="sa",
+    ap.add_argument("--solver", choices=SOLVERS, default=None,
                     help="horizon solver: sa (simulated annealing, default) or ipopt (CasADi + "
                          "IPOPT, exact derivatives; --model mf only, needs msagv[ipopt]; the "
                          "annealer options are ignored, --deadline-ms is IPOPT's wall-time limit)")
@@ -95,8 +177,8 @@ def settings_from_args(a) -> dict:
     Scenario when it builds them)."""
     from controller.models import MPCSettings
 
-    kw = {"method": a.method, "model": a.model, "seed": a.seed}
-    for k in ("iterations", "chains", "threads"):
+    kw = {}
+    for k in ("method", "model", "seed", "iterations", "chains", "threads"):
         if getattr(a, k, None) is not None:
             kw[k] = getattr(a, k)
     if getattr(a, "deadline_ms", None) is not None:
@@ -127,20 +209,36 @@ def settings_from_args(a) -> dict:
 
 
 def scenario_from_args(a, default_case: str = "curve") -> Scenario:
-    """The :class:`Scenario` of the case, MPC and FMU options present on ``a``."""
+    """The :class:`Scenario` of the case, MPC and FMU options present on ``a``: the
+    scenario file's (``--scenario FILE``) with the options given on top."""
     has = lambda k: getattr(a, k, None)  # noqa: E731 - options a command may lack
-    case = None
-    if not has("trajectory"):
-        case = has("case") or default_case
-    fmu = has("fmu")
     settings = settings_from_args(a) if hasattr(a, "method") else {}
-    return Scenario(vehicle=has("vehicle"), mass_kg=has("mass"), case=case,
-                    trajectory=has("trajectory"), speed=has("speed"),
-                    initial=parse_assignments(has("initial")),
-                    from_rest=bool(has("from_rest")), duration=has("duration"),
-                    settings=settings, solver=has("solver") or "sa", fmu=fmu,
-                    fmu_map=has("fmu_map"),
-                    fmu_params=parse_assignments(has("fmu_params"), "--param"))
+    given = {"vehicle": has("vehicle"), "mass_kg": has("mass"), "speed": has("speed"),
+             "duration": has("duration"), "after_end": has("after_end"),
+             "solver": has("solver"), "fmu": has("fmu"), "fmu_map": has("fmu_map")}
+    given = {k: v for k, v in given.items() if v is not None}
+    if has("from_rest"):
+        given["from_rest"] = True
+    initial = parse_assignments(has("initial"))
+    params = parse_assignments(has("fmu_params"), "--param")
+    if has("scenario"):
+        base = Scenario.from_file(has("scenario"))
+        if has("trajectory") or has("case"):  # the option's reference replaces the file's
+            base.case = base.trajectory = None
+            if has("trajectory"):
+                base.speed = None
+        merged = {f.name: getattr(base, f.name) for f in dataclasses.fields(Scenario)}
+        merged.update(given)
+        merged["settings"] = dict(base.settings, **settings)
+        merged["initial"] = dict(base.initial, **initial)
+        merged["fmu_params"] = dict(base.fmu_params, **params)
+    else:
+        merged = dict(given, settings=settings, initial=initial, fmu_params=params)
+    merged["trajectory"] = has("trajectory") or merged.get("trajectory")
+    merged["case"] = has("case") or merged.get("case")
+    if merged["trajectory"] is None and merged["case"] is None:
+        merged["case"] = default_case
+    return Scenario(**merged)
 
 
 # ---- the Zenoh session -------------------------------------------------------------------

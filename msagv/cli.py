@@ -28,7 +28,8 @@ COMMANDS = {
 
 
 def _usage() -> str:
-    lines = ["usage: msagv COMMAND [options]   (msagv COMMAND --help for a command's options)", "",
+    lines = ["usage: msagv COMMAND [options]   (msagv COMMAND --help for a command's options)",
+             "       msagv --version", "",
              "commands:"]
     for name, text in COMMANDS.items():
         lines.append(f"  {name:<11} {text}")
@@ -68,31 +69,52 @@ def _dispatch(cmd: str, rest: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Exit codes, the same for every command: 0 done, 1 the work failed, 2 bad options or
+    input (nothing done), 130 interrupted (Ctrl-C; what was done is printed)."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help", "help"):
+    if not argv:
+        print(_usage(), file=sys.stderr)
+        return 2
+    if argv[0] in ("-h", "--help", "help"):
         print(_usage())
+        return 0
+    if argv[0] in ("--version", "-V"):
+        from . import __version__
+
+        print(f"msagv {__version__}")
         return 0
     cmd, rest = argv[0], argv[1:]
     if cmd not in COMMANDS:
         print(f"msagv: unknown command '{cmd}'\n\n{_usage()}", file=sys.stderr)
         return 2
-    return int(_dispatch(cmd, rest) or 0)
+    try:
+        return int(_dispatch(cmd, rest) or 0)
+    except KeyboardInterrupt:
+        print(f"msagv {cmd}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # the reader went away (msagv ... | head): not an error of ours
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 # ---- msagv vehicle show -----------------------------------------------------------------
 def vehicle_main(argv: list[str]) -> int:
     from plant.vehicle import VehicleError, load_vehicle
 
+    from .args import add_common_args, fail
+
     ap = argparse.ArgumentParser(prog="msagv vehicle", description="Show a vehicle description.")
     ap.add_argument("action", choices=["show"])
     ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
     ap.add_argument("--json", action="store_true", help="print the resolved description as JSON")
+    add_common_args(ap)
     a = ap.parse_args(argv)
     try:
         v = load_vehicle(a.vehicle)
     except (VehicleError, FileNotFoundError) as e:
-        print(f"msagv vehicle show: {e}", file=sys.stderr)
-        return 2
+        return fail("msagv vehicle show", e, a)
     d = v.to_dict()
     d["derived"] = {"n_axles": v.n_axles, "n_wheels": v.n_wheels, "normal_load_N": v.normal_load,
                     "wheel_x": v.wheel_x.tolist(), "wheel_y": v.wheel_y.tolist()}
@@ -114,7 +136,7 @@ def replay_main(argv: list[str]) -> int:
     from plant.replay import read_inputs, replay, write_signals
     from plant.vehicle import load_vehicle
 
-    from .args import parse_assignments
+    from .args import add_common_args, check_output, fail, note, parse_assignments
     from .errors import USAGE_ERRORS
 
     ap = argparse.ArgumentParser(
@@ -123,55 +145,120 @@ def replay_main(argv: list[str]) -> int:
     ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in)")
     ap.add_argument("--inputs", metavar="U.csv", required=True,
                     help="columns t, omega_w_ij, omega_s_ij; row k held until row k+1")
-    ap.add_argument("--out", metavar="S.csv", required=True, help="signals at the input times")
+    ap.add_argument("-o", "--out", metavar="S.csv", required=True,
+                    help="signals at the input times")
     ap.add_argument("--initial", metavar="name=value,...", help="initial state, e.g. vx=5,phi=0.2")
     ap.add_argument("--rtol", type=float, default=1e-8, help="integrator relative tolerance")
+    add_common_args(ap)
     a = ap.parse_args(argv)
     try:
+        check_output(a.out, "--out")
         v = load_vehicle(a.vehicle)
         t, U = read_inputs(a.inputs, v)
         names, S = replay(v, t, U, parse_assignments(a.initial), rtol=a.rtol)
     except USAGE_ERRORS as e:
-        print(f"msagv plant replay: {e}", file=sys.stderr)
-        return 2
+        return fail("msagv plant replay", e, a)
     write_signals(a.out, names, S)
-    print(f"wrote {len(t)} rows x {len(names)} signals to {a.out}", file=sys.stderr)
+    note(a, f"wrote {len(t)} rows x {len(names)} signals to {a.out}")
     return 0
 
 
 # ---- msagv report ------------------------------------------------------------------------
+def _recording_scenario(info: dict, header: dict, log, ref) -> dict:
+    """The result's ``scenario`` block from a recording's header (a plant's recording
+    knows no MPC settings; the speed and case come from the recorded command line)."""
+    from experiments.results import CASE_NAMES, DEFAULT_SPEED, speed_value, vehicle_info
+    from plant.vehicle import vehicle_from_dict
+
+    argv = [str(x) for x in header.get("argv") or []]
+
+    def opt(name):
+        for i, x in enumerate(argv):
+            if x == name and i + 1 < len(argv):
+                return argv[i + 1]
+            if x.startswith(name + "="):
+                return x.split("=", 1)[1]
+        return None
+
+    traj = opt("--trajectory")
+    case = None if traj else CASE_NAMES.get(opt("--case"), opt("--case") or "curve")
+    speed = speed_value(opt("--speed"))
+    if speed is None and case is not None:
+        speed = DEFAULT_SPEED[case]
+    try:
+        vehicle = vehicle_info(vehicle_from_dict(header["vehicle"]), opt("--vehicle"))
+    except (KeyError, TypeError, ValueError):
+        vehicle = None
+    st = header.get("settings") or {}
+    period = header.get("period")
+    return {"case": case, "trajectory": traj, "reference": ref.name, "speed_kmh": speed,
+            "vehicle": vehicle, "method": st.get("method"), "model": st.get("model"),
+            "solver": header.get("solver"), "seed": st.get("seed"),
+            "duration_s": None if period is None else len(log.t) * float(period),
+            "period_s": period, "after_end": None,
+            "plant": f"fmu {header['fmu']}" if header.get("fmu") else None,
+            "initial": None}
+
+
 def report_main(argv: list[str]) -> int:
     from pathlib import Path
 
-    from bridge.recording import RecordingError
+    from bridge.recording import RecordingError, read_recording
     from controller.metrics import format_table
     from experiments.recorded import ReportError, evaluate
+    from experiments.results import result
 
-    ap = argparse.ArgumentParser(prog="msagv report",
+    from .args import PLOT_SUFFIXES, OptionError, add_common_args, check_output, fail, warn
+
+    prog = "msagv report"
+    ap = argparse.ArgumentParser(prog=prog,
                                  description="The paper's metrics and plots from a recording "
                                              "(msagv plant/controller --record FILE).")
     ap.add_argument("recording", metavar="FILE")
     ap.add_argument("--run", type=int, default=-1,
                     help="which plant run of the recording, 0 = first (default: the last)")
     ap.add_argument("--json", action="store_true",
-                    help="print the metrics (keys as msagv run --json) plus 'recording' info")
-    ap.add_argument("--plot", metavar="FILE", help="write a PNG (path, errors, wear power)")
+                    help="print the result as JSON (the shape of msagv run --json, plus "
+                         "'recording')")
+    ap.add_argument("--json-out", metavar="FILE", help="also write the JSON result to FILE")
+    ap.add_argument("--plot", metavar="FILE", help="write a figure (path, errors, wear power)")
     ap.add_argument("--log", metavar="FILE", help="write the per-step log as CSV")
+    add_common_args(ap)
     a = ap.parse_args(argv)
     try:
+        check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
+        check_output(a.log, "--log")
+        check_output(a.json_out, "--json-out")
         m, info, log, ref = evaluate(a.recording, a.run)
-    except (RecordingError, ReportError, KeyError, TypeError) as e:
-        print(f"msagv report: {e}", file=sys.stderr)
-        return 2
+        header = read_recording(a.recording)[0]
+    except (RecordingError, ReportError, OptionError, KeyError, TypeError) as e:
+        return fail(prog, e, a)
+    warnings = []
+    if not any(k in log.final_state for k in ("W_s", "W_alpha", "W_t")):
+        warnings.append("the recorded states carry no wear work (W_s, W_alpha, W_t are "
+                        "optional fields of the state message): W_tw and Omega are not "
+                        "measured")
+        m = dict(m, W_tw=None, W_s=None, W_alpha=None, W_t=None, Omega=None)
+    if not info["ended"]:
+        warnings.append(f"the run has no end state (cut short): the metrics cover the "
+                        f"{info['steps']} steps recorded")
+    if info["unanswered"]:
+        warnings.append(f"{info['unanswered']} of {info['steps']} states have no command "
+                        f"in the recording")
+    warn(prog, warnings)
+    scenario = _recording_scenario(info, header, log, ref)
+    doc = result("report", scenario, m, warnings, completed=info["ended"], recording=info)
     if a.log:
         log.to_csv(a.log)
     if a.plot:
-        from experiments.plots import plot_run
+        from experiments.plots import plot_run, run_title
 
-        plot_run(log, ref, a.plot, title=f"{ref.name} over Zenoh ({info['run_mode']}, "
-                                         f"{info['role']} recording)")
+        plot_run(log, ref, a.plot, title=run_title(
+            scenario, f"over Zenoh ({info['run_mode']}, {info['role']} recording)"))
+    if a.json_out:
+        Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
-        print(json.dumps(dict(m, recording=info)))
+        print(json.dumps(doc))
     else:
         print(format_table(m, f"{ref.name}: {info['recording']} ({info['role']}, "
                               f"{info['run_mode']}, run {info['run']} of {info['runs']})"))
@@ -181,8 +268,9 @@ def report_main(argv: list[str]) -> int:
         if lat["p50"] is not None:
             print(f"  latency    p50 {lat['p50']:.3f}  p99 {lat['p99']:.3f}  max {lat['max']:.3f} ms "
                   f"(state -> command, without the solve; as recorded)")
-        if a.plot:
-            print(f"  plot       {Path(a.plot)}")
+        for k, path in (("log", a.log), ("plot", a.plot), ("json", a.json_out)):
+            if path:
+                print(f"  {k:<10} {Path(path)}")
     return 0
 
 
@@ -192,9 +280,14 @@ FMU_USAGE = """usage: msagv fmu build [--vehicle FILE] -o FILE.fmu [--prefix P] 
 
 
 def fmu_main(argv: list[str]) -> int:
-    if not argv or argv[0] in ("-h", "--help", "help"):
+    if not argv:
+        print(FMU_USAGE, file=sys.stderr)
+        return 2
+    if argv[0] in ("-h", "--help", "help"):
         print(FMU_USAGE)
         return 0
+    if argv[0] in ("--version", "-V"):
+        return main(["--version"])
     sub, rest = argv[0], argv[1:]
     if sub == "build":
         return fmu_build_main(rest)
@@ -210,7 +303,7 @@ def fmu_build_main(argv: list[str]) -> int:
     from fmu_build.build import FmuBuildError, build_fmu
     from plant.vehicle import load_vehicle
 
-    from .args import parse_assignments
+    from .args import add_common_args, check_output, fail, note, parse_assignments
     from .errors import USAGE_ERRORS
 
     ap = argparse.ArgumentParser(
@@ -219,21 +312,23 @@ def fmu_build_main(argv: list[str]) -> int:
                     "bundles the plant package and the vehicle; it runs in the importer's "
                     "Python, which needs numpy and numba (see docs/FMU.md).")
     ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
-    ap.add_argument("-o", "--output", metavar="FILE.fmu", required=True, help="the FMU to write")
+    ap.add_argument("-o", "--out", "--output", dest="output", metavar="FILE.fmu", required=True,
+                    help="the FMU to write")
     ap.add_argument("--prefix", default="",
                     help="put in front of every variable name (e.g. 'agv0.'); the host then "
                          "needs a mapping file")
     ap.add_argument("--initial", metavar="name=value,...",
                     help="start values of the initial-state parameters, e.g. vx=2,phi=0.1")
+    add_common_args(ap)
     a = ap.parse_args(argv)
     try:
+        check_output(a.output, "-o", suffixes=(".fmu",))
         vehicle = load_vehicle(a.vehicle)
         initial = parse_assignments(a.initial)
         out = build_fmu(a.output, vehicle, prefix=a.prefix, initial=initial)
     except USAGE_ERRORS + (FmuBuildError,) as e:
-        print(f"msagv fmu build: {e}", file=sys.stderr)
-        return 2
-    print(f"wrote {out} ({vehicle.name}, {vehicle.n_axles} axles)", file=sys.stderr)
+        return fail("msagv fmu build", e, a)
+    note(a, f"wrote {out} ({vehicle.name}, {vehicle.n_axles} axles)")
     return 0
 
 
@@ -241,23 +336,31 @@ def fmu_build_main(argv: list[str]) -> int:
 def bench_main(argv: list[str] | None = None) -> int:
     from benchmarks import suite
 
+    from .args import add_common_args, check_output, fail, warn
+
     ap = argparse.ArgumentParser(prog="msagv bench", description=suite.__doc__.splitlines()[0])
     ap.add_argument("sections", nargs="*", metavar="SECTION",
                     help=f"which benchmarks (default all): {', '.join(suite.SECTIONS)}")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--quick", action="store_true",
                     help="short runs (a smoke test; the figures are not meaningful)")
-    ap.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    ap.add_argument("--json-out", metavar="FILE", help="also write the JSON to FILE")
+    ap.add_argument("--out", metavar="FILE", help=argparse.SUPPRESS)  # deprecated: --json-out
+    add_common_args(ap)
     a = ap.parse_args(argv)
-    echo = (lambda line: print(line, file=sys.stderr, flush=True)) if a.json else \
+    if a.out:
+        warn("msagv bench", ["--out is deprecated, use --json-out (the same file)"])
+        a.json_out = a.json_out or a.out
+    quiet = a.json or a.quiet
+    echo = (lambda line: print(line, file=sys.stderr, flush=True)) if quiet else \
         (lambda line: print(line, flush=True))
     try:
+        check_output(a.json_out, "--json-out")
         result = suite.run(a.sections, a.quick, echo)
     except ValueError as e:
-        print(f"msagv bench: {e}", file=sys.stderr)
-        return 2
-    if a.out:
-        with open(a.out, "w") as f:
+        return fail("msagv bench", e, a)
+    if a.json_out:
+        with open(a.json_out, "w") as f:
             json.dump(result, f, indent=1)
     if a.json:
         print(json.dumps(result))

@@ -99,11 +99,29 @@ def run_demo(duration: float = 20.0, speed: str = "15", run_mode: str = "realtim
             "log": log, "reference": ref}
 
 
+def _demo_scenario(a) -> dict:
+    """The result's ``scenario`` block of the demo (Case 1 at ``--speed``, the built-in
+    vehicle, TWO with the paper's model)."""
+    from experiments.results import speed_value, vehicle_info
+    from plant.vehicle import default_vehicle
+
+    vehicle = vehicle_info(default_vehicle())  # the demo's plant serves the built-in one
+    return {"case": "curve", "trajectory": None, "reference": "case1-curve",
+            "speed_kmh": speed_value(a.speed), "vehicle": vehicle, "method": "two",
+            "model": "mf", "solver": a.solver, "seed": a.seed, "duration_s": a.duration,
+            "period_s": 0.01, "after_end": "continue", "plant": "native",
+            "initial": "reference"}
+
+
 def main(argv: list[str]) -> int:
     from controller.metrics import format_table
-    from experiments.plots import plot_run
+    from experiments.plots import plot_run, run_title
+    from experiments.results import result
 
-    ap = argparse.ArgumentParser(prog="msagv demo", description=__doc__.splitlines()[0])
+    from .args import PLOT_SUFFIXES, add_common_args, check_output, fail, note, warn
+
+    prog = "msagv demo"
+    ap = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0, metavar="S",
                     help="vehicle time [s] (default 20)")
     ap.add_argument("--speed", default="15", metavar="KMH", help="Case 1 speed (default 15)")
@@ -115,27 +133,38 @@ def main(argv: list[str]) -> int:
                     help="the controller's solver (ipopt: the reference, too slow for 100 Hz "
                          "here; use it with --run-mode lockstep)")
     ap.add_argument("--plot", metavar="FILE", default="msagv-demo.png",
-                    help="PNG to write (default msagv-demo.png)")
-    ap.add_argument("--keep", metavar="DIR", help="keep the recordings in DIR")
+                    help="figure to write (default msagv-demo.png)")
+    ap.add_argument("-o", "--out", metavar="DIR", help="keep the recordings in DIR")
+    ap.add_argument("--keep", metavar="DIR", help=argparse.SUPPRESS)  # deprecated: --out
     ap.add_argument("--json", action="store_true",
-                    help="print the metrics (keys as msagv run --json) plus missed_periods, "
-                         "latency_ms and rejected")
+                    help="print the result as JSON (the shape of msagv run --json, plus "
+                         "'transport': missed periods, latency, rejected messages, ...)")
+    ap.add_argument("--json-out", metavar="FILE", help="also write the JSON result to FILE")
     ap.add_argument("--rt-priority", type=int, default=0, metavar="N",
                     help="run both processes under SCHED_FIFO priority N (needs CAP_SYS_NICE; "
                          "default 0: normal priority)")
-    ap.add_argument("-v", "--verbose", action="store_true", help="show the processes' logs")
+    add_common_args(ap)  # -v also shows the processes' logs
     a = ap.parse_args(argv)
+    if a.keep:
+        warn(prog, ["--keep is deprecated, use --out DIR"])
+        a.out = a.out or a.keep
     if not a.duration > 0:
         print("msagv demo: --duration must be > 0", file=sys.stderr)
         return 2
+    try:
+        check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
+        check_output(a.out, "--out", directory=True)
+        check_output(a.json_out, "--json-out")
+    except ValueError as e:
+        return fail(prog, e, a)
     tmp = None
-    work = a.keep
+    work = a.out
     if work is None:
         tmp = tempfile.TemporaryDirectory(prefix="msagv-demo-")
         work = tmp.name
     t0 = time.monotonic()
     try:
-        if not a.json:
+        if not (a.json or a.quiet):
             print(f"msagv demo: plant and controller over Zenoh (loopback), Case 1 at "
                   f"{a.speed} km/h, {a.duration:g} s, {a.run_mode}...", file=sys.stderr, flush=True)
         try:
@@ -144,27 +173,37 @@ def main(argv: list[str]) -> int:
                          quiet=not a.verbose, extra_plant=rt,
                          extra_controller=rt + ["--solver", a.solver])
         except (RuntimeError, ValueError) as e:
-            print(f"msagv demo: {e}", file=sys.stderr)
-            return 1
+            return fail(prog, e, a, 1)
         except KeyboardInterrupt:
-            print("msagv demo: interrupted", file=sys.stderr)
+            _interrupted(Path(work), a)
             return 130
+        scenario = _demo_scenario(a)
         if a.plot:
             plot_run(r["log"], r["reference"], a.plot,
-                     title=f"{r['reference'].name} over Zenoh ({a.run_mode}, {a.speed} km/h)")
+                     title=run_title(scenario, f"two processes over Zenoh ({a.run_mode})"))
     finally:
         if tmp is not None:
             tmp.cleanup()
     m, ps, cs = r["metrics"], r["plant"], r["controller"]
     rejected = ps["rejected"]["total"] + cs.get("rejected", {}).get("total", 0)
     lat = {k: ps["latency_ms"][k] for k in ("p50", "p99", "max")}
+    transport = {"run_mode": a.run_mode, "missed_periods": ps["missed_periods"],
+                 "latency_ms": lat, "rejected": rejected,
+                 "period_jitter_ms": {k: ps["period_jitter_ms"][k] for k in ("p50", "p99", "max")},
+                 "accepted_commands": ps["commands"]["accepted"],
+                 "lost_commands": ps["commands"]["lost"], "late_commands": ps["commands"]["late"],
+                 "safe_events": ps["safe"]["events"]}
+    warnings = []
+    if a.run_mode == "realtime" and ps["missed_periods"]:
+        warnings.append(f"{ps['missed_periods']} control periods were missed (a loaded "
+                        f"machine, or solves over the budget): the plant held the last command")
+    warn(prog, warnings)
+    doc = result("demo", scenario, m, warnings, completed=bool(ps.get("completed", True)),
+                 transport=transport)
+    if a.json_out:
+        Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
-        out = dict(m)
-        out.update(missed_periods=ps["missed_periods"], latency_ms=lat, rejected=rejected,
-                   period_jitter_ms={k: ps["period_jitter_ms"][k] for k in ("p50", "p99", "max")},
-                   lost_commands=ps["commands"]["lost"], late_commands=ps["commands"]["late"],
-                   safe_events=ps["safe"]["events"], run_mode=a.run_mode)
-        print(json.dumps(out))
+        print(json.dumps(doc))
         return 0
     print(format_table(m, f"{r['reference'].name}, TWO (mf), two processes over Zenoh, "
                           f"{a.run_mode}"))
@@ -181,7 +220,22 @@ def main(argv: list[str]) -> int:
               f"{ps['safe']['events']}")
     if a.plot:
         print(f"  plot       {Path(a.plot)}")
-    if a.keep:
-        print(f"  recordings {Path(a.keep) / 'plant.rec'}, {Path(a.keep) / 'controller.rec'}")
-    print(f"  wall time  {time.monotonic() - t0:.1f} s")
+    if a.out:
+        print(f"  recordings {Path(a.out) / 'plant.rec'}, {Path(a.out) / 'controller.rec'}")
+    note(a, f"  wall time  {time.monotonic() - t0:.1f} s")
     return 0
+
+
+def _interrupted(work: Path, a) -> None:
+    """Ctrl-C: both processes got it too and closed their recordings; report the metrics
+    of the part that ran, from the plant's recording, if there is one."""
+    from controller.metrics import format_table
+    from experiments.recorded import evaluate
+
+    try:
+        m, info, _, ref = evaluate(work / "plant.rec")
+    except Exception:  # noqa: BLE001 - nothing usable was recorded yet
+        print("msagv demo: interrupted before the run produced a result", file=sys.stderr)
+        return
+    print(format_table(m, f"{ref.name} (interrupted after {info['steps']} steps)"))
+    print("msagv demo: interrupted", file=sys.stderr)

@@ -10,6 +10,10 @@ from pathlib import Path
 
 from experiments import studies
 
+from .args import OptionError, add_common_args, check_output, fail, note, warn
+
+MIN_MASS_KG = 100.0  # --masses below this is taken for the old tonnes and refused
+
 
 def _floats(text: str | None, name: str):
     if text is None:
@@ -23,16 +27,38 @@ def _floats(text: str | None, name: str):
     return vals
 
 
+def _masses_kg(a) -> tuple | None:
+    """``--masses`` in kg (as ``--mass`` everywhere); ``--masses-t`` the deprecated tonnes."""
+    kg = _floats(a.masses, "--masses")
+    if kg is not None and any(m < MIN_MASS_KG for m in kg):
+        raise OptionError(f"--masses: in kg, got '{a.masses}' (below {MIN_MASS_KG:g} kg: "
+                          f"tonnes? 8 t is 8000)")
+    if a.masses_t is not None:
+        if kg is not None:
+            raise OptionError("give --masses (kg) or the deprecated --masses-t, not both")
+        warn("msagv experiment", ["--masses-t (tonnes) is deprecated: use --masses in kg, "
+                                  "as --mass"])
+        kg = tuple(1000.0 * m for m in _floats(a.masses_t, "--masses-t"))
+    return kg
+
+
 def main(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="msagv experiment", description=studies.__doc__.splitlines()[0])
+    prog = "msagv experiment"
+    ap = argparse.ArgumentParser(prog=prog, description=studies.__doc__.splitlines()[0])
     ap.add_argument("experiment", choices=studies.EXPERIMENTS)
-    ap.add_argument("--out", metavar="DIR", help="output directory (default runs/<experiment>)")
+    ap.add_argument("-o", "--out", metavar="DIR",
+                    help="output directory (default runs/<experiment>)")
     ap.add_argument("--jobs", type=int, metavar="N", help="parallel runs (default: all cores)")
-    ap.add_argument("--json", action="store_true", help="print the table (pareto: the fronts) as JSON")
+    ap.add_argument("--json", action="store_true",
+                    help="print the summary as JSON (rows: one result per run, with its "
+                         "scenario and metrics; pareto: the fronts)")
+    ap.add_argument("--json-out", metavar="FILE", help="also write the JSON summary to FILE")
     ap.add_argument("--duration", type=float, metavar="S",
                     help="shorten every run to S seconds of vehicle time (default: the whole reference)")
     ap.add_argument("--speeds", metavar="KMH,...", help="subset/override of the speeds")
-    ap.add_argument("--masses", metavar="T,...", help="case3: loads in tonnes (default 8,12,16,20)")
+    ap.add_argument("--masses", metavar="KG,...",
+                    help="case3: gross vehicle weights in kg (default 8000,12000,16000,20000)")
+    ap.add_argument("--masses-t", metavar="T,...", help=argparse.SUPPRESS)  # deprecated
     ap.add_argument("--methods", metavar="NAME,...",
                     help=f"subset of {','.join(studies.METHODS)} (pareto: of the baselines)")
     ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
@@ -41,28 +67,46 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--smooth-scales", metavar="S,...", help="pareto: factors on NTWO's R_dw, R_dd")
     ap.add_argument("--ridge-scales", metavar="S,...",
                     help="pareto: factors of NTWO's R_ow, R_od; ridge: the levels (default 0,0.1,1)")
-    ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
-                    help="progress bar over finished runs on stderr (default on)")
+    ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                    help="progress bar over finished runs on stderr (default: on a terminal)")
+    add_common_args(ap)
     a = ap.parse_args(argv)
+    if a.verbose:
+        import logging
+
+        logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    progress = (sys.stderr.isatty() and not a.quiet) if a.progress is None else a.progress
     try:
         if a.jobs is not None and a.jobs < 1:
-            raise ValueError("--jobs must be >= 1")
+            raise OptionError("--jobs must be >= 1")
+        check_output(a.out, "--out", directory=True)
+        check_output(a.json_out, "--json-out")
         methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
+        masses = _masses_kg(a)
         summary = studies.run_experiment(
-            a.experiment, a.out, jobs=a.jobs, force=a.force, progress=a.progress,
+            a.experiment, a.out, jobs=a.jobs, force=a.force, progress=progress,
             duration=a.duration, speeds=_floats(a.speeds, "--speeds"),
-            masses_t=_floats(a.masses, "--masses"), methods=methods, vehicle=a.vehicle,
+            masses_t=None if masses is None else tuple(m / 1000.0 for m in masses),
+            methods=methods, vehicle=a.vehicle,
             two_scales=_floats(a.two_scales, "--two-scales"),
             smooth_scales=_floats(a.smooth_scales, "--smooth-scales"),
             ridge_scales=_floats(a.ridge_scales, "--ridge-scales"))
     except (ValueError, FileNotFoundError) as e:
-        print(f"msagv experiment: {e}", file=sys.stderr)
-        return 2
+        return fail(prog, e, a)
+    except KeyboardInterrupt:
+        out = Path(a.out) if a.out else Path("runs") / a.experiment
+        done = len(list((out / "runs").glob("*.json"))) if (out / "runs").is_dir() else 0
+        print(f"{prog}: interrupted; {done} finished runs are stored in {out / 'runs'} and "
+              f"are reused when the same command is run again", file=sys.stderr)
+        return 130
     out = Path(summary["out"])
     r = summary["runs"]
-    print(f"msagv experiment {a.experiment}: {r['runs']} runs ({r['executed']} run now, "
-          f"{r['reused']} reused, {r['failed']} failed) in {r['total_wall_s']:.1f} s; "
-          f"outputs in {out}", file=sys.stderr)
+    warn(prog, summary.get("warnings", []))
+    note(a, f"msagv experiment {a.experiment}: {r['runs']} runs ({r['executed']} run now, "
+            f"{r['reused']} reused, {r['failed']} failed) in {r['total_wall_s']:.1f} s; "
+            f"outputs in {out}")
+    if a.json_out:
+        Path(a.json_out).write_text(json.dumps(summary, indent=1) + "\n")
     if a.json:
         print(json.dumps(summary))
     elif a.experiment == "pareto":

@@ -20,8 +20,8 @@ from bridge import messages as M
 from bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtime_priority,
                             setup_logging)
 
-from .args import (add_case_args, add_fmu_args, add_mpc_args, add_session_args,
-                   options_from_args, scenario_from_args)
+from .args import (add_case_args, add_common_args, add_fmu_args, add_mpc_args,
+                   add_session_args, check_output, options_from_args, scenario_from_args)
 from .errors import USAGE_ERRORS
 
 
@@ -60,7 +60,7 @@ def plant_parser() -> argparse.ArgumentParser:
                     help="realtime safe behaviour: wheel ramp-down at the rim (default 2)")
     ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
     ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
-    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
+    add_common_args(ap)  # -q: log warnings only; -v: debug
     add_session_args(ap)
     return ap
 
@@ -70,7 +70,7 @@ def plant_main(argv: list[str]) -> int:
     from bridge.recording import Recorder
 
     a = plant_parser().parse_args(argv)
-    setup_logging("msagv plant", a.id, a.quiet)
+    setup_logging("msagv plant", a.id, a.quiet, a.verbose)
     log = logging.getLogger("msagv.plant")
     _realtime_priority(a, log)
     sig = StopOnSignal(threading.Event())
@@ -78,8 +78,11 @@ def plant_main(argv: list[str]) -> int:
     plant = None
     try:
         opts = options_from_args(a)
+        check_output(a.record, "--record")
         scenario = scenario_from_args(a)
         plant, vehicle, ref, initial = scenario.make_plant()
+        for w in scenario.check(vehicle, ref):  # a speed no wheel reaches: exit 2
+            log.warning("%s", w)
         duration = scenario.run_duration(ref)
         cfg = PlantConfig(run_mode=a.run_mode, period=a.period,
                           steps=int(round(duration / a.period)) if duration > 0 else 0,
@@ -160,7 +163,7 @@ def controller_parser() -> argparse.ArgumentParser:
                     help="exit after the plant's last state (end = true)")
     ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON at exit")
-    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
+    add_common_args(ap)  # -q: log warnings only; -v: debug
     add_session_args(ap)
     return ap
 
@@ -170,7 +173,7 @@ def controller_main(argv: list[str]) -> int:
     from bridge.recording import Recorder
 
     a = controller_parser().parse_args(argv)
-    setup_logging("msagv controller", a.id, a.quiet)
+    setup_logging("msagv controller", a.id, a.quiet, a.verbose)
     log = logging.getLogger("msagv.controller")
     _realtime_priority(a, log)
     if a.initial is not None:
@@ -181,6 +184,7 @@ def controller_main(argv: list[str]) -> int:
         return EXIT_USAGE
     try:
         opts = options_from_args(a)
+        check_output(a.record, "--record")
         scenario = scenario_from_args(a)
         scenario.check_solver()  # ipopt without CasADi or with model != mf: exit 2
         if a.vehicle:
@@ -237,10 +241,10 @@ def router_main(argv: list[str]) -> int:
         description=f"A Zenoh router (a session in router mode); listens on "
                     f"tcp/127.0.0.1:{ROUTER_PORT} unless --listen is given (use "
                     f"--listen tcp/0.0.0.0:{ROUTER_PORT} for other machines).")
-    ap.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
+    add_common_args(ap)  # -q: log warnings only; -v: debug
     add_session_args(ap, router=True)
     a = ap.parse_args(argv)
-    setup_logging("msagv router", "-", a.quiet)
+    setup_logging("msagv router", "-", a.quiet, a.verbose)
     sig = StopOnSignal(threading.Event())
     sig.install()
     try:

@@ -14,7 +14,11 @@ import json
 import sys
 from pathlib import Path
 
-from .args import add_case_args, add_fmu_args, add_mpc_args, scenario_from_args
+from .args import (PLOT_SUFFIXES, OptionError, add_case_args, add_common_args, add_fmu_args,
+                   add_mpc_args, check_output, fail, scenario_from_args, warn)
+
+EXIT_INTERRUPTED = 130  # Ctrl-C: the shell's 128 + SIGINT
+EXIT_FAILED = 1  # the run itself failed (a diverging plant, an FMU that stopped)
 
 
 def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.ArgumentParser:
@@ -25,52 +29,102 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
     ap = argparse.ArgumentParser(prog=prog, description=desc)
     if fmu:
         add_fmu_args(ap, positional=True)
+    else:
+        ap.add_argument("scenario_file", nargs="?", metavar="SCENARIO.toml",
+                        help="a scenario file (docs/SCENARIOS.md), as --scenario; the options "
+                             "below override its values")
     add_case_args(ap)
     add_mpc_args(ap)
-    ap.add_argument("--json", action="store_true", help="print the metrics as one JSON object")
-    ap.add_argument("--plot", metavar="FILE", help="write a PNG (path, errors, wear power)")
-    ap.add_argument("--log", metavar="FILE", help="write the per-step log as CSV")
+    ap.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object (docs/SCENARIOS.md#results)")
+    ap.add_argument("--json-out", metavar="FILE", help="also write the JSON result to FILE")
+    ap.add_argument("--plot", metavar="FILE", help="write a figure (path, errors, wear power; "
+                                                   ".png, .pdf, .svg)")
+    ap.add_argument("--log", metavar="FILE", help="write the per-step log as CSV (columns named "
+                                                  "as the signals)")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                    help="progress bar (default: on a terminal for runs > 10 s)")
+                    help="progress bar on stderr (default: on a terminal for runs > 10 s)")
+    add_common_args(ap)
     return ap
 
 
 def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
-    """``msagv run`` (``fmu=False``) and ``msagv fmu simulate`` (``fmu=True``)."""
+    """``msagv run`` (``fmu=False``) and ``msagv fmu simulate`` (``fmu=True``).
+
+    Exit codes: 0 done (warnings on stderr and in the JSON), 1 the run failed, 2 bad
+    options or input (nothing run), 130 interrupted (the result so far is printed)."""
     a = build_parser(prog, fmu).parse_args(argv)
-    from controller.loop import closed_loop
+    from controller.loop import RunLog, closed_loop
     from controller.metrics import format_table
+    from experiments.checks import solve_time_warnings
+    from experiments.results import result, scenario_info
 
     from .errors import USAGE_ERRORS
 
     built = None
     try:
+        if getattr(a, "scenario_file", None):
+            if a.scenario:
+                raise OptionError("give the scenario file once (positional or --scenario)")
+            a.scenario = a.scenario_file
+        check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
+        check_output(a.log, "--log")
+        check_output(a.json_out, "--json-out")
         scenario = scenario_from_args(a)
         built = scenario.build()
-        log = closed_loop(built.plant, built.controller, built.reference, built.duration,
-                          period=scenario.period, progress=a.progress)
     except USAGE_ERRORS as e:
-        print(f"{prog}: {e}", file=sys.stderr)
-        return 2
-    finally:
+        return fail(prog, e, a)
+    except KeyboardInterrupt:
         if built is not None:
             built.close()
-    m = log.metrics()
+        print(f"{prog}: interrupted before the run started", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    warn(prog, built.warnings)
+    log = RunLog()
+    interrupted = False
+    try:
+        closed_loop(built.plant, built.controller, built.reference, built.duration,
+                    period=scenario.period, progress=False if a.quiet else a.progress, log=log)
+    except KeyboardInterrupt:
+        interrupted = True
+        log.cut_short()
+    except USAGE_ERRORS as e:
+        t = log.t[-1] if log.t else 0.0
+        return fail(prog, f"the run failed at t = {t:.2f} s: {e}", a, EXIT_FAILED)
+    finally:
+        built.close()
+    if not log.t:
+        print(f"{prog}: interrupted before the first step", file=sys.stderr)
+        return EXIT_INTERRUPTED
     ref, settings, vehicle = built.reference, built.controller.settings, built.vehicle
+    info = scenario_info(scenario, vehicle, ref, settings, built.duration)
+    late = solve_time_warnings(log.solve_ms, scenario.period)
+    warn(prog, late)
+    warnings = list(built.warnings) + late
+    if interrupted:
+        done = len(log.t) * scenario.period
+        warnings.append(f"interrupted after {done:.2f} s of {built.duration:g} s: the metrics "
+                        f"cover the {len(log.t)} steps run")
+        warn(prog, warnings[-1:])
+    m = log.metrics()
+    doc = result(prog.split(" ", 1)[1], info, m, warnings, completed=not interrupted)
     if a.log:
         log.to_csv(a.log)
     if a.plot:
-        from experiments.plots import plot_run
+        from experiments.plots import plot_run, run_title
 
-        plot_run(log, ref, a.plot, title=f"{ref.name} {settings.method.upper()} "
-                                         f"({settings.model}"
-                                         f"{', ipopt' if scenario.solver == 'ipopt' else ''})")
+        plot_run(log, ref, a.plot, title=run_title(info))
+    if a.json_out:
+        Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
-        print(json.dumps(m))
+        print(json.dumps(doc))
     else:
         where = f"FMU {Path(a.fmu).name}" if fmu else f"{vehicle.name} {vehicle.mass:g} kg"
         how = f"{settings.model}, ipopt" if scenario.solver == "ipopt" else settings.model
-        print(format_table(m, f"{ref.name}, {settings.method.upper()} ({how}), {where}"))
-        if a.plot:
-            print(f"  plot       {Path(a.plot)}")
-    return 0
+        speed = f" at {info['speed_kmh']} km/h" if info["speed_kmh"] is not None else ""
+        print(format_table(m, f"{ref.name}{speed}, {settings.method.upper()} ({how}), {where}"
+                              f"{' (interrupted)' if interrupted else ''}"))
+        for k, path in (("log", a.log), ("plot", a.plot), ("json", a.json_out)):
+            if path:
+                print(f"  {k:<10} {Path(path)}")
+    return EXIT_INTERRUPTED if interrupted else 0

@@ -401,11 +401,14 @@ def test_msagv_run_json(tmp_path):
     out = subprocess.run([MSAGV, "run", "--case", "curve", "--speed", "20", "--duration", "0.5",
                           "--json", "--plot", str(png)], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    m = json.loads(out.stdout)
+    doc = json.loads(out.stdout)  # the result document (experiments/results.py)
+    m = doc["metrics"]
     for k in ("W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar", "Omega", "steps"):
         assert k in m
     assert set(m["solve_ms"]) == {"p50", "p99", "max"}
     assert m["steps"] == 50
+    assert doc["scenario"]["speed_kmh"] == 20.0 and doc["scenario"]["case"] == "curve"
+    assert doc["completed"] is True and doc["warnings"] == []
     assert png.stat().st_size > 10000
     bad = subprocess.run([MSAGV, "run", "--trajectory", str(tmp_path / "none.csv")],
                          capture_output=True, text=True, timeout=120)

@@ -148,7 +148,7 @@ def test_reduced_case2_and_case3(tmp_path, capsys):
     assert "Case 2: TWO W_tw <= 35 % of Kinematic's" in names
     # the 60 degree initial heading error: e_phi is large from the start
     assert all(r["metrics"]["e_phi_deg"] > 30 for r in d2["rows"])
-    rc, stdout, _ = run_main(capsys, ["case3", "--duration", "1", "--masses", "8,20", "--methods",
+    rc, stdout, _ = run_main(capsys, ["case3", "--duration", "1", "--masses", "8000,20000", "--methods",
                                       "NTWO,TWO", "--out", str(tmp_path / "c3"), "--jobs", "1",
                                       "--json", "--no-progress"])
     assert rc == 0
@@ -210,6 +210,7 @@ def test_reduced_ridge(tmp_path, capsys):
     ["case1", "--speeds", "fast"],
     ["case1", "--duration", "-1"],
     ["case1", "--jobs", "0"],
+    ["case3", "--masses", "8,12"],  # tonnes: --masses is in kg, as --mass
 ])
 def test_bad_options_exit_2(args, tmp_path, capsys):
     rc, _, err = run_main(capsys, args + ["--out", str(tmp_path)])

@@ -324,9 +324,11 @@ def test_msagv_run_solver_ipopt_json(capfd):
     argv = ["--case", "curve", "--speed", "15", "--duration", "1", "--json"]
     assert run_cmd.main(argv + ["--solver", "ipopt"]) == 0
     out = capfd.readouterr()
-    m_ip = json.loads(out.out)
+    doc_ip = json.loads(out.out)
     assert run_cmd.main(argv + ["--solver", "sa"]) == 0
-    m_sa = json.loads(capfd.readouterr().out)
+    doc_sa = json.loads(capfd.readouterr().out)
+    assert (doc_ip["scenario"]["solver"], doc_sa["scenario"]["solver"]) == ("ipopt", "sa")
+    m_ip, m_sa = doc_ip["metrics"], doc_sa["metrics"]  # the result document's metrics
     assert set(m_ip) == set(m_sa) == METRIC_KEYS
     assert set(m_ip["solve_ms"]) == set(m_sa["solve_ms"]) == {"p50", "p99", "max"}
     assert m_ip["steps"] == m_sa["steps"] == 100
@@ -346,6 +348,6 @@ def test_controller_process_ipopt_lockstep_equals_in_process(capfd):
     assert r["controller"]["solver"] == "ipopt" and r["controller"]["answered"] == 100
     assert run_cmd.main(["--case", "curve", "--speed", "15", "--duration", "1", "--solver",
                          "ipopt", "--json"]) == 0
-    m = json.loads(capfd.readouterr().out)
+    m = json.loads(capfd.readouterr().out)["metrics"]
     for k in ("W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg"):
         assert r["metrics"][k] == pytest.approx(m[k], rel=1e-12, abs=1e-15), k

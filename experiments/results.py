@@ -1,0 +1,98 @@
+"""One JSON shape for a run's result, whichever command produced it.
+
+``msagv run``, ``msagv fmu simulate``, ``msagv report``, ``msagv demo`` (``--json``) print
+one document, and ``msagv experiment --json`` one per row under ``rows``::
+
+    {"version":   "0.1.0",             # the msagv package
+     "command":   "run",               # run | fmu simulate | report | demo | experiment
+     "scenario":  {"case", "trajectory", "reference", "speed_kmh",
+                   "vehicle": {"name", "axles", "mass_kg", "file"},
+                   "method", "model", "solver", "seed",
+                   "duration_s", "period_s", "after_end", "plant", "initial"},
+     "metrics":   {"W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg",
+                   "e_bar", "Omega", "solve_ms": {"p50", "p99", "max"}, "steps"},
+     "completed": true,                # false: cut short (Ctrl-C), the metrics so far
+     "warnings":  ["one line each", ...],
+     ...}                              # the command's own extras (recording, transport)
+
+A field the producer cannot know is null (a plant's recording knows no MPC method).
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any, Iterable
+
+DEFAULT_SPEED = {"curve": 15.0, "line": 10.0}  # km/h, controller.reference.make_case
+CASE_NAMES = {"case1": "curve", "case2": "line"}
+
+
+def package_version() -> str:
+    """The installed msagv's version (``msagv.__version__``)."""
+    try:
+        return version("msagv")
+    except PackageNotFoundError:  # a source tree that is not installed
+        return "0+unknown"
+
+
+def speed_value(speed) -> float | str | None:
+    """km/h as a number, or the profile text ``'t:kmh,...'`` as given."""
+    if speed is None:
+        return None
+    try:
+        return float(speed)
+    except (TypeError, ValueError):
+        return str(speed)
+
+
+def vehicle_info(vehicle, file: str | None = None) -> dict:
+    return {"name": vehicle.name, "axles": vehicle.n_axles, "mass_kg": float(vehicle.mass),
+            "file": None if file is None else str(file)}
+
+
+def scenario_info(scenario, vehicle, reference, settings, duration: float) -> dict:
+    """The ``scenario`` block of a run built from an :class:`experiments.scenario.Scenario`
+    (``settings``: its :class:`controller.models.MPCSettings`)."""
+    case = None if scenario.trajectory else CASE_NAMES.get(scenario.case, scenario.case or "curve")
+    speed = speed_value(scenario.speed)
+    if speed is None and case is not None:
+        speed = DEFAULT_SPEED[case]
+    vfile = scenario.vehicle if isinstance(scenario.vehicle, (str, Path)) else None
+    return {"case": case, "trajectory": scenario.trajectory, "reference": reference.name,
+            "speed_kmh": speed, "vehicle": vehicle_info(vehicle, vfile),
+            "method": settings.method, "model": settings.model, "solver": scenario.solver,
+            "seed": settings.seed, "duration_s": float(duration), "period_s": scenario.period,
+            "after_end": scenario.after_end,
+            "plant": f"fmu {Path(scenario.fmu).name}" if scenario.fmu else "native",
+            "initial": "rest" if scenario.from_rest else "reference"}
+
+
+def result(command: str, scenario: dict, metrics: dict, warnings: Iterable[str] = (),
+           completed: bool = True, **extra: Any) -> dict:
+    """The result document (see the module docstring)."""
+    doc = {"version": package_version(), "command": command, "scenario": scenario,
+           "metrics": metrics, "completed": bool(completed), "warnings": list(warnings)}
+    doc.update(extra)
+    return doc
+
+
+def spec_info(spec: dict, duration: float | None = None) -> dict:
+    """The ``scenario`` block of an experiment's run (a :class:`experiments.runs.RunSpec`
+    as stored with its result)."""
+    from .runs import PERIOD, RunSpec
+
+    rs = RunSpec.from_dict(spec)
+    sc = rs.scenario()
+    vehicle = sc.resolve_vehicle()
+    settings = sc.mpc_settings()
+    ref_name = {"curve": "case1-curve", "line": "case2-line"}.get(rs.case, rs.case)
+    return {"case": CASE_NAMES.get(rs.case, rs.case), "trajectory": None, "reference": ref_name,
+            "speed_kmh": float(rs.speed_kmh),
+            "vehicle": vehicle_info(vehicle, rs.vehicle),
+            "method": settings.method, "model": settings.model, "solver": "sa",
+            "seed": settings.seed,
+            "duration_s": None if duration is None and rs.duration is None
+            else float(duration if duration is not None else rs.duration),
+            "period_s": PERIOD, "after_end": sc.after_end, "plant": "native",
+            "initial": "reference", "label": rs.label, "group": rs.group}
