@@ -197,17 +197,12 @@ def c_header() -> str:
 
 
 # ---- stale-cache guard for the kernel modules ------------------------------------------
-def _layout_values() -> bytes:
-    g = globals()
-    vals = sorted((k, v) for k, v in g.items() if k.isupper() and type(v) is int)
-    return repr(vals).encode()
-
-
 def kernel_stamp(*depends_on: str) -> int:
-    """A 56-bit stamp of this layout's values and of the source files ``depends_on``
-    (the other kernel modules whose functions a kernel module compiles into its own)."""
-    h = hashlib.blake2b(_layout_values(), digest_size=7)
-    for path in depends_on:
+    """A 56-bit stamp of this file (its constants and the offset functions the kernels
+    inline) and of the source files ``depends_on`` (the other kernel modules whose
+    functions a kernel module compiles into its own)."""
+    h = hashlib.blake2b(digest_size=7)
+    for path in (__file__, *depends_on):
         with open(path, "rb") as f:
             h.update(f.read())
     return int.from_bytes(h.digest(), "little")
