@@ -151,6 +151,33 @@ def test_mpc_rejects_bad_state_without_changing_state():
         MPC(VEH, MPCSettings(iterations=2, chains=2)).step(good)
 
 
+def test_on_solve_sees_each_solve_with_the_previous_solution():
+    """The observer hook: called once per solve with the state given to step, the decision
+    vector before the solve and the returned command; not called for a refused state."""
+    ref = case1_curve(15.0, duration=3.0)
+    calls = []
+    mpc = MPC(VEH, MPCSettings(iterations=3, chains=4), ref,
+              on_solve=lambda st, z, cmd: calls.append((st, z.copy(), cmd)))
+    st = {"t": 0.0, **{k: v for k, v in ref.initial_state(VEH).items()
+                       if not k.startswith("delta")}, "delta": [0.0] * 4}
+    befores, cmds = [], []
+    for k in range(3):
+        befores.append(mpc.z.copy())
+        cmds.append(mpc.step(dict(st, t=0.01 * k)))
+    with pytest.raises(ControllerError):
+        mpc.step(dict(st, x=float("nan")))
+    assert len(calls) == 3
+    for (st_k, z_k, cmd_k), before, cmd in zip(calls, befores, cmds):
+        np.testing.assert_array_equal(z_k, before)
+        assert cmd_k is cmd
+    assert calls[2][0]["t"] == 0.02
+    assert not np.array_equal(calls[2][1], mpc.z)  # the new solution is mpc.z
+    # settable as an attribute too (the benchmarks do so)
+    mpc.on_solve = None
+    mpc.step(st)
+    assert len(calls) == 3
+
+
 # ---- the annealer ---------------------------------------------------------------------
 def test_annealer_finds_known_minimum_of_small_problem():
     # a multimodal 4-d problem: a bowl around x* = (0.5, -1, 0.25, 2) with ripples that

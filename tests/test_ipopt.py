@@ -233,6 +233,30 @@ def test_ipopt_mpc_commands_within_bounds():
 
 
 @needs_casadi
+def test_ipopt_mpc_on_solve():
+    """IpoptMPC calls the MPC's observer hook with the state, the previous solution and the
+    command (whose cost is the exact cost of the new solution)."""
+    from controller.ipopt import IpoptMPC, IpoptOptions
+
+    ref, init = make_case("curve", 25.0)
+    calls = []
+    mpc = IpoptMPC(VEH, MPCSettings(), ref, options=IpoptOptions(max_iter=20),
+                   on_solve=lambda st, z, cmd: calls.append((st, z.copy(), cmd)))
+    st0 = init(VEH)
+    st = {"t": 0.0, **{k: st0[k] for k in ("x", "y", "phi", "vx", "vy", "r")},
+          "delta": [st0[f"delta_{w}"] for w in VEH.wheel_names]}
+    z0 = mpc.z.copy()
+    cmd = mpc.step(st)
+    assert len(calls) == 1
+    assert calls[0][0] is st and calls[0][2] is cmd
+    np.testing.assert_array_equal(calls[0][1], z0)
+    t, x0 = mpc._state_vector(st)
+    s = mpc.settings
+    R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
+    assert cmd.cost == pytest.approx(mpc.exact_cost(x0, R, mpc.z, z0[: 2 * mpc.nw]), rel=1e-12)
+
+
+@needs_casadi
 def test_ipopt_gradient_finite_at_standstill():
     """At rest on a reference at rest (steering rates exactly 0), |0| in the wear powers
     must not give NaN derivatives, even with eps = 0: before the guard IPOPT stopped there
