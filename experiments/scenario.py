@@ -298,6 +298,7 @@ class Scenario:
         file fails naming its key before anything is built. Unknown keys are refused."""
         from plant.vehicle import VehicleError, vehicle_from_dict
 
+        d = {k: v for k, v in d.items() if v is not None}  # None: not given (to_dict)
         known = {f.name for f in fields(cls)} | set(SETTING_KEYS)
         unknown = sorted(set(d) - known)
         if unknown:
