@@ -10,6 +10,7 @@ from typing import Mapping
 import numpy as np
 
 from . import dynamics as dyn
+from . import layout as lay
 from .interface import PlantError, check_inputs, check_step, saturate, state_message
 from .tire import V_EPS_DEFAULT
 from .vehicle import Vehicle, default_vehicle
@@ -91,7 +92,7 @@ class Plant:
         self._names = signal_names(self.vehicle)
         self._index = {n: i for i, n in enumerate(self._names)}
         self._check_initial(self._initial)
-        self._aux = np.zeros((self.nw, dyn.N_AUX))
+        self._aux = np.zeros((self.nw, lay.N_AUX))
         self._stats = np.zeros(2, dtype=np.int64)
         self.steps_accepted = 0
         self.steps_rejected = 0
@@ -126,15 +127,15 @@ class Plant:
             self._check_initial(initial)
             self._initial = initial
         nw = self.nw
-        y = np.zeros(dyn.state_size(nw))
+        y = np.zeros(lay.state_size(nw))
         ini = self._initial
         for i, k in enumerate(["x", "y", "phi", "vx", "vy", "r"]):
             y[i] = float(ini.get(k, 0.0))
         w = self.vehicle.wheel_names
         for j, k in enumerate(w):
-            y[6 + j] = float(ini.get(f"delta_{k}", 0.0))
-            y[9 + nw + j] = float(ini.get(f"omega_w_{k}", 0.0))
-            y[9 + 2 * nw + j] = float(ini.get(f"omega_s_{k}", 0.0))
+            y[lay.Y_DELTA + j] = float(ini.get(f"delta_{k}", 0.0))
+            y[lay.y_omega_w(nw) + j] = float(ini.get(f"omega_w_{k}", 0.0))
+            y[lay.y_omega_s(nw) + j] = float(ini.get(f"omega_s_{k}", 0.0))
         self._y = y
         self.t = 0.0
         self._u_w = np.array([float(ini.get(f"omega_w_{k}", 0.0)) for k in w])
@@ -195,22 +196,22 @@ class Plant:
 
     @property
     def pose(self) -> np.ndarray:
-        return self._y[0:3].copy()
+        return self._y[lay.Y_X:lay.Y_PHI + 1].copy()
 
     @property
     def delta(self) -> np.ndarray:
-        return self._y[6:6 + self.nw].copy()
+        return self._y[lay.Y_DELTA:lay.Y_DELTA + self.nw].copy()
 
     def output_vector(self) -> np.ndarray:
         """All signals, in the order of :func:`signal_names`."""
         nw, y, a = self.nw, self._y, self._aux
-        iw = 6 + nw
+        iw = lay.y_wear(nw)
         W = y[iw:iw + 3]
-        P = a[:, dyn.AUX_PS:dyn.AUX_PT + 1].sum(axis=0)
+        P = a[:, lay.AUX_PS:lay.AUX_PT + 1].sum(axis=0)
         return np.concatenate([
-            y[0:6], y[6:6 + nw], a[:, dyn.AUX_OMEGA_W], a[:, dyn.AUX_DDELTA],
-            a[:, dyn.AUX_S], a[:, dyn.AUX_ALPHA], a[:, dyn.AUX_FX], a[:, dyn.AUX_FY],
-            a[:, dyn.AUX_FN], P, W, [W.sum()],
+            y[lay.Y_X:lay.Y_R + 1], y[lay.Y_DELTA:lay.Y_DELTA + nw], a[:, lay.AUX_OMEGA_W],
+            a[:, lay.AUX_DDELTA], a[:, lay.AUX_S], a[:, lay.AUX_ALPHA], a[:, lay.AUX_FX],
+            a[:, lay.AUX_FY], a[:, lay.AUX_FN], P, W, [W.sum()],
         ])
 
     def outputs(self) -> dict[str, float]:
@@ -244,6 +245,6 @@ class Plant:
     def state_message(self) -> dict:
         """The state as DESIGN.md's ``state`` fields (:func:`plant.interface.state_message`)."""
         y, nw = self._y, self.nw
-        iw = 6 + nw
-        return state_message(self.t, y[0:6], y[6:6 + nw], self._aux[:, dyn.AUX_OMEGA_W],
-                             y[iw:iw + 3])
+        iw = lay.y_wear(nw)
+        return state_message(self.t, y[lay.Y_X:lay.Y_R + 1], y[lay.Y_DELTA:lay.Y_DELTA + nw],
+                             self._aux[:, lay.AUX_OMEGA_W], y[iw:iw + 3])
