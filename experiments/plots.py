@@ -25,43 +25,134 @@ def run_title(info: dict, how: str | None = None) -> str:
     return ", ".join(parts)
 
 
-def plot_run(log, reference, path, title: str = "") -> None:
-    """PNG: path vs reference, tracking errors and wear power over time."""
+# ---- the house style of a report figure ---------------------------------------------------
+# Sized for print: a figure 7.2 in (18 cm) wide is printed at about its own size, so 9-10 pt
+# text stays 9-10 pt on paper; PNGs at 200 dpi.
+STYLE = {"font.size": 9.5, "axes.titlesize": 10, "axes.labelsize": 9.5,
+         "xtick.labelsize": 8.5, "ytick.labelsize": 8.5, "legend.fontsize": 8.5,
+         "figure.titlesize": 10.5, "axes.grid": True, "grid.alpha": 0.3,
+         "legend.framealpha": 0.85, "savefig.dpi": 200, "savefig.bbox": "tight"}
+WIDTH = 7.2  # in
+
+
+def pyplot():
+    """matplotlib's pyplot on the non-interactive backend."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def style():
+    """``with style(): ...``: the report style for the figures made inside."""
+    return pyplot().rc_context(STYLE)
+
+
+def path_axes(ax, xs, ys, margin: float = 0.06) -> None:
+    """Limits that show a path's shape: equal scales when the path is not much longer
+    than wide; otherwise each axis fitted to the path (the y scale stretched, said in the
+    axis label), never a y range set by the x range."""
+    import numpy as np
+
+    xs = np.concatenate([np.asarray(x, float).ravel() for x in xs])
+    ys = np.concatenate([np.asarray(y, float).ravel() for y in ys])
+    ok = np.isfinite(xs) & np.isfinite(ys)
+    xs, ys = xs[ok], ys[ok]
+    if xs.size == 0:
+        return
+    x0, x1, y0, y1 = xs.min(), xs.max(), ys.min(), ys.max()
+    w, h = max(x1 - x0, 1e-3), max(y1 - y0, 1e-3)
+    if h / w >= 0.2 and w / h >= 0.2:
+        ax.set_aspect("equal", adjustable="datalim")
+    else:
+        h = max(h, 0.5)  # a straight line still shows +-0.25 m
+        ym = 0.5 * (y0 + y1)
+        y0, y1 = ym - h / 2, ym + h / 2
+        ax.set_ylabel(ax.get_ylabel() + " (not to scale)")
+    ax.set_xlim(x0 - margin * w, x1 + margin * w)
+    ax.set_ylim(y0 - margin * h, y1 + margin * h)
+
+
+def robust_ylim(ax, t, series, unit: str = "", start: float = 0.5, ratio: float = 4.0) -> None:
+    """Keep a start-up transient from owning the y axis: when the first ``start`` seconds
+    reach more than ``ratio`` times as far as the rest of the run, fit the axis to the rest
+    and note the start-up's extreme on the axes."""
+    import numpy as np
+
+    t = np.asarray(t, float)
+    late = t >= t[0] + start if t.size else t.astype(bool)
+    if t.size < 10 or not late.any() or late.all():
+        return
+    vals = [np.asarray(y, float) for y in series]
+    lo = min(np.nanmin(y[late]) for y in vals)
+    hi = max(np.nanmax(y[late]) for y in vals)
+    span = max(hi - lo, 1e-12)
+    peak = max(np.nanmax(np.abs(y[~late])) for y in vals)
+    if peak > ratio * max(abs(lo), abs(hi), span):
+        pad = 0.1 * span
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.text(0.99, 0.97, f"start-up peak {peak:.3g} {unit} (off scale)".replace("  ", " "),
+                transform=ax.transAxes,
+                ha="right", va="top", fontsize=8, color="0.35")
+
+
+def plot_run(log, reference, path, title: str = "") -> None:
+    """A report figure of one run (2 x 2): the path against the reference; the position
+    error [cm]; the heading error [deg]; the wear powers [kW]. One quantity per axis."""
     import numpy as np
 
     from controller.metrics import wrap_angle
 
+    plt = pyplot()
     a = log.arrays()
     t, pose, ref = a["t"], a["pose"], a["ref"]
     W = a["W"]
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
-    dense = reference.sample(np.linspace(reference.t[0], reference.t[-1], 2000))
-    ax[0].plot(dense[:, 0], dense[:, 1], "k--", lw=1, label="reference")
-    ax[0].plot(pose[:, 0], pose[:, 1], "C0", lw=1.5, label="vehicle")
-    ax[0].set_xlabel("x [m]")
-    ax[0].set_ylabel("y [m]")
-    ax[0].axis("equal")
-    ax[0].legend()
-    ax[0].set_title("path")
-    ax[1].plot(t, 100 * (pose[:, 0] - ref[:, 0]), label="e_x [cm]")
-    ax[1].plot(t, 100 * (pose[:, 1] - ref[:, 1]), label="e_y [cm]")
-    ax[1].plot(t, np.degrees(wrap_angle(pose[:, 2] - ref[:, 2])), label="e_phi [deg]")
-    ax[1].set_xlabel("t [s]")
-    ax[1].legend()
-    ax[1].set_title("tracking errors")
-    if len(t) > 1:
-        dt = np.diff(t)
-        P = np.diff(W, axis=0) / dt[:, None] / 1000.0
-        for i, name in enumerate(("P_s", "P_alpha", "P_t")):
-            ax[2].plot(t[:-1], P[:, i], label=f"{name} [kW]")
-    ax[2].set_xlabel("t [s]")
-    ax[2].legend()
-    ax[2].set_title("wear power (mean over each period)")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    with style():
+        fig, ax = plt.subplots(2, 2, figsize=(WIDTH, 5.6))
+        (ax_path, ax_pos), (ax_head, ax_wear) = ax
+        t_end = t[-1] if len(t) else reference.t[-1]
+        dense = reference.sample(np.linspace(reference.t[0], max(t_end, reference.t[0] + 1e-3),
+                                             2000))
+        ax_path.plot(dense[:, 0], dense[:, 1], "k--", lw=1, label="reference")
+        ax_path.plot(pose[:, 0], pose[:, 1], "C0", lw=1.4, label="vehicle")
+        if len(pose):
+            ax_path.plot(pose[:1, 0], pose[:1, 1], "o", color="C0", ms=4, label="start")
+        ax_path.set_xlabel("x [m]")
+        ax_path.set_ylabel("y [m]")
+        path_axes(ax_path, [dense[:, 0], pose[:, 0]], [dense[:, 1], pose[:, 1]])
+        ax_path.legend(loc="best")
+        ax_path.set_title("path")
+
+        ex, ey = 100 * (pose[:, 0] - ref[:, 0]), 100 * (pose[:, 1] - ref[:, 1])
+        ax_pos.plot(t, ex, "C0", lw=1, label="e_x")
+        ax_pos.plot(t, ey, "C1", lw=1, label="e_y")
+        ax_pos.set_xlabel("t [s]")
+        ax_pos.set_ylabel("position error [cm]")
+        ax_pos.legend(loc="best")
+        ax_pos.set_title("position error (global frame)")
+        robust_ylim(ax_pos, t, [ex, ey], "cm")
+
+        ephi = np.degrees(wrap_angle(pose[:, 2] - ref[:, 2]))
+        ax_head.plot(t, ephi, "C2", lw=1)
+        ax_head.set_xlabel("t [s]")
+        ax_head.set_ylabel("heading error [deg]")
+        ax_head.set_title("heading error")
+        robust_ylim(ax_head, t, [ephi], "deg")
+
+        if len(t) > 1:
+            P = np.diff(W, axis=0) / np.diff(t)[:, None] / 1000.0
+            for i, (name, c) in enumerate((("P_s (slip)", "C0"), ("P_alpha (slip angle)", "C1"),
+                                           ("P_t (steering)", "C2"))):
+                ax_wear.plot(t[:-1], P[:, i], c, lw=1, label=name)
+            robust_ylim(ax_wear, t[:-1], [P[:, i] for i in range(3)], "kW")
+            ax_wear.legend(loc="best")
+        ax_wear.set_xlabel("t [s]")
+        ax_wear.set_ylabel("wear power [kW]")
+        ax_wear.set_title("wear power (mean over each period)")
+        if title:
+            fig.suptitle(title)
+        fig.tight_layout()
+        fig.savefig(path)
+        plt.close(fig)

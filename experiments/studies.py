@@ -144,6 +144,15 @@ def _group_value(group: str) -> float:
     return float(group.split()[0])
 
 
+def _vehicle_name(results: list[dict]) -> str:
+    """The name of the vehicle the runs drove (for titles)."""
+    from .runs import RunSpec
+
+    if not results:
+        return ""
+    return RunSpec.from_dict(results[0]["spec"]).scenario().resolve_vehicle().name
+
+
 def _stamp(summary: dict, results: list[dict]) -> dict:
     """The fields every result document has (experiments.results): the package version,
     the command and the warnings (failed runs, and each run's own warnings)."""
@@ -172,8 +181,11 @@ def report_case(experiment: str, results: list[dict], out: Path, run_summary: di
         speed_of = lambda g: sp  # noqa: E731
     targets = check_targets(experiment, rows, speed_of)
     paper = paper_table(experiment)
-    titles = {"case1": "Case 1 (curve, 12 t)", "case2": "Case 2 (line, 12 t, 60 deg off)",
-              "case3": f"Case 3 (curve, {results[0]['spec']['speed_kmh']:g} km/h)" if results else "Case 3"}
+    vname = _vehicle_name(results)
+    titles = {"case1": f"Case 1 (curve, {vname}, 12 t)",
+              "case2": f"Case 2 (line, {vname}, 12 t, 60 deg off)",
+              "case3": f"Case 3 (curve, {results[0]['spec']['speed_kmh']:g} km/h, {vname})"
+              if results else "Case 3"}
     title = titles[experiment]
     md = [f"# {title}\n", markdown_table(rows), "\n## Against the paper (paper rows in italics)\n",
           markdown_table(rows, paper), "\n## Targets\n", targets_markdown(targets)]
@@ -186,11 +198,11 @@ def report_case(experiment: str, results: list[dict], out: Path, run_summary: di
         figures += ["trajectories.png", "errors.png"]
         if experiment == "case1":
             plot_omega(rows, _group_value, "speed [km/h]", out / "omega_vs_speed.png",
-                       "Case 1: performance balance index against speed")
+                       f"{title}: balance index against speed")
             figures.append("omega_vs_speed.png")
         elif experiment == "case3":
             plot_omega(rows, _group_value, "gross vehicle weight [t]", out / "omega_vs_load.png",
-                       "Case 3: performance balance index against load")
+                       f"{title}: balance index against load")
             figures.append("omega_vs_load.png")
     from .results import spec_info
 
@@ -278,7 +290,7 @@ def report_pareto(results: list[dict], out: Path, run_summary: dict) -> dict:
         w.writerows(csv_rows)
     figures = []
     if any(r["status"] == "ok" for r in results):
-        plot_pareto(fronts, out / "pareto.png")
+        plot_pareto(fronts, out / "pareto.png", _vehicle_name(results))
         figures.append("pareto.png")
     summary = _stamp({"experiment": "pareto", "fronts": fronts, "runs": run_summary,
                       "figures": figures, "out": str(out)}, results)

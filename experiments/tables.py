@@ -228,81 +228,119 @@ def _group_logs(results, out_dir: Path, grp: str):
             yield r, log
 
 
+def _method_legend(fig, axes, top: float = 1.0) -> None:
+    """One legend for the figure (the methods and the reference), above the panels, its
+    top at ``top`` (figure fraction)."""
+    handles, labels = {}, {}
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles[lab], labels[lab] = h, lab
+    if handles:
+        fig.legend(list(handles.values()), list(handles), loc="upper center",
+                   ncol=min(6, len(handles)), bbox_to_anchor=(0.5, top), frameon=False)
+
+
 def plot_trajectories(results: list[dict], out_dir: Path, path: Path, title: str) -> None:
-    """Path of every method against the reference, one panel per row group."""
+    """Path of every method against the reference, one panel per row group, each fitted
+    to the path (the y scale stretched where the path is long and flat)."""
+    from .plots import WIDTH, path_axes, style
+
     plt = _plt()
     groups = _groups_in_order(results)
-    fig, axes = plt.subplots(len(groups), 1, figsize=(9, 2.6 * len(groups) + 0.6), squeeze=False)
-    for ax, grp in zip(axes[:, 0], groups):
-        ref_done = False
-        for r, log in _group_logs(results, out_dir, grp):
-            if not ref_done:
-                ax.plot(log["x_ref"], log["y_ref"], "k--", lw=1.2, label="reference")
-                ref_done = True
-            color, marker = METHOD_STYLE.get(r["spec"]["label"], (None, None))
-            ax.plot(log["x"], log["y"], lw=1.1, color=color, label=r["spec"]["label"])
-        ax.set_title(f"{title}: {grp}", fontsize=10)
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, ncol=6, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    with style():
+        height = 2.5 * len(groups) + 0.4
+        fig, axes = plt.subplots(len(groups), 1, figsize=(WIDTH, height), squeeze=False)
+        for ax, grp in zip(axes[:, 0], groups):
+            xs, ys, ref_done = [], [], False
+            for r, log in _group_logs(results, out_dir, grp):
+                if not ref_done:
+                    ax.plot(log["x_ref"], log["y_ref"], "k--", lw=1.2, label="reference")
+                    xs.append(log["x_ref"])
+                    ys.append(log["y_ref"])
+                    ref_done = True
+                color, marker = METHOD_STYLE.get(r["spec"]["label"], (None, None))
+                ax.plot(log["x"], log["y"], lw=1.1, color=color, label=r["spec"]["label"])
+                xs.append(log["x"])
+                ys.append(log["y"])
+            ax.set_title(f"{title}, {grp}")
+            ax.set_xlabel("x [m]")
+            ax.set_ylabel("y [m]")
+            if xs:
+                path_axes(ax, xs, ys)
+        _method_legend(fig, axes[:, 0])
+        fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / height))
+        fig.savefig(path)
+        plt.close(fig)
 
 
 def plot_errors(results: list[dict], out_dir: Path, path: Path, title: str) -> None:
-    """e_x, e_y [cm] and e_phi [deg] over time for every method, one row per group."""
-    plt = _plt()
+    """e_x, e_y [cm] and e_phi [deg] over time for every method, one row per group; one
+    quantity per axis."""
     from controller.metrics import wrap_angle
 
+    from .plots import WIDTH, robust_ylim, style
+
+    plt = _plt()
     groups = _groups_in_order(results)
-    fig, axes = plt.subplots(len(groups), 3, figsize=(13, 2.4 * len(groups) + 0.6), squeeze=False)
-    for row, grp in zip(axes, groups):
-        for r, log in _group_logs(results, out_dir, grp):
-            step = max(1, len(log["t"]) // 1500)
-            t = log["t"][::step]
-            color, _ = METHOD_STYLE.get(r["spec"]["label"], (None, None))
-            ex = 100 * (log["x"] - log["x_ref"])[::step]
-            ey = 100 * (log["y"] - log["y_ref"])[::step]
-            ep = np.degrees(wrap_angle(log["phi"] - log["phi_ref"]))[::step]
-            for ax, e in zip(row, (ex, ey, ep)):
-                ax.plot(t, e, lw=0.9, color=color, label=r["spec"]["label"])
-        for ax, name in zip(row, ("e_x [cm]", "e_y [cm]", "e_phi [deg]")):
-            ax.set_title(f"{grp}: {name}", fontsize=9)
-            ax.grid(alpha=0.3)
-            ax.set_xlabel("t [s]")
-        row[0].legend(fontsize=7)
-    fig.suptitle(f"{title}: tracking errors over time", fontsize=11)
-    fig.tight_layout()
-    fig.savefig(path, dpi=75)
-    plt.close(fig)
+    with style():
+        height = 2.5 * len(groups) + 0.7
+        fig, axes = plt.subplots(len(groups), 3, figsize=(WIDTH * 1.4, height), squeeze=False)
+        for row, grp in zip(axes, groups):
+            series = [[], [], []]
+            t_all = None
+            for r, log in _group_logs(results, out_dir, grp):
+                step = max(1, len(log["t"]) // 1500)
+                t = log["t"][::step]
+                color, _ = METHOD_STYLE.get(r["spec"]["label"], (None, None))
+                ex = 100 * (log["x"] - log["x_ref"])[::step]
+                ey = 100 * (log["y"] - log["y_ref"])[::step]
+                ep = np.degrees(wrap_angle(log["phi"] - log["phi_ref"]))[::step]
+                for ax, e, acc in zip(row, (ex, ey, ep), series):
+                    ax.plot(t, e, lw=0.9, color=color, label=r["spec"]["label"])
+                    if t_all is None or len(t) == len(t_all):
+                        acc.append(e)
+                t_all = t if t_all is None else t_all
+            for ax, name, unit, acc in zip(row, ("e_x", "e_y", "e_phi"), ("cm", "cm", "deg"),
+                                           series):
+                ax.set_title(f"{grp}: {name}")
+                ax.set_ylabel(f"{name} [{unit}]")
+                ax.set_xlabel("t [s]")
+                if acc and t_all is not None:
+                    robust_ylim(ax, t_all, acc, unit)
+        fig.suptitle(f"{title}: tracking errors over time", y=1 - 0.05 / height, va="top")
+        _method_legend(fig, axes.ravel(), top=1 - 0.3 / height)
+        fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / height))
+        fig.savefig(path)
+        plt.close(fig)
 
 
 def plot_omega(rows: list[dict], xvalue, xlabel: str, path: Path, title: str) -> None:
     """lg(Omega) against the group variable (speed or load) for every method."""
+    from .plots import style
+
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    methods = []
-    for r in rows:
-        if r["method"] not in methods:
-            methods.append(r["method"])
-    for m in methods:
-        pts = sorted((xvalue(r["group"]), math.log10(r["metrics"]["Omega"])) for r in rows
-                     if r["method"] == m and r["status"] == "ok" and _finite(r["metrics"]["Omega"])
-                     and r["metrics"]["Omega"] > 0)
-        if not pts:
-            continue
-        color, marker = METHOD_STYLE.get(m, (None, "o"))
-        ax.plot(*zip(*pts), marker=marker, color=color, label=m)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("lg(Omega)")
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    with style():
+        fig, ax = plt.subplots(figsize=(5.8, 3.8))
+        methods = []
+        for r in rows:
+            if r["method"] not in methods:
+                methods.append(r["method"])
+        for m in methods:
+            pts = sorted((xvalue(r["group"]), math.log10(r["metrics"]["Omega"])) for r in rows
+                         if r["method"] == m and r["status"] == "ok"
+                         and _finite(r["metrics"]["Omega"]) and r["metrics"]["Omega"] > 0)
+            if not pts:
+                continue
+            color, marker = METHOD_STYLE.get(m, (None, "o"))
+            ax.plot(*zip(*pts), marker=marker, color=color, label=m)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("lg Omega (eq. 33) [-]")
+        ax.set_title(title)
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(path)
+        plt.close(fig)
 
 
 # ---- Pareto fronts ------------------------------------------------------------------------------
@@ -328,40 +366,46 @@ def wear_at(front: list[tuple[float, float]], e: float) -> float | None:
     return float(np.interp(e, es, ws))
 
 
-def plot_pareto(fronts: dict, path: Path) -> None:
+def plot_pareto(fronts: dict, path: Path, vehicle: str = "") -> None:
     """W_tw against e_bar: the TWO family (L scaled), the NTWO families (regularisation
     scaled), the three baselines as points; one panel per speed."""
+    from .plots import WIDTH, style
+
     plt = _plt()
     speeds = list(fronts)
-    fig, axes = plt.subplots(1, len(speeds), figsize=(6.4 * len(speeds), 4.8), squeeze=False)
     fam_style = {"TWO": ("C3", "^-"), "NTWO-smooth": ("C0", "o-"), "NTWO-ridge": ("C9", "s-")}
-    for ax, sp in zip(axes[0], speeds):
-        fr = fronts[sp]
-        for fam, pts in fr["families"].items():
-            ok = [p for p in pts if p["status"] == "ok"]
-            if not ok:
-                continue
-            color, style = fam_style.get(fam, ("C5", "x-"))
-            ok = sorted(ok, key=lambda p: p["scale"])
-            ax.plot([p["e_bar"] for p in ok], [p["W_tw"] for p in ok], style, color=color,
-                    ms=5, lw=1, label=f"{fam} ({fr['lever'][fam]})")
-            for p in ok:
-                ax.annotate(f"x{p['scale']:g}", (p["e_bar"], p["W_tw"]), fontsize=6,
-                            xytext=(3, 3), textcoords="offset points", color=color)
-        for name, p in fr["baselines"].items():
-            if p["status"] != "ok":
-                continue
-            color, marker = METHOD_STYLE.get(name, ("k", "*"))
-            ax.plot([p["e_bar"]], [p["W_tw"]], marker, color=color, ms=9, ls="none", label=name)
-        es = [p["e_bar"] for f in fr["families"].values() for p in f if p["status"] == "ok"]
-        es += [p["e_bar"] for p in fr["baselines"].values() if p["status"] == "ok"]
-        if es and max(es) / max(min(es), 1e-9) > 30:
-            ax.set_xscale("log")
-        ax.set_xlabel("e_bar (eq. 32)")
-        ax.set_ylabel("W_tw [J] (eq. 31)")
-        ax.set_title(f"Case 1 curve, {sp}: wear against accuracy", fontsize=10)
-        ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=85)
-    plt.close(fig)
+    with style():
+        fig, axes = plt.subplots(1, len(speeds), figsize=(WIDTH * 0.75 * len(speeds), 4.4),
+                                 squeeze=False)
+        for ax, sp in zip(axes[0], speeds):
+            fr = fronts[sp]
+            for fam, pts in fr["families"].items():
+                ok = [p for p in pts if p["status"] == "ok"]
+                if not ok:
+                    continue
+                color, style_ = fam_style.get(fam, ("C5", "x-"))
+                ok = sorted(ok, key=lambda p: p["scale"])
+                ax.plot([p["e_bar"] for p in ok], [p["W_tw"] for p in ok], style_, color=color,
+                        ms=5, lw=1, label=f"{fam} ({fr['lever'][fam]})")
+                for p in ok:
+                    ax.annotate(f"x{p['scale']:g}", (p["e_bar"], p["W_tw"]), fontsize=7.5,
+                                xytext=(3, 3), textcoords="offset points", color=color)
+            for name, p in fr["baselines"].items():
+                if p["status"] != "ok":
+                    continue
+                color, marker = METHOD_STYLE.get(name, ("k", "*"))
+                ax.plot([p["e_bar"]], [p["W_tw"]], marker, color=color, ms=8, ls="none",
+                        label=name)
+            es = [p["e_bar"] for f in fr["families"].values() for p in f if p["status"] == "ok"]
+            es += [p["e_bar"] for p in fr["baselines"].values() if p["status"] == "ok"]
+            if es and max(es) / max(min(es), 1e-9) > 30:
+                ax.set_xscale("log")
+            ax.set_xlabel("e_bar (eq. 32, mean of e_x, e_y [cm] and e_phi [deg])")
+            ax.set_ylabel("W_tw [J] (eq. 31)")
+            who = f", {vehicle}" if vehicle else ""
+            ax.set_title(f"Case 1 curve at {sp}{who}: wear against accuracy")
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(path)
+        plt.close(fig)
