@@ -52,7 +52,10 @@ STATE_REQUIRED = {"v": "int", "seq": "int", "t": "float", "x": "float", "y": "fl
                   "phi": "float", "vx": "float", "vy": "float", "r": "float",
                   "delta": "wheels", "omega_w": "wheels+"}
 STATE_OPTIONAL = {"W_s": "float", "W_alpha": "float", "W_t": "float", "safe": "bool",
-                  "end": "bool"}
+                  "end": "bool", "W_s_ij": "wheels", "W_alpha_ij": "wheels", "W_t_ij": "wheels"}
+# the per-wheel wear work (arrays in the wheel order): sent only to peers that asked for it
+# (docs/PROTOCOL.md, "Per-wheel wear"), as a peer of the first version rejects them
+WHEEL_WEAR_FIELDS = ("W_s_ij", "W_alpha_ij", "W_t_ij")
 CMD_REQUIRED = {"v": "int", "seq": "int", "t": "float", "state_seq": "int",
                 "omega_w": "wheels+", "omega_s": "wheels"}
 CMD_OPTIONAL = {"solve_ms": "float+", "cost": "float"}
@@ -84,8 +87,10 @@ def pack(msg: Mapping[str, Any]) -> bytes:
 
 
 def encode_state(seq: int, state: Mapping[str, Any], *, safe: bool | None = None,
-                 end: bool | None = None) -> bytes:
-    """A ``state`` message from ``Plant.state_message()``-style fields (``t`` included)."""
+                 end: bool | None = None, wheel_wear: bool = True) -> bytes:
+    """A ``state`` message from ``Plant.state_message()``-style fields (``t`` included).
+    ``wheel_wear``: include the per-wheel wear work ``W_s_ij, W_alpha_ij, W_t_ij`` when the
+    fields have them (False: leave them out, for a peer that does not know them)."""
     m = {"v": VERSION, "seq": int(seq), "t": float(state["t"])}
     for k in ("x", "y", "phi", "vx", "vy", "r"):
         m[k] = float(state[k])
@@ -94,6 +99,10 @@ def encode_state(seq: int, state: Mapping[str, Any], *, safe: bool | None = None
     for k in ("W_s", "W_alpha", "W_t"):
         if k in state:
             m[k] = float(state[k])
+    if wheel_wear:
+        for k in WHEEL_WEAR_FIELDS:
+            if k in state:
+                m[k] = _floats(state[k])
     if safe is not None:
         m["safe"] = bool(safe)
     if end is not None:

@@ -426,8 +426,12 @@ class FmuPlant:
         wear = None
         if all(k in ix for k in ("W_s", "W_alpha", "W_t")):
             wear = [y[ix[k]] for k in ("W_s", "W_alpha", "W_t")]
+        per_wheel = [[f"{q}_{k}" for k in w] for q in ("W_s", "W_alpha", "W_t")]
+        wheel_wear = None  # each wheel's wear work, when the FMU has every such output
+        if all(n in ix for row in per_wheel for n in row):
+            wheel_wear = [[y[ix[n]] for n in row] for row in per_wheel]
         return state_message(self.t, [y[ix[k]] for k in REQUIRED_OUTPUTS],
-                             [y[ix[f"delta_{k}"]] for k in w], omega_w, wear)
+                             [y[ix[f"delta_{k}"]] for k in w], omega_w, wear, wheel_wear)
 
     def get_state(self) -> "FmuSnapshot":
         """A snapshot of the FMU's whole state (fmi2GetFMUstate) with the host's time and

@@ -77,6 +77,13 @@ _WHEEL_SIGNALS = {
     "Fx": ("N", "longitudinal tire force of wheel {w} in its wheel frame (paper eq. 11)"),
     "Fy": ("N", "lateral tire force of wheel {w} in its wheel frame (paper eq. 12)"),
     "F_N": ("N", "normal load of wheel {w}"),
+    "P_s": ("W", "slip-ratio wear power of wheel {w} (paper eq. 13); summed: P_s"),
+    "P_alpha": ("W", "slip-angle wear power of wheel {w} (paper eq. 14); summed: P_alpha"),
+    "P_t": ("W", "steering wear power of wheel {w} (paper eq. 15); summed: P_t"),
+    "W_s": ("J", "slip-ratio wear work of wheel {w}, integrated; summed: W_s"),
+    "W_alpha": ("J", "slip-angle wear work of wheel {w}, integrated; summed: W_alpha"),
+    "W_t": ("J", "steering wear work of wheel {w}, integrated; summed: W_t"),
+    "W_tw": ("J", "total wear work of wheel {w}, W_s_{w} + W_alpha_{w} + W_t_{w}; summed: W_tw"),
 }
 
 _INPUTS = {

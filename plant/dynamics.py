@@ -20,7 +20,8 @@ from .layout import (AUX_ALPHA, AUX_DDELTA, AUX_FN, AUX_FX, AUX_FY, AUX_OMEGA_W,
                      P_LON_C, P_LON_E, P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN,
                      P_OMEGA_W_MAX, P_STEER_LAG, P_V_EPS, P_WHEEL_LAG, P_WHEEL_RADIUS,
                      P_YAW_INERTIA, WEAR_ALPHA, WEAR_S, WEAR_T, Y_DELTA, Y_PHI, Y_R, Y_VX,
-                     Y_VY, Y_X, Y_Y, state_size, y_omega_s, y_omega_w, y_wear)
+                     Y_VY, Y_X, Y_Y, n_error_states, state_size, y_omega_s, y_omega_w,
+                     y_wear, y_wheel_wear)
 from . import tire
 from .tire import (V_EPS_DEFAULT, magic_formula, slip_angle, slip_ratio, wear_power_angle,
                    wear_power_slip, wear_power_steer, wheel_to_body, wheel_velocity)
@@ -176,6 +177,10 @@ def evaluate(y, u_w, u_s, P, wx, wy, aux, dy):
         ps += aux[k, AUX_PS]
         pa += aux[k, AUX_PALPHA]
         pt += aux[k, AUX_PT]
+        ik = y_wheel_wear(nw, k)  # each wheel's own wear work (eq. 13-15 integrated)
+        dy[ik + WEAR_S] = aux[k, AUX_PS]
+        dy[ik + WEAR_ALPHA] = aux[k, AUX_PALPHA]
+        dy[ik + WEAR_T] = aux[k, AUX_PT]
     dy[iw + WEAR_S] = ps  # eq. (16), integrated: W = int P dt (eq. 28-30 without sampling)
     dy[iw + WEAR_ALPHA] = pa
     dy[iw + WEAR_T] = pt
@@ -201,9 +206,14 @@ def integrate(y, t0, t1, u_w, u_s, P, wx, wy, rtol, atol, h_init, max_steps, sta
     RMS norm, safety 0.9, step ratio in [0.2, 5]). Steering angles are clipped to their
     stops after each accepted step. Returns the step size to try next time;
     ``stats`` receives (accepted, rejected) counts.
+
+    The per-wheel wear work (the tail of ``y`` from ``n_error_states``) is integrated with
+    the same steps but is not in the error norm, and the stages skip it (no right-hand
+    side reads wear work): the dynamics and the totals step exactly as without it.
     """
     n = y.shape[0]
     nw = wx.shape[0]
+    ne = n_error_states(nw)  # the stages' and the error norm's states
     aux = np.empty((nw, N_AUX))
     k1 = np.empty(n)
     k2 = np.empty(n)
@@ -227,19 +237,19 @@ def integrate(y, t0, t1, u_w, u_s, P, wx, wy, rtol, atol, h_init, max_steps, sta
             last = True
         else:
             h_try = h
-        for i in range(n):
+        for i in range(ne):
             yt[i] = y[i] + h_try * _A21 * k1[i]
         evaluate(yt, u_w, u_s, P, wx, wy, aux, k2)
-        for i in range(n):
+        for i in range(ne):
             yt[i] = y[i] + h_try * (_A31 * k1[i] + _A32 * k2[i])
         evaluate(yt, u_w, u_s, P, wx, wy, aux, k3)
-        for i in range(n):
+        for i in range(ne):
             yt[i] = y[i] + h_try * (_A41 * k1[i] + _A42 * k2[i] + _A43 * k3[i])
         evaluate(yt, u_w, u_s, P, wx, wy, aux, k4)
-        for i in range(n):
+        for i in range(ne):
             yt[i] = y[i] + h_try * (_A51 * k1[i] + _A52 * k2[i] + _A53 * k3[i] + _A54 * k4[i])
         evaluate(yt, u_w, u_s, P, wx, wy, aux, k5)
-        for i in range(n):
+        for i in range(ne):
             yt[i] = y[i] + h_try * (_A61 * k1[i] + _A62 * k2[i] + _A63 * k3[i]
                                     + _A64 * k4[i] + _A65 * k5[i])
         evaluate(yt, u_w, u_s, P, wx, wy, aux, k6)
@@ -248,12 +258,12 @@ def integrate(y, t0, t1, u_w, u_s, P, wx, wy, rtol, atol, h_init, max_steps, sta
                                     + _B5 * k5[i] + _B6 * k6[i])
         evaluate(y5, u_w, u_s, P, wx, wy, aux, k7)
         err = 0.0
-        for i in range(n):
+        for i in range(ne):
             e = h_try * (_E1 * k1[i] + _E3 * k3[i] + _E4 * k4[i] + _E5 * k5[i]
                          + _E6 * k6[i] + _E7 * k7[i])
             sc = atol + rtol * max(abs(y[i]), abs(y5[i]))
             err += (e / sc) ** 2
-        err = np.sqrt(err / n)
+        err = np.sqrt(err / ne)
         if err <= 1.0:
             t = t1 if last else t + h_try
             for i in range(n):

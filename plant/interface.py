@@ -99,14 +99,19 @@ def check_step(t_plant: float, t: float, h: float) -> None:
 
 BODY_FIELDS = ("x", "y", "phi", "vx", "vy", "r")
 WEAR_FIELDS = ("W_s", "W_alpha", "W_t")
+# the per-wheel wear work in the state message: arrays in the wheel order (the ``_ij``
+# stands for "of every wheel ij"; the signals are W_s_11, W_s_12, ...)
+WHEEL_WEAR_FIELDS = ("W_s_ij", "W_alpha_ij", "W_t_ij")
 
 
 def state_message(t: float, body: Sequence[float], delta: Sequence[float],
-                  omega_w: Sequence[float], wear: Sequence[float] | None = None) -> dict:
+                  omega_w: Sequence[float], wear: Sequence[float] | None = None,
+                  wheel_wear: Sequence[Sequence[float]] | None = None) -> dict:
     """DESIGN.md's ``state`` fields (without ``v``/``seq``): ``t``, the body's pose and
     velocity ``x, y, phi, vx, vy, r`` (velocities in G), ``delta`` and the actual
-    ``omega_w`` (lists in the wheel order), and the wear work ``W_s, W_alpha, W_t`` when
-    the plant provides it."""
+    ``omega_w`` (lists in the wheel order), the wear work ``W_s, W_alpha, W_t`` when
+    the plant provides it, and each wheel's ``W_s_ij, W_alpha_ij, W_t_ij`` (lists in the
+    wheel order; ``wheel_wear``: three rows of 2n) when it provides those."""
     msg = {"t": float(t)}
     for k, v in zip(BODY_FIELDS, body):
         msg[k] = float(v)
@@ -115,4 +120,7 @@ def state_message(t: float, body: Sequence[float], delta: Sequence[float],
     if wear is not None:
         for k, v in zip(WEAR_FIELDS, wear):
             msg[k] = float(v)
+    if wheel_wear is not None:
+        for k, row in zip(WHEEL_WEAR_FIELDS, wheel_wear):
+            msg[k] = [float(v) for v in row]
     return msg

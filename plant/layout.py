@@ -15,13 +15,18 @@ optional realism, and the slip regularisation speed.
 Settings vector ``S`` (:func:`controller.models.pack_settings`): the MPC's own settings
 only (prediction step, servo and feedback gains, the cornering feed-forward gain).
 
-Plant state ``y`` (:mod:`plant.dynamics`, ``9 + 3 nw`` entries for ``nw`` wheels)::
+Plant state ``y`` (:mod:`plant.dynamics`, ``9 + 6 nw`` entries for ``nw`` wheels)::
 
     Y_X .. Y_R             x, y, phi, vx, vy, r   (velocities in G, eq. 20)
     Y_DELTA ..             delta_ij               (nw entries)
     y_wear(nw) + WEAR_*    W_s, W_alpha, W_t      (wear work, integrated)
     y_omega_w(nw) ..       actual wheel speeds    (nw; used with wheel_lag > 0)
     y_omega_s(nw) ..       actual steering rates  (nw; used with steer_lag > 0)
+    y_wheel_wear(nw, k) + WEAR_*   W_s, W_alpha, W_t of wheel k (3 nw; integrated)
+
+The integrator's error norm covers the first ``n_error_states(nw)`` entries only (all but
+the per-wheel wear work, which sums to the totals that the norm does see), so the
+per-wheel states never change the step-size control of the dynamics.
 
 Controller state ``x0`` (:mod:`controller.rollout`, ``6 + nw``): the head of ``y``, the
 same indices (``X0_*`` = ``Y_*``). Reference rows ``ref`` use ``REF_*`` (= ``Y_X .. Y_R``).
@@ -116,9 +121,24 @@ def y_omega_s(nw):
 
 
 @_offset
+def y_wheel_wear(nw, k):
+    """First index of wheel ``k``'s wear work W_s, W_alpha, W_t in ``y`` (wheel order
+    11, 12, 21, ...; ``+ WEAR_*`` within the block)."""
+    return Y_DELTA + 3 * nw + N_WEAR + N_WEAR * k
+
+
+@_offset
+def n_error_states(nw):
+    """Leading entries of ``y`` in the integrator's error norm: everything up to the
+    per-wheel wear work (which no right-hand side reads, and whose sum over the wheels
+    is the totals at ``y_wear``, already in the norm)."""
+    return Y_DELTA + 3 * nw + N_WEAR
+
+
+@_offset
 def state_size(nw):
     """Length of the plant state ``y`` for ``nw`` wheels."""
-    return Y_DELTA + 3 * nw + N_WEAR
+    return Y_DELTA + 3 * nw + N_WEAR + N_WEAR * nw
 
 
 X0_X, X0_Y, X0_PHI, X0_VX, X0_VY, X0_R = Y_X, Y_Y, Y_PHI, Y_VX, Y_VY, Y_R

@@ -15,7 +15,8 @@ from .interface import PlantError, check_inputs, check_step, saturate, state_mes
 from .tire import V_EPS_DEFAULT
 from .vehicle import Vehicle, default_vehicle
 
-__all__ = ["Plant", "PlantError", "PlantSnapshot", "input_names", "signal_names", "state_names"]
+__all__ = ["Plant", "PlantError", "PlantSnapshot", "input_names", "signal_names", "state_names",
+           "wheel_wear_names"]
 
 
 def state_names(vehicle: Vehicle) -> list[str]:
@@ -38,7 +39,20 @@ def signal_names(vehicle: Vehicle) -> list[str]:
     names += [f"Fy_{k}" for k in w]
     names += [f"F_N_{k}" for k in w]
     names += ["P_s", "P_alpha", "P_t", "W_s", "W_alpha", "W_t", "W_tw"]
+    names += wheel_wear_names(vehicle)
     return names
+
+
+WHEEL_POWERS = ("P_s", "P_alpha", "P_t")  # per wheel: P_s_ij, ... [W]
+WHEEL_WORK = ("W_s", "W_alpha", "W_t", "W_tw")  # per wheel: W_s_ij, ... [J]
+
+
+def wheel_wear_names(vehicle: Vehicle) -> list[str]:
+    """The per-wheel wear signals, in output order: ``P_s_ij, P_alpha_ij, P_t_ij`` (each
+    for every wheel), then ``W_s_ij, W_alpha_ij, W_t_ij, W_tw_ij``. Summed over the wheels
+    they are the totals ``P_s`` ... ``W_tw``."""
+    w = vehicle.wheel_names
+    return [f"{q}_{k}" for q in WHEEL_POWERS + WHEEL_WORK for k in w]
 
 
 def input_names(vehicle: Vehicle) -> list[str]:
@@ -206,13 +220,22 @@ class Plant:
         """All signals, in the order of :func:`signal_names`."""
         nw, y, a = self.nw, self._y, self._aux
         iw = lay.y_wear(nw)
-        W = y[iw:iw + 3]
+        W = y[iw:iw + lay.N_WEAR]
         P = a[:, lay.AUX_PS:lay.AUX_PT + 1].sum(axis=0)
+        Wk = self._wheel_wear()  # (N_WEAR, nw)
         return np.concatenate([
             y[lay.Y_X:lay.Y_R + 1], y[lay.Y_DELTA:lay.Y_DELTA + nw], a[:, lay.AUX_OMEGA_W],
             a[:, lay.AUX_DDELTA], a[:, lay.AUX_S], a[:, lay.AUX_ALPHA], a[:, lay.AUX_FX],
             a[:, lay.AUX_FY], a[:, lay.AUX_FN], P, W, [W.sum()],
+            a[:, lay.AUX_PS], a[:, lay.AUX_PALPHA], a[:, lay.AUX_PT],
+            Wk.ravel(), Wk.sum(axis=0),
         ])
+
+    def _wheel_wear(self) -> np.ndarray:
+        """Each wheel's wear work, shape (N_WEAR, nw): rows W_s, W_alpha, W_t."""
+        nw = self.nw
+        i0 = lay.y_wheel_wear(nw, 0)
+        return self._y[i0:i0 + lay.N_WEAR * nw].reshape(nw, lay.N_WEAR).T
 
     def outputs(self) -> dict[str, float]:
         """All signals by name (``omega_w_ij``/``omega_s_ij`` are the actual rates)."""
@@ -247,4 +270,5 @@ class Plant:
         y, nw = self._y, self.nw
         iw = lay.y_wear(nw)
         return state_message(self.t, y[lay.Y_X:lay.Y_R + 1], y[lay.Y_DELTA:lay.Y_DELTA + nw],
-                             self._aux[:, lay.AUX_OMEGA_W], y[iw:iw + 3])
+                             self._aux[:, lay.AUX_OMEGA_W], y[iw:iw + lay.N_WEAR],
+                             self._wheel_wear())

@@ -34,10 +34,13 @@ def test_every_vector_is_named_once():
     for prefix, size in (("P_", lay.N_PARAMS), ("S_", lay.N_SETTINGS), ("AUX_", lay.N_AUX)):
         assert sorted(lay.names(prefix).values()) == list(range(size)), prefix
     nw = 6
-    assert lay.state_size(nw) == 9 + 3 * nw
+    assert lay.state_size(nw) == 9 + 6 * nw
     assert lay.y_wear(nw) == 6 + nw
     assert lay.y_omega_w(nw) == 9 + nw
     assert lay.y_omega_s(nw) == 9 + 2 * nw
+    # per-wheel wear work last, 3 per wheel; the error norm stops before it
+    assert lay.n_error_states(nw) == 9 + 3 * nw == lay.y_wheel_wear(nw, 0)
+    assert [lay.y_wheel_wear(nw, k) for k in range(nw)] == list(range(9 + 3 * nw, 9 + 6 * nw, 3))
     assert lay.x0_size(nw) == 6 + nw
     # the controller's state is the head of the plant's, the reference rows use its order
     assert (lay.X0_X, lay.X0_Y, lay.X0_PHI, lay.X0_VX, lay.X0_VY, lay.X0_R, lay.X0_DELTA) == \
