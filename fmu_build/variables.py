@@ -124,6 +124,8 @@ _VEHICLE_PARAMS: list[tuple[str, tuple, str | None, str]] = [
      "centre-of-gravity height; > 0 turns on quasi-static load transfer"),
     ("wheel_lag", ("plant", "wheel_lag"), "s", "wheel-speed tracking time constant (0 = ideal)"),
     ("steer_lag", ("plant", "steer_lag"), "s", "steering-rate tracking time constant (0 = ideal)"),
+    ("combined_slip", ("plant", "combined_slip"), None,
+     "1: combined-slip tire forces (plant.tire.combined_slip_weights), 0: off"),
 ]
 
 _OPTIONS = [

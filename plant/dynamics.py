@@ -15,7 +15,7 @@ from numba import njit
 from . import layout as lay
 from .layout import (AUX_ALPHA, AUX_DDELTA, AUX_FN, AUX_FX, AUX_FY, AUX_OMEGA_W,  # noqa: F401
                      AUX_PALPHA, AUX_PS, AUX_PT, AUX_S, AUX_VWX, AUX_VWY, N_AUX, N_PARAMS,
-                     P_CG_HEIGHT, P_DELTA_MAX, P_DELTA_MIN, P_DUGOFF_C_ALPHA, P_DUGOFF_C_S,
+                     P_CG_HEIGHT, P_COMBINED_SLIP, P_DELTA_MAX, P_DELTA_MIN, P_DUGOFF_C_ALPHA, P_DUGOFF_C_S,
                      P_DUGOFF_MU, P_G, P_K_T, P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B,
                      P_LON_C, P_LON_E, P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN,
                      P_OMEGA_W_MAX, P_STEER_LAG, P_V_EPS, P_WHEEL_LAG, P_WHEEL_RADIUS,
@@ -23,7 +23,7 @@ from .layout import (AUX_ALPHA, AUX_DDELTA, AUX_FN, AUX_FX, AUX_FY, AUX_OMEGA_W,
                      Y_VY, Y_X, Y_Y, n_error_states, state_size, y_omega_s, y_omega_w,
                      y_wear, y_wheel_wear)
 from . import tire
-from .tire import (V_EPS_DEFAULT, magic_formula, slip_angle, slip_ratio, wear_power_angle,
+from .tire import (V_EPS_DEFAULT, combined_slip_weights, magic_formula, slip_angle, slip_ratio, wear_power_angle,
                    wear_power_slip, wear_power_steer, wheel_to_body, wheel_velocity)
 from .vehicle import G_ACCEL, Vehicle
 
@@ -62,6 +62,7 @@ def pack_params(vehicle: Vehicle, v_eps: float = V_EPS_DEFAULT) -> tuple[np.ndar
     P[P_CG_HEIGHT] = po.cg_height
     P[P_WHEEL_LAG] = po.wheel_lag
     P[P_STEER_LAG] = po.steer_lag
+    P[P_COMBINED_SLIP] = po.combined_slip
     return P, np.ascontiguousarray(vehicle.wheel_x), np.ascontiguousarray(vehicle.wheel_y)
 
 
@@ -78,6 +79,7 @@ def _tire_pass(y, om_w, om_s, FN, P, wx, wy, aux):
     vby = -s * vx + c * vy
     r_w, k_t, v_eps = P[P_WHEEL_RADIUS], P[P_K_T], P[P_V_EPS]
     dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
+    combined = P[P_COMBINED_SLIP] > 0.0
     fbx = 0.0
     fby = 0.0
     mz = 0.0
@@ -88,6 +90,10 @@ def _tire_pass(y, om_w, om_s, FN, P, wx, wy, aux):
         al = slip_angle(vwx, vwy, v_eps)
         Fx = magic_formula(sl, P[P_LON_B], P[P_LON_C], P[P_LON_MU] * FN[k], P[P_LON_E])  # eq. (11)
         Fy = magic_formula(al, P[P_LAT_B], P[P_LAT_C], P[P_LAT_MU] * FN[k], P[P_LAT_E])  # eq. (12)
+        if combined:  # plant-only option: the forces of eq. (11), (12) interact
+            g_x, g_y = combined_slip_weights(sl, al)
+            Fx *= g_x
+            Fy *= g_y
         Fbx, Fby = wheel_to_body(Fx, Fy, d)  # eq. (4)
         fbx += Fbx
         fby += Fby

@@ -82,7 +82,8 @@ P_DELTA_MAX = 21
 P_CG_HEIGHT = 22      # plant only: load transfer (0: off) [m]
 P_WHEEL_LAG = 23      # plant only: wheel-speed lag (0: off) [s]
 P_STEER_LAG = 24      # plant only: steering-rate lag (0: off) [s]
-N_PARAMS = 25
+P_COMBINED_SLIP = 25  # plant only: combined-slip tire forces (0: off, 1: on)
+N_PARAMS = 26
 
 # ---- settings vector S (controller.models.pack_settings) -------------------------------
 S_DT = 0              # prediction step [s]
@@ -92,7 +93,14 @@ S_K_PHI = 3           # heading feedback gain [1/s]
 S_V_FB_MAX = 4        # position feedback limit [m/s]
 S_R_FB_MAX = 5        # heading feedback limit [rad/s]
 S_K_ALPHA = 6         # cornering feed-forward gain [rad per (m/s)(rad/s)]
-N_SETTINGS = 7
+S_POLICY = 7          # decision parametrisation: POLICY_* below (an integer held as float)
+S_STRIDE = 8          # decision variables per move block (an integer held as float)
+N_SETTINGS = 9
+
+# decision parametrisations (S_POLICY); the policy maps a block's variables to commands
+POLICY_OFFSETS = 0    # per-wheel offsets of wheel speed and steering target from the feed-forward
+POLICY_TWIST = 1      # offsets of the body twist (u, v, r): every wheel about one centre
+POLICY_RAW = 2        # the commands themselves (omega_w, omega_s): the paper's U of eq. 27
 
 # ---- plant state y and controller state x0 ---------------------------------------------
 Y_X, Y_Y, Y_PHI, Y_VX, Y_VY, Y_R = 0, 1, 2, 3, 4, 5
@@ -174,7 +182,9 @@ N_AUX = 12
 
 # ---- cost weights ----------------------------------------------------------------------
 Q_X, Q_Y, Q_PHI = 0, 1, 2
-L_S, L_ALPHA, L_T = 0, 1, 2
+L_S, L_ALPHA, L_T = 0, 1, 2  # quadratic wear weights (eq. 26) [1/kW^2]
+LE_S, LE_ALPHA, LE_T = 3, 4, 5  # linear (wear-energy) weights [1/kW]
+N_L = 6
 R_DW, R_DD, R_OW, R_OD = 0, 1, 2, 3  # smoothing (wheel, angle), ridge (wheel, angle)
 
 # vectors whose names must cover 0 .. N - 1 exactly once (checked below and by a test)

@@ -44,6 +44,29 @@ def magic_formula_and_slope(xi, B, C, D, E):
     return D * np.sin(ca), D * np.cos(ca) * C * darg / (1.0 + arg * arg)
 
 
+# Combined-slip weighting functions of the Magic Formula (MF-Tyre 5.2, Pacejka, "Tire and
+# Vehicle Dynamics", 3rd ed., section 4.3.2, without the shifts), with the coefficients
+# of the book's example 205/60R15 tire (Appendix 3; no truck-tire set was available):
+RBX1, RBX2, RCX1 = 13.046, 9.718, 0.9995  # G_x(alpha, s)
+RBY1, RBY2, RCY1 = 10.622, 7.820, 1.0587  # G_y(s, alpha)
+
+
+@_kernel
+def combined_slip_weights(s, alpha):
+    """``(G_x, G_y)``: the factors (<= 1) by which a slip angle ``alpha`` lowers the pure
+    longitudinal force ``f(s)`` and a slip ratio ``s`` lowers the pure lateral force
+    ``f(alpha)`` (MF 5.2 combined slip):
+
+        G_x = cos(RCX1 arctan(B_xa alpha)),  B_xa = RBX1 cos(arctan(RBX2 s))
+        G_y = cos(RCY1 arctan(B_ys s)),      B_ys = RBY1 cos(arctan(RBY2 alpha))
+
+    Used by the plant only, with ``[plant] combined_slip = 1`` (the paper's model, and
+    every prediction model, keep the forces of eq. 11 and 12 independent)."""
+    b_xa = RBX1 * np.cos(np.arctan(RBX2 * s))
+    b_ys = RBY1 * np.cos(np.arctan(RBY2 * alpha))
+    return np.cos(RCX1 * np.arctan(b_xa * alpha)), np.cos(RCY1 * np.arctan(b_ys * s))
+
+
 @_kernel
 def slip_denominator(v_wx, v_eps):
     """``sqrt(v_wx^2 + v_eps^2)``: the regularised |v_wx| of eq. (9) and (10)."""

@@ -63,11 +63,17 @@ class PlantOptions:
     wheel_lag : s. Time constant of the wheel-speed tracker (first-order lag of the
         actual wheel speed behind omega_w). 0 = ideal tracking, as the paper assumes.
     steer_lag : s. Time constant of the steering-rate tracker. 0 = ideal.
+    combined_slip : 0 or 1. 1: each tire's forces interact (a slip angle lowers the
+        longitudinal force, a slip ratio the lateral force: Magic Formula combined-slip
+        weighting functions, :func:`plant.tire.combined_slip_weights`); 0 (the paper's
+        model): the longitudinal force depends on the slip ratio only, the lateral on the
+        slip angle only.
     """
 
     cg_height: float = 0.0
     wheel_lag: float = 0.0
     steer_lag: float = 0.0
+    combined_slip: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -160,7 +166,7 @@ _OPTIONAL_TOP = {"plant"}
 _MF_KEYS = ("B", "C", "mu", "E")
 _DUGOFF_KEYS = ("C_s", "C_alpha", "mu")
 _LIMIT_KEYS = ("omega_s_min", "omega_s_max", "omega_w_max", "delta_min", "delta_max")
-_PLANT_KEYS = ("cg_height", "wheel_lag", "steer_lag")
+_PLANT_KEYS = ("cg_height", "wheel_lag", "steer_lag", "combined_slip")
 
 
 def _number(d: Mapping[str, Any], key: str, path: str, *, positive: bool = False,
@@ -269,6 +275,9 @@ def vehicle_from_dict(d: Mapping[str, Any]) -> Vehicle:
     if "plant" in d:
         t = _table(d, "plant", "", _PLANT_KEYS)
         po = PlantOptions(**{k: _number(t, k, "plant.", nonneg=True) for k in t})
+        if po.combined_slip not in (0.0, 1.0):
+            raise VehicleError(f"plant.combined_slip: must be 0 (off) or 1 (on), got "
+                               f"{po.combined_slip}")
     else:
         po = PlantOptions()
 

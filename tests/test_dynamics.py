@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from plant import Plant, default_vehicle, n_axle_vehicle, vehicle_from_dict
+from plant import Plant, VehicleError, default_vehicle, n_axle_vehicle, vehicle_from_dict
 from plant import dynamics as dyn
 
 G = 9.81
@@ -402,3 +402,32 @@ def test_no_lag_tracks_the_command_at_once():
     p = Plant(default_vehicle())
     p.set_inputs(np.full(4, 10.0), np.full(4, 0.3))
     assert p.get("omega_w_21") == 10.0 and p.get("omega_s_21") == 0.3
+
+
+# ---- combined slip (plant-only option) ------------------------------------------------------
+def test_combined_slip_scales_each_force_by_its_weight():
+    """With [plant] combined_slip = 1 every wheel's forces are the pure-slip forces times the
+    weights of plant.tire.combined_slip_weights at that wheel's slips; the wear powers
+    follow the forces (eq. 13, 14); 0 is the paper's model."""
+    from plant.tire import combined_slip_weights
+
+    v0 = default_vehicle()
+    v1 = with_plant_options(v0, combined_slip=1.0)
+    init = {"vx": 6.0, "vy": 0.8, "r": 0.1, "delta_11": 0.1, "delta_12": 0.05}
+    outs = []
+    for v in (v0, v1):
+        p = Plant(v, initial=init)
+        p.set_inputs([13.0, 11.0, 12.5, 12.0], [0.1, 0.0, -0.1, 0.0])
+        outs.append(p.outputs())
+    off, on = outs
+    for w in v0.wheel_names:
+        gx, gy = combined_slip_weights(off[f"s_{w}"], off[f"alpha_{w}"])
+        assert gx < 0.999 and gy < 0.999  # the state has both slips on every wheel
+        assert on[f"Fx_{w}"] == pytest.approx(gx * off[f"Fx_{w}"], rel=1e-12)
+        assert on[f"Fy_{w}"] == pytest.approx(gy * off[f"Fy_{w}"], rel=1e-12)
+    assert on["P_s"] < off["P_s"] and on["P_alpha"] < off["P_alpha"]
+
+
+def test_combined_slip_must_be_0_or_1():
+    with pytest.raises(VehicleError, match="combined_slip"):
+        with_plant_options(default_vehicle(), combined_slip=0.5)

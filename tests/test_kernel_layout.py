@@ -60,7 +60,8 @@ def test_pack_params_puts_each_vehicle_value_at_its_name():
             "P_OMEGA_W_MAX": lim.omega_w_max, "P_OMEGA_S_MIN": lim.omega_s_min,
             "P_OMEGA_S_MAX": lim.omega_s_max, "P_DELTA_MIN": lim.delta_min,
             "P_DELTA_MAX": lim.delta_max, "P_CG_HEIGHT": v.plant.cg_height,
-            "P_WHEEL_LAG": v.plant.wheel_lag, "P_STEER_LAG": v.plant.steer_lag}
+            "P_WHEEL_LAG": v.plant.wheel_lag, "P_STEER_LAG": v.plant.steer_lag,
+            "P_COMBINED_SLIP": v.plant.combined_slip}
     assert set(want) == set(lay.names("P_"))
     for name, value in want.items():
         assert P[getattr(lay, name)] == value, name

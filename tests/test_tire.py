@@ -310,3 +310,22 @@ def test_batches_broadcast_against_parameters():
     assert out[0] == pytest.approx([11018.769281753352, 23142.340907102927], rel=1e-10)
     assert out[1] == pytest.approx([11018.769281753352 / 2, 23142.340907102927 / 2], rel=1e-10)
     assert np.all(out[2] == 0.0)
+
+
+# ---- combined slip (plant-only option) ------------------------------------------------------
+def test_combined_slip_weights_by_hand():
+    from plant.tire import combined_slip_weights
+
+    s, a = 0.05, 0.05
+    # MF 5.2 weighting functions with the documented coefficients, written out here
+    b_xa = 13.046 * math.cos(math.atan(9.718 * s))
+    b_ys = 10.622 * math.cos(math.atan(7.820 * a))
+    want = (math.cos(0.9995 * math.atan(b_xa * a)), math.cos(1.0587 * math.atan(b_ys * s)))
+    got = combined_slip_weights(s, a)
+    assert got[0] == pytest.approx(want[0], rel=1e-12) and got[1] == pytest.approx(want[1], rel=1e-12)
+    assert 0.5 < got[0] < 1.0 and 0.5 < got[1] < 1.0
+    # no interaction without the other slip; symmetric in sign; weaker with more slip
+    assert combined_slip_weights(0.1, 0.0)[0] == 1.0  # no slip angle: pure longitudinal
+    assert combined_slip_weights(0.0, 0.1)[1] == 1.0  # no slip ratio: pure lateral
+    assert combined_slip_weights(-s, -a) == pytest.approx(got)
+    assert combined_slip_weights(s, 2 * a)[0] < got[0] and combined_slip_weights(2 * s, a)[1] < got[1]

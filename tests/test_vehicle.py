@@ -239,7 +239,8 @@ def test_cli_vehicle_show_json_file(tmp_path):
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
     assert d["name"] == "three" and d["axle_x"] == [4.0, 0.5, -3.0]
-    assert d["plant"] == {"cg_height": 1.2, "wheel_lag": 0.0, "steer_lag": 0.0}
+    assert d["plant"] == {"cg_height": 1.2, "wheel_lag": 0.0, "steer_lag": 0.0,
+                          "combined_slip": 0.0}
     # F_N = 12000 * 9.81 / 6 = 19620 N
     assert d["derived"]["normal_load_N"] == pytest.approx(19620.0)
     # and the text form names the vehicle
