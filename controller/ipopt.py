@@ -71,6 +71,10 @@ def check_supported(settings: MPCSettings) -> None:
     if settings.model != "mf":
         raise ControllerError(f"the ipopt solver supports the prediction model 'mf' only, not "
                               f"{settings.model!r} (the baselines use the annealer: --solver sa)")
+    if settings.policy != "offsets":
+        raise ControllerError(f"the ipopt solver supports the decision parametrisation "
+                              f"'offsets' only, not {settings.policy!r} (use the annealer: "
+                              f"--solver sa)")
 
 
 @dataclass(frozen=True)
@@ -199,7 +203,8 @@ class IpoptMPC(MPC):
         Z = np.ascontiguousarray(np.asarray(z, float)[None, :])
         self.model.rollout(x0, R, Z, out=self._buf1)
         _ro.batch_cost(self._buf1.poses, self._buf1.wear, R, Z, np.ascontiguousarray(zprev),
-                       self.Q, self.L, self.R, self.nw, self._cost1)
+                       self.Q, self.L, self.R, self.model.stride, self.model.nsplit,
+                       self._cost1)
         return float(self._cost1[0])
 
     def _solve(self, x0, R, zprev, warm, t0: float) -> tuple[np.ndarray, float, int]:

@@ -22,6 +22,7 @@ from .reference import Reference
 _NOT_SIGNALS = {"t", "seq", "v", "end"}
 _BODY = ("x", "y", "phi", "vx", "vy", "r")
 _WEAR = ("W_s", "W_alpha", "W_t")
+_WHEEL_WEAR = ("W_s_ij", "W_alpha_ij", "W_t_ij")  # per-wheel arrays of the state message
 
 
 def wheel_suffixes(n_wheels: int) -> list[str]:
@@ -54,8 +55,9 @@ def _signal_row(st: dict, ref_row, outputs) -> dict:
         if name in _NOT_SIGNALS or name in _BODY or name in _WEAR or name in ("delta", "omega_w"):
             continue
         if isinstance(v, (list, tuple)) and len(v) == nw:
+            base = name[:-3] if name.endswith("_ij") else name  # W_s_ij -> W_s_11, ...
             for k, x in zip(wheels, v):
-                row[f"{name}_{k}"] = float(x)
+                row[f"{base}_{k}"] = float(x)
         elif isinstance(v, (int, float)) and not isinstance(v, bool):
             row[name] = float(v)
     for name, v in (outputs or {}).items():
@@ -86,6 +88,9 @@ class RunLog:
     W_final: tuple = (0.0, 0.0, 0.0)
     final_state: dict = field(default_factory=dict)
     signals: list = field(default_factory=list)
+    #: per-wheel wear work (W_s_ij, W_alpha_ij, W_t_ij) at t_k, (3, 2n) per row; None for a
+    #: row whose state did not carry it
+    W_ij: list = field(default_factory=list)
     #: the run was cut short (Ctrl-C): the rows so far, W_final from the last row
     interrupted: bool = False
 
@@ -99,6 +104,27 @@ class RunLog:
         self.solve_ms.append(cmd.solve_ms)
         self.cost.append(cmd.cost)
         self.signals.append(_signal_row(st, ref_row, outputs))
+        self.W_ij.append([list(st[k]) for k in _WHEEL_WEAR] if all(k in st for k in _WHEEL_WEAR)
+                         else None)
+
+    def wheel_wear(self) -> dict | None:
+        """Each wheel's and axle's wear work over the run
+        (:func:`controller.metrics.wear_by_wheel`): the per-wheel wear work at the end (the
+        final state; the last row if the run was cut short) minus at the first row. None
+        when a state lacked the per-wheel fields (a plant that does not send them)."""
+        from .metrics import wear_by_wheel
+
+        if not self.W_ij or any(w is None for w in self.W_ij):
+            return None
+        fs = self.final_state
+        if not self.interrupted and all(k in fs for k in _WHEEL_WEAR):
+            end = np.array([fs[k] for k in _WHEEL_WEAR], dtype=float)
+        else:
+            end = np.asarray(self.W_ij[-1], dtype=float)
+        start = np.asarray(self.W_ij[0], dtype=float)
+        if end.shape != start.shape:
+            return None
+        return wear_by_wheel(end - start)
 
     def cut_short(self) -> None:
         """Mark the run as interrupted: the metrics cover the rows logged so far (the wear

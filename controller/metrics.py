@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 METRIC_KEYS = ["W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar",
-               "Omega", "solve_ms", "steps"]
+               "Omega", "e_lat_rms_cm", "e_lat_max_cm", "solve_ms", "steps"]
 
 
 def wrap_angle(a):
@@ -30,13 +30,21 @@ def omega_index(W_tw: float, e_bar: float) -> float:
 
 
 def tracking_errors(pose: np.ndarray, ref_pose: np.ndarray) -> dict[str, float]:
-    """RMSE in x, y [cm] and heading [deg] (heading error wrapped), and e_bar (eq. 32)."""
+    """RMSE in x, y [cm] and heading [deg] (heading error wrapped), e_bar (eq. 32), and the
+    RMS and largest lateral (cross-track) error [cm]."""
     pose = np.asarray(pose, dtype=float)
     ref_pose = np.asarray(ref_pose, dtype=float)
     ex = 100.0 * math.sqrt(np.mean((pose[:, 0] - ref_pose[:, 0]) ** 2))
     ey = 100.0 * math.sqrt(np.mean((pose[:, 1] - ref_pose[:, 1]) ** 2))
     ep = math.degrees(math.sqrt(np.mean(wrap_angle(pose[:, 2] - ref_pose[:, 2]) ** 2)))
-    return {"e_x_cm": ex, "e_y_cm": ey, "e_phi_deg": ep, "e_bar": (ex + ey + ep) / 3.0}
+    # lateral (cross-track) error: the position error across the reference's heading, the
+    # physical accuracy a path-tracking engineer asks for (e_x, e_y mix along- and
+    # cross-track error with the path's direction)
+    c, s_ = np.cos(ref_pose[:, 2]), np.sin(ref_pose[:, 2])
+    lat = -(pose[:, 0] - ref_pose[:, 0]) * s_ + (pose[:, 1] - ref_pose[:, 1]) * c
+    return {"e_x_cm": ex, "e_y_cm": ey, "e_phi_deg": ep, "e_bar": (ex + ey + ep) / 3.0,
+            "e_lat_rms_cm": 100.0 * math.sqrt(np.mean(lat ** 2)),
+            "e_lat_max_cm": 100.0 * float(np.abs(lat).max())}
 
 
 def percentiles(values, scale: float = 1.0, count: bool = False) -> dict:
@@ -88,3 +96,41 @@ def format_table(m: dict, title: str = "") -> str:
         lines.append(f"  solve [ms] p50 {sm['p50']:.2f}  p99 {sm['p99']:.2f}  max {sm['max']:.2f}")
     lines.append(f"  steps      {m['steps']}")
     return "\n".join(lines)
+
+
+WHEEL_WEAR_KEYS = ("W_s", "W_alpha", "W_t")
+
+
+def wear_by_wheel(dW, n_wheels: int | None = None) -> dict:
+    """Each wheel's and each axle's wear work over a run, from ``dW``: the per-wheel wear
+    work at the end minus at the start, shape (3, 2n) with rows W_s, W_alpha, W_t in the
+    wheel order 11, 12, 21, ... Returns ``{"wheels": {"11": {"W_s", "W_alpha", "W_t",
+    "W_tw"}, ...}, "axles": {"1": {...}, ...}}`` [J]; an axle's values are the sums over
+    its two wheels, and the sums over all wheels are the run's W_s ... W_tw."""
+    dW = np.asarray(dW, dtype=float)
+    nw = dW.shape[1] if n_wheels is None else n_wheels
+    if dW.shape != (3, nw) or nw % 2:
+        raise ValueError(f"wear_by_wheel: expected (3, 2n) per-wheel wear, got {dW.shape}")
+
+    def entry(cols) -> dict:
+        w = dW[:, cols].sum(axis=1)
+        return {"W_s": float(w[0]), "W_alpha": float(w[1]), "W_t": float(w[2]),
+                "W_tw": float(w.sum())}
+
+    wheels = {f"{k // 2 + 1}{k % 2 + 1}": entry([k]) for k in range(nw)}
+    axles = {str(i + 1): entry([2 * i, 2 * i + 1]) for i in range(nw // 2)}
+    return {"wheels": wheels, "axles": axles}
+
+
+def format_wheel_wear(wear: dict | None) -> list[str]:
+    """Lines for a run's table: W_tw per axle and per wheel [J] with each one's share."""
+    if not wear:
+        return ["  per wheel  n/a (no per-wheel wear work recorded)"]
+    total = sum(a["W_tw"] for a in wear["axles"].values())
+
+    def share(x):
+        return f" ({100.0 * x / total:.0f} %)" if total > 0 else ""
+
+    axles = ", ".join(f"{i}: {a['W_tw']:.4g}{share(a['W_tw'])}" for i, a in wear["axles"].items())
+    wheels = ", ".join(f"{k}: {w['W_tw']:.4g}" for k, w in wear["wheels"].items())
+    return [f"  per axle   W_tw [J] {axles}", f"  per wheel  W_tw [J] {wheels}"]

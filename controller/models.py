@@ -20,6 +20,9 @@ from plant.vehicle import Vehicle
 
 from . import rollout as _ro
 
+METHODS = ("two", "two-energy", "ntwo")  # wear term: quadratic (paper), linear energy, none
+POLICIES = {"offsets": lay.POLICY_OFFSETS, "twist": lay.POLICY_TWIST, "raw": lay.POLICY_RAW}
+
 
 @dataclass(frozen=True)
 class MPCSettings:
@@ -32,7 +35,11 @@ class MPCSettings:
         after N_c. 3 blocks x 4n offsets = 24 decision variables for 2 axles.
     Cost (eq. 22-26):
       Q: (Q_X [1/m^2], Q_Y [1/m^2], Q_phi [1/rad^2]).
-      L: (L_s, L_alpha, L_t) [1/kW^2]; applied only for method 'two' (NTWO: L = 0).
+      L: (L_s, L_alpha, L_t) [1/kW^2], the paper's quadratic wear weights (eq. 26);
+        applied only for method 'two'.
+      E: (E_s, E_alpha, E_t) [1/kW], the wear-energy weights: the cost adds
+        ``E . P_k`` per prediction step (its sum over the horizon times dt is the
+        predicted wear work); applied only for method 'two-energy'.
       R: command regularisation shared by TWO and NTWO: (R_dw [1/(rad/s)^2],
         R_dd [1/rad^2]) on changes of the offsets between blocks and against the previous
         solution, (R_ow, R_od) on the offsets themselves.
@@ -48,8 +55,17 @@ class MPCSettings:
         fraction; t_start, t_end: relative temperatures; ladder: the smallest initial
         per-chain step factor (chains start on a geometric ladder from it to 1);
         adapt_up, adapt_down: per-chain step factor after an accepted / rejected move.
-    method: 'two' (the paper's, with wear) or 'ntwo' (L = 0).
+    method: 'two' (the paper's quadratic wear term, weights L), 'two-energy' (the linear
+      wear-energy term, weights E) or 'ntwo' (no wear term).
     model: 'mf' (paper), 'dugoff' (DH), 'kinematic', 'tct'.
+    policy: the decision parametrisation (controller.rollout.commands_from_policy):
+      'offsets' (per-wheel offsets from the kinematic feed-forward; default), 'twist'
+      (offsets of the body twist, every wheel about one instantaneous centre: the paper's
+      Kinematic baseline) or 'raw' (the commands omega_w, omega_s themselves: eq. 27's U).
+    dugoff_stiffness: the DH baseline's Dugoff stiffnesses: 'derived' (default) from the
+      Magic Formula tires at the vehicle's load (C_s = B C mu F_N of the longitudinal, C_alpha
+      of the lateral curve: they scale with the mass) or 'file' (the vehicle file's
+      [tire.dugoff] values, whatever the load).
     threads: 1 = serial rollouts (default: predictable when the plant or other runs share
       the cores); > 1 spreads the candidates over that many numba threads.
     ff_cornering: add the steady cornering slip angle to the feed-forward (dynamic models).
@@ -62,6 +78,7 @@ class MPCSettings:
     blocks: tuple[int, ...] = (1, 2, 3)
     Q: tuple[float, float, float] = (200.0, 200.0, 1000.0)
     L: tuple[float, float, float] = (0.02, 0.01, 0.02)
+    E: tuple[float, float, float] = (0.1, 0.1, 0.1)
     R: tuple[float, float, float, float] = (0.05, 20.0, 0.005, 2.0)
     K_servo: float = 10.0
     K_pos: float = 1.0
@@ -84,11 +101,19 @@ class MPCSettings:
     adapt_down: float = 0.7
     threads: int = 1
     ff_cornering: bool = True
+    policy: str = "offsets"
+    dugoff_stiffness: str = "derived"
 
     def __post_init__(self):
         bad = None
-        if self.method not in ("two", "ntwo"):
-            bad = f"method: expected 'two' or 'ntwo', got {self.method!r}"
+        if self.method not in METHODS:
+            bad = f"method: expected one of {', '.join(METHODS)}, got {self.method!r}"
+        elif self.policy not in POLICIES:
+            bad = f"policy: expected one of {', '.join(POLICIES)}, got {self.policy!r}"
+        elif self.dugoff_stiffness not in ("derived", "file"):
+            bad = f"dugoff_stiffness: expected 'derived' or 'file', got {self.dugoff_stiffness!r}"
+        elif len(self.E) != 3 or any(not (q >= 0 and math.isfinite(q)) for q in self.E):
+            bad = f"E: need 3 finite weights >= 0, got {self.E}"
         elif self.model not in MODELS:
             bad = f"model: expected one of {sorted(MODELS)}, got {self.model!r}"
         elif not (self.dt > 0 and math.isfinite(self.dt)):
@@ -129,8 +154,12 @@ class MPCSettings:
         return sum(self.blocks)
 
     @property
-    def effective_L(self) -> tuple[float, float, float]:
-        return tuple(self.L) if self.method == "two" else (0.0, 0.0, 0.0)
+    def effective_L(self) -> tuple[float, ...]:
+        """The kernels' wear weights (``plant.layout.L_*``, ``LE_*``): L for 'two', E for
+        'two-energy', none for 'ntwo'."""
+        quad = tuple(self.L) if self.method == "two" else (0.0, 0.0, 0.0)
+        lin = tuple(self.E) if self.method == "two-energy" else (0.0, 0.0, 0.0)
+        return quad + lin
 
     def with_(self, **kw) -> "MPCSettings":
         return replace(self, **kw)
@@ -149,12 +178,13 @@ class Rollout(NamedTuple):
 def pack_settings(vehicle: Vehicle, s: MPCSettings) -> np.ndarray:
     """The kernels' settings vector ``S`` (layout ``plant.layout.S_*``): the MPC's own
     settings only; every vehicle value (limits, Dugoff) is in ``P`` (``pack_params``)."""
-    dg, la = vehicle.tire_dugoff, vehicle.tire_lateral
+    la = vehicle.tire_lateral
     # cornering stiffness per wheel as each model sees it: MF slope at 0 is B C D
     if s.model == "kinematic" or not s.ff_cornering:
         k_alpha = 0.0
     else:
-        c_alpha = dg.C_alpha if s.model == "dugoff" else la.B * la.C * la.mu * vehicle.normal_load
+        c_alpha = (dugoff_stiffness(vehicle, s)[1] if s.model == "dugoff"
+                   else la.B * la.C * la.mu * vehicle.normal_load)
         k_alpha = vehicle.mass / (vehicle.n_wheels * c_alpha)
     S = np.full(lay.N_SETTINGS, np.nan)
     S[lay.S_DT] = s.dt
@@ -164,7 +194,24 @@ def pack_settings(vehicle: Vehicle, s: MPCSettings) -> np.ndarray:
     S[lay.S_V_FB_MAX] = s.v_fb_max
     S[lay.S_R_FB_MAX] = s.r_fb_max
     S[lay.S_K_ALPHA] = k_alpha
+    S[lay.S_POLICY] = POLICIES[s.policy]
+    S[lay.S_STRIDE] = policy_stride(s.policy, vehicle.n_wheels)
     return S
+
+
+def policy_stride(policy: str, n_wheels: int) -> int:
+    """Decision variables per move block: 3 for the twist, 2 per wheel otherwise."""
+    return 3 if policy == "twist" else 2 * n_wheels
+
+
+def dugoff_stiffness(vehicle: Vehicle, s: MPCSettings) -> tuple[float, float]:
+    """``(C_s, C_alpha)`` of the DH baseline's Dugoff tires: derived from the Magic Formula
+    at the vehicle's load (the slopes at zero slip, ``B C mu F_N``; paper-faithful: the
+    same tires and load as the plant) or, with ``dugoff_stiffness='file'``, the file's."""
+    if s.dugoff_stiffness == "file":
+        return vehicle.tire_dugoff.C_s, vehicle.tire_dugoff.C_alpha
+    lo, la, FN = vehicle.tire_longitudinal, vehicle.tire_lateral, vehicle.normal_load
+    return lo.B * lo.C * lo.mu * FN, la.B * la.C * la.mu * FN
 
 
 class PredictionModel:
@@ -177,6 +224,7 @@ class PredictionModel:
         self.vehicle = vehicle
         self.settings = settings
         self.P, self.wx, self.wy = pack_params(vehicle)
+        self.P[[lay.P_DUGOFF_C_S, lay.P_DUGOFF_C_ALPHA]] = dugoff_stiffness(vehicle, settings)
         self.S = pack_settings(vehicle, settings)
         steps = []
         for b, n in enumerate(settings.blocks):
@@ -184,7 +232,51 @@ class PredictionModel:
         steps += [len(settings.blocks) - 1] * (settings.N_p - len(steps))
         self.block = np.array(steps, dtype=np.int64)
         self.n_wheels = vehicle.n_wheels
-        self.dim = len(settings.blocks) * 2 * vehicle.n_wheels
+        self.policy = settings.policy
+        self.stride = policy_stride(settings.policy, vehicle.n_wheels)
+        # the first nsplit variables of a block are weighted as wheel speeds (R_dw, R_ow)
+        self.nsplit = 3 if settings.policy == "twist" else vehicle.n_wheels
+        self.dim = len(settings.blocks) * self.stride
+
+    def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(lower, upper, sigma)`` of the decision vector: its bounds and the annealer's
+        initial proposal scales, per parametrisation. Offsets: +-offset_w_max [rad/s] and
+        +-offset_d_max [rad] (sigma_w, sigma_d); twist: +-v_fb_max [m/s] on (du, dv) and
+        +-r_fb_max [rad/s] on dr (sigma_w r_w, sigma_w r_w, sigma_w r_w / 3); raw: eq. 27's
+        bounds [0, omega_w_max] and [omega_s_min, omega_s_max] (sigma_w, K_servo sigma_d)."""
+        s, nw, nb = self.settings, self.n_wheels, len(self.settings.blocks)
+        lim = self.vehicle.limits
+        if s.policy == "twist":
+            hi = np.array([s.v_fb_max, s.v_fb_max, s.r_fb_max])
+            lo = -hi
+            sw = s.sigma_w * self.vehicle.wheel_radius
+            sig = np.array([sw, sw, sw / 3.0])
+        elif s.policy == "raw":
+            lo = np.r_[np.zeros(nw), np.full(nw, lim.omega_s_min)]
+            hi = np.r_[np.full(nw, lim.omega_w_max), np.full(nw, lim.omega_s_max)]
+            sig = np.r_[np.full(nw, s.sigma_w), np.full(nw, s.K_servo * s.sigma_d)]
+        else:
+            hi = np.r_[np.full(nw, s.offset_w_max), np.full(nw, s.offset_d_max)]
+            lo = -hi
+            sig = np.r_[np.full(nw, s.sigma_w), np.full(nw, s.sigma_d)]
+        return np.tile(lo, nb), np.tile(hi, nb), np.tile(sig, nb)
+
+    def origin(self, x0: np.ndarray, ref0: np.ndarray, period: float) -> np.ndarray:
+        """The decision vector of the plain feed-forward at ``x0`` (annealer chain 1's start
+        and a fresh controller's warm start): zero offsets, or for 'raw' the feed-forward's
+        commands held over the horizon."""
+        if self.policy != "raw":
+            return np.zeros(self.dim)
+        nw = self.n_wheels
+        S = self.S.copy()
+        S[lay.S_POLICY] = lay.POLICY_OFFSETS
+        S[lay.S_STRIDE] = 2 * nw
+        om_w, om_s = np.empty(nw), np.empty(nw)
+        _ro.commands_from_policy(np.ascontiguousarray(x0[lay.X0_X:lay.X0_PHI + 1]),
+                                 np.ascontiguousarray(x0[lay.X0_DELTA:]), ref0,
+                                 np.zeros(2 * nw), 0, nw, self.P, S, self.wx, self.wy, period,
+                                 om_w, om_s)
+        return np.tile(np.r_[om_w, om_s], len(self.settings.blocks))
 
     def allocate(self, batch: int) -> Rollout:
         Np, nw = self.settings.N_p, self.n_wheels
@@ -221,7 +313,9 @@ class DugoffModel(PredictionModel):
     """DH baseline (Du et al. 2024, "hierarchical coordinated control ... tire wear"):
     the same rigid-body dynamics with the Dugoff tire model (:func:`plant.tire.dugoff_forces`)
     in place of the Magic Formula. Simplification: linear stiffness up to a friction-circle
-    saturation; stiffnesses fixed at the file's values (they do not scale with load)."""
+    saturation. Its stiffnesses are derived from the same Magic Formula tires at the same
+    load as the plant (:func:`dugoff_stiffness`), so they scale with the mass; the file's
+    fixed values with ``dugoff_stiffness='file'`` (the project's earlier DH)."""
 
     model_id = _ro.MODEL_DUGOFF
     name = "dugoff"
@@ -232,7 +326,11 @@ class KinematicModel(PredictionModel):
     the body twist is the rigid motion that best fits the commanded wheel velocities
     ``omega_w r_w (cos delta, sin delta)`` (exactly one instantaneous centre when the
     wheels are steered consistently). Simplifications: pure rolling, no slip and no tire
-    forces, velocity follows the commands instantly; the predicted slip wear is zero."""
+    forces, velocity follows the commands instantly; the predicted slip wear is zero.
+    The paper's Kinematic method ("considers only geometric relationships", Section 4.2;
+    its explanation of why it wears least is that every wheel turns about one centre)
+    pairs it with ``policy='twist'``: the decision is the body twist, every wheel follows
+    it about one instantaneous centre."""
 
     model_id = _ro.MODEL_KINEMATIC
     name = "kinematic"

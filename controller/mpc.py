@@ -69,10 +69,7 @@ class MPC:
         s = self.settings
         nw = vehicle.n_wheels
         self.nw = nw
-        nb = len(s.blocks)
-        self.lower = np.tile(np.r_[np.full(nw, -s.offset_w_max), np.full(nw, -s.offset_d_max)], nb)
-        self.upper = -self.lower
-        self.sigma = np.tile(np.r_[np.full(nw, s.sigma_w), np.full(nw, s.sigma_d)], nb)
+        self.lower, self.upper, self.sigma = self.model.box()
         self.Q = np.array(s.Q, dtype=float)
         self.L = np.array(s.effective_L, dtype=float)
         self.R = np.array(s.R, dtype=float)
@@ -88,6 +85,7 @@ class MPC:
         """Forget the warm start and reseed (same seed -> same commands)."""
         self.rng = np.random.default_rng(self.settings.seed)
         self.z = np.zeros(self.model.dim)
+        self._fresh = True  # no solution yet: the warm start is the plain feed-forward
         self.solve_times_ms: list[float] = []
 
     def set_reference(self, reference: Reference) -> None:
@@ -123,7 +121,10 @@ class MPC:
         t, x0 = self._state_vector(state)
         s = self.settings
         R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
-        return x0, R, self.z[: 2 * self.nw].copy(), self._shifted(self.z)
+        if self._fresh:
+            self.z = self.model.origin(x0, R[0], self.period)
+            self._fresh = False
+        return x0, R, self.z[: self.model.stride].copy(), self._shifted(self.z)
 
     def step(self, state: Mapping, reference: Reference | None = None) -> Command:
         """One MPC solve: commands to hold over the next control period."""
@@ -146,7 +147,8 @@ class MPC:
         if s.threads > 1:
             numba.set_num_threads(min(s.threads, numba.config.NUMBA_NUM_THREADS))
         deadline = None if s.deadline_ms is None else s.deadline_ms / 1000.0 - (time.perf_counter() - t0)
-        res = self._sa.solve(x0, R, zprev, warm, self.rng, deadline)
+        origin = None if self.model.policy != "raw" else self.model.origin(x0, R[0], self.period)
+        res = self._sa.solve(x0, R, zprev, warm, self.rng, deadline, origin=origin)
         return res.x, res.cost, res.iterations
 
     def commands_for(self, x0: np.ndarray, ref0: np.ndarray, z: np.ndarray):
@@ -154,7 +156,7 @@ class MPC:
         om_w = np.empty(self.nw)
         om_s = np.empty(self.nw)
         _ro.commands_from_policy(x0[lay.X0_X:lay.X0_PHI + 1].copy(), x0[lay.X0_DELTA:].copy(),
-                                 ref0, z, 0, self.nw,
+                                 ref0, np.ascontiguousarray(z), 0, self.nw,
                                  self.model.P, self.model.S, self.model.wx, self.model.wy,
                                  self.period, om_w, om_s)
         return om_w, om_s
@@ -166,9 +168,9 @@ class MPC:
         moves a fraction T / len_b of block b+1 into block b (linear blend), the last
         block is held.
         """
-        s, nw = self.settings, self.nw
+        s = self.settings
         nb = len(s.blocks)
-        Zb = z.reshape(nb, 2 * nw)
+        Zb = z.reshape(nb, self.model.stride)
         out = Zb.copy()
         for b in range(nb - 1):
             f = min(self.period / (s.blocks[b] * s.dt), 1.0)
@@ -190,3 +192,15 @@ class MPC:
         self.step(st, ref)
         self.reset()
         return time.perf_counter() - t0
+
+
+class FeedForward(MPC):
+    """The policy with no optimisation at all: every solve returns the plain feed-forward
+    (zero offsets; for ``policy='raw'`` the feed-forward's own commands), the simplest
+    controller that could win (docs/RESULTS.md). Same interface as :class:`MPC`;
+    ``Command.cost`` is NaN and ``iterations`` 0."""
+
+    solver_name = "ff"
+
+    def _solve(self, x0, R, zprev, warm, t0: float) -> tuple[np.ndarray, float, int]:
+        return self.model.origin(x0, R[0], self.period), float("nan"), 0

@@ -69,7 +69,9 @@ from plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, P_DELTA_MAX, P_DELTA_
                           P_WHEEL_RADIUS, P_YAW_INERTIA, POSE_PHI, POSE_X, POSE_Y, Q_PHI, Q_X,
                           Q_Y, R_DD, R_DW, R_OD, R_OW, REF_PHI, REF_R, REF_VX, REF_VY, REF_X,
                           REF_Y, S_DT, S_K_ALPHA, S_K_PHI, S_K_POS, S_K_SERVO, S_R_FB_MAX,
-                          S_V_FB_MAX, WEAR_ALPHA, WEAR_S, WEAR_T, X0_DELTA, X0_PHI, X0_R,
+                          S_V_FB_MAX, S_POLICY, S_STRIDE, LE_S, LE_ALPHA, LE_T,
+                          POLICY_TWIST, POLICY_RAW, WEAR_ALPHA, WEAR_S, WEAR_T, X0_DELTA,
+                          X0_PHI, X0_R,
                           X0_VX, X0_VY, X0_X, X0_Y)
 from plant.tire import (dugoff_forces, magic_formula_and_slope, slip_angle, slip_jacobian,
                         slip_ratio, wear_power_angle, wear_power_slip, wear_power_steer,
@@ -105,6 +107,15 @@ def commands_from_policy(x, delta, refk, z, base, nw, P, S, wx, wy, dt,
                          om_w, om_s):
     """Wheel-speed and steering-rate commands of the policy at one state (eq. 27 bounds).
 
+    The decision parametrisation ``S[S_POLICY]`` says what a block's variables
+    ``z[base:base + stride]`` are: ``POLICY_OFFSETS`` (ours, default), per-wheel offsets
+    of wheel speed and steering target from the feed-forward below (2n + 2n);
+    ``POLICY_TWIST``, offsets ``(du, dv, dr)`` [m/s, m/s, rad/s] of the desired body twist
+    in B, every wheel then following the feed-forward's kinematics of that twist, so all
+    wheels are steered about one instantaneous centre (the paper's Kinematic baseline);
+    ``POLICY_RAW``, the commands themselves, ``omega_w`` (2n) and ``omega_s`` (2n), the
+    paper's decision vector U of eq. 27 (clipped to its bounds and to the steering stops).
+
     Kinematic feed-forward with a saturated pose feedback: desired velocity in G
     ``v_ref + K_pos (p_ref - p)`` (correction limited to ``v_fb_max``), desired yaw rate
     ``r_ref + K_phi wrap(phi_ref - phi)`` (limited to ``r_fb_max``); each wheel's desired
@@ -118,6 +129,21 @@ def commands_from_policy(x, delta, refk, z, base, nw, P, S, wx, wy, dt,
     that delta stays inside its limits after ``dt``. ``x = (x, y, phi)`` (``POSE_*``).
     """
     r_w = P[P_WHEEL_RADIUS]
+    policy = int(S[S_POLICY])
+    dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
+    w_max, ws_min, ws_max = P[P_OMEGA_W_MAX], P[P_OMEGA_S_MIN], P[P_OMEGA_S_MAX]
+    if policy == POLICY_RAW:
+        for k in range(nw):
+            w = z[base + k]
+            om_w[k] = w_max if w > w_max else (0.0 if w < 0.0 else w)
+            lo = max(ws_min, (dmin - delta[k]) / dt)
+            hi = min(ws_max, (dmax - delta[k]) / dt)
+            if lo > hi:  # numerically at a stop: hold
+                lo = 0.0
+                hi = 0.0
+            ws = z[base + nw + k]
+            om_s[k] = hi if ws > hi else (lo if ws < lo else ws)
+        return
     phi = x[POSE_PHI]
     ex = refk[REF_X] - x[POSE_X]
     ey = refk[REF_Y] - x[POSE_Y]
@@ -140,9 +166,14 @@ def commands_from_policy(x, delta, refk, z, base, nw, P, S, wx, wy, dt,
     s = math.sin(phi)
     ub = c * vdx + s * vdy
     vb = -s * vdx + c * vdy
+    twist = policy == POLICY_TWIST
+    if twist:
+        ub += z[base]
+        vb += z[base + 1]
+        rd += z[base + 2]
+        vdx = c * ub - s * vb
+        vdy = s * ub + c * vb
     kservo = (1.0 - math.exp(-S[S_K_SERVO] * dt)) / dt
-    dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
-    w_max, ws_min, ws_max = P[P_OMEGA_W_MAX], P[P_OMEGA_S_MIN], P[P_OMEGA_S_MAX]
     acorner = S[S_K_ALPHA] * math.sqrt(vdx * vdx + vdy * vdy) * rd
     for k in range(nw):
         wvx = ub - rd * wy[k]
@@ -155,12 +186,12 @@ def commands_from_policy(x, delta, refk, z, base, nw, P, S, wx, wy, dt,
                 wff = 0.0
         else:
             wff = math.sqrt(wvx * wvx + wvy * wvy) / r_w
-        w = wff + z[base + k]
+        w = wff if twist else wff + z[base + k]
         if w < 0.0:
             w = 0.0
         elif w > w_max:
             w = w_max
-        tgt = dff + z[base + nw + k]
+        tgt = dff if twist else dff + z[base + nw + k]
         if tgt > dmax:
             tgt = dmax
         elif tgt < dmin:
@@ -390,6 +421,7 @@ def _simulate(model, x0, ref, z, block, P, S, wx, wy, poses, wear, cmds):
     dt = S[S_DT]
     k_t = P[P_K_T]
     FN = P[P_MASS] * P[P_G] / nw  # Assumption 2
+    stride = int(S[S_STRIDE])
     x, y, phi = x0[X0_X], x0[X0_Y], x0[X0_PHI]
     vx, vy, r = x0[X0_VX], x0[X0_VY], x0[X0_R]
     X = np.empty(3)  # the pose for the policy (POSE_*)
@@ -400,7 +432,7 @@ def _simulate(model, x0, ref, z, block, P, S, wx, wy, poses, wear, cmds):
         X[POSE_X] = x
         X[POSE_Y] = y
         X[POSE_PHI] = phi
-        commands_from_policy(X, delta, ref[k], z, block[k] * 2 * nw, nw, P, S, wx, wy, dt,
+        commands_from_policy(X, delta, ref[k], z, block[k] * stride, nw, P, S, wx, wy, dt,
                              om_w, om_s)
         if k == 0:
             for j in range(nw):
@@ -457,56 +489,65 @@ def tracking_cost(poses, ref, Q):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def wear_cost(wear, L):
-    """``sum_k P_k^T L P_k`` (eq. 22, 25, W_P = E (x) L), the wear powers in kW."""
+    """The wear term, the powers in kW: ``sum_k P_k^T L P_k`` (eq. 22, 25, W_P = E (x) L;
+    weights ``L[L_S], L[L_ALPHA], L[L_T]`` [1/kW^2]: the paper's TWO) plus the wear-energy
+    term ``sum_k lambda^T P_k`` (weights ``L[LE_S], L[LE_ALPHA], L[LE_T]`` [1/kW]; over the
+    horizon, times the step, it is the predicted wear work that W_tw measures: TWO-energy).
+    """
     J = 0.0
     for k in range(wear.shape[0]):
         p0 = wear[k, WEAR_S] * KW
         p1 = wear[k, WEAR_ALPHA] * KW
         p2 = wear[k, WEAR_T] * KW
         J += L[L_S] * p0 * p0 + L[L_ALPHA] * p1 * p1 + L[L_T] * p2 * p2
+        J += L[LE_S] * p0 + L[LE_ALPHA] * p1 + L[LE_T] * p2
     return J
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def smoothing_cost(z, zprev, R, nw):
-    """Changes of the offsets between consecutive blocks and from the previous solution's
-    first block ``zprev``: R_dw [1/(rad/s)^2] on wheel speeds, R_dd [1/rad^2] on angles."""
+def smoothing_cost(z, zprev, R, stride, nsplit):
+    """Changes of the decision variables between consecutive blocks (``stride`` variables
+    each) and from the previous solution's first block ``zprev``: R_dw on the first
+    ``nsplit`` of a block (wheel speeds [1/(rad/s)^2]; all three twist offsets), R_dd on
+    the rest (steering targets [1/rad^2]; raw steering rates)."""
     J = 0.0
-    for blk in range(z.shape[0] // (2 * nw)):
-        for j in range(2 * nw):
-            prev = zprev[j] if blk == 0 else z[(blk - 1) * 2 * nw + j]
-            dz = z[blk * 2 * nw + j] - prev
-            J += (R[R_DW] if j < nw else R[R_DD]) * dz * dz
+    for blk in range(z.shape[0] // stride):
+        for j in range(stride):
+            prev = zprev[j] if blk == 0 else z[(blk - 1) * stride + j]
+            dz = z[blk * stride + j] - prev
+            J += (R[R_DW] if j < nsplit else R[R_DD]) * dz * dz
     return J
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def ridge_cost(z, R, nw):
-    """A ridge on the offsets themselves: R_ow on wheel speeds, R_od on angles."""
+def ridge_cost(z, R, stride, nsplit):
+    """A ridge on the decision variables themselves: R_ow on the first ``nsplit`` of a
+    block, R_od on the rest (as :func:`smoothing_cost`; raw commands get none)."""
     J = 0.0
-    for blk in range(z.shape[0] // (2 * nw)):
-        for j in range(2 * nw):
-            zi = z[blk * 2 * nw + j]
-            J += (R[R_OW] if j < nw else R[R_OD]) * zi * zi
+    for blk in range(z.shape[0] // stride):
+        for j in range(stride):
+            zi = z[blk * stride + j]
+            J += (R[R_OW] if j < nsplit else R[R_OD]) * zi * zi
     return J
 
 
 @njit(cache=True, error_model="numpy")
-def candidate_cost(poses, wear, ref, z, zprev, Q, L, R, nw):
+def candidate_cost(poses, wear, ref, z, zprev, Q, L, R, stride, nsplit):
     """Cost of one candidate (paper eq. 22-26) plus the shared command regularisation.
 
-    ``poses``, ``wear`` (N_p, 3) of the candidate, ``z`` (D,) its decision vector:
+    ``poses``, ``wear`` (N_p, 3) of the candidate, ``z`` (D,) its decision vector in
+    blocks of ``stride`` (the first ``nsplit`` of each weighted as wheel speeds):
     ``(tracking + wear) / N_p + smoothing + ridge`` (:func:`tracking_cost`,
-    :func:`wear_cost`, :func:`smoothing_cost`, :func:`ridge_cost`; weights ``Q``, ``L``,
-    ``R = (R_dw, R_dd, R_ow, R_od)``).
+    :func:`wear_cost`, :func:`smoothing_cost`, :func:`ridge_cost`; weights ``Q``, ``L``
+    (``plant.layout.L_*``, ``LE_*``), ``R = (R_dw, R_dd, R_ow, R_od)``).
     """
     Np = poses.shape[0]
     return ((tracking_cost(poses, ref, Q) + wear_cost(wear, L)) / Np
-            + smoothing_cost(z, zprev, R, nw) + ridge_cost(z, R, nw))
+            + smoothing_cost(z, zprev, R, stride, nsplit) + ridge_cost(z, R, stride, nsplit))
 
 
 @njit(cache=True, error_model="numpy")
-def batch_cost(poses, wear, ref, Z, zprev, Q, L, R, nw, costs):
+def batch_cost(poses, wear, ref, Z, zprev, Q, L, R, stride, nsplit, costs):
     """:func:`candidate_cost` of every row of ``Z`` into ``costs`` (B,)."""
     for b in range(Z.shape[0]):
-        costs[b] = candidate_cost(poses[b], wear[b], ref, Z[b], zprev, Q, L, R, nw)
+        costs[b] = candidate_cost(poses[b], wear[b], ref, Z[b], zprev, Q, L, R, stride, nsplit)

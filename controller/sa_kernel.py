@@ -79,11 +79,11 @@ def ladder_factors(chains: int, ladder: float) -> np.ndarray:
 
 
 def _make_evaluate(parallel: bool):
-    def evaluate(model, x0, ref, Z, block, P, S, wx, wy, Q, L, R, nw, zprev, poses, wear,
-                 cmds, J):
+    def evaluate(model, x0, ref, Z, block, P, S, wx, wy, Q, L, R, stride, nsplit, zprev, poses,
+                 wear, cmds, J):
         for b in prange(Z.shape[0]):
             _simulate(model, x0, ref, Z[b], block, P, S, wx, wy, poses[b], wear[b], cmds[b])
-            J[b] = candidate_cost(poses[b], wear[b], ref, Z[b], zprev, Q, L, R, nw)
+            J[b] = candidate_cost(poses[b], wear[b], ref, Z[b], zprev, Q, L, R, stride, nsplit)
 
     # distinct names: numba's on-disk cache is keyed by the function's qualified name
     evaluate.__name__ = evaluate.__qualname__ = f"evaluate_{'parallel' if parallel else 'serial'}"
@@ -95,7 +95,7 @@ evaluate_parallel = _make_evaluate(True)
 
 
 def _make_iterate(evaluate, name: str):
-    def iterate(model, x0, ref, block, P, S, wx, wy, Q, L, R, nw, zprev, X, J, Xp, Jp,
+    def iterate(model, x0, ref, block, P, S, wx, wy, Q, L, R, stride, nsplit, zprev, X, J, Xp, Jp,
                 best_x, best, scale, noise, unif, it0, fracs, sigma, lower, upper, log_sf,
                 t_start, log_tr, restart_every, n_restart, iterations, up, down, poses, wear,
                 cmds):
@@ -112,8 +112,8 @@ def _make_iterate(evaluate, name: str):
                 for d in range(D):
                     v = X[c, d] + sigma[d] * sf * scale[c] * noise[it + 1, c, d]
                     Xp[c, d] = min(max(v, lower[d]), upper[d])
-            evaluate(model, x0, ref, Xp, block, P, S, wx, wy, Q, L, R, nw, zprev, poses, wear,
-                     cmds, Jp)
+            evaluate(model, x0, ref, Xp, block, P, S, wx, wy, Q, L, R, stride, nsplit, zprev,
+                     poses, wear, cmds, Jp)
             temp = max(best[0], 1e-12) * t_start * math.exp(log_tr * frac)
             for c in range(C):
                 dJ = Jp[c] - J[c]
@@ -192,10 +192,12 @@ class CompiledAnnealer:
         self._fixed_fracs = np.minimum(np.arange(self.iterations) / denom, 1.0)
 
     def solve(self, x0: np.ndarray, ref: np.ndarray, zprev: np.ndarray, warm: np.ndarray,
-              rng: np.random.Generator, deadline_s: float | None = None) -> AnnealResult:
+              rng: np.random.Generator, deadline_s: float | None = None,
+              origin: np.ndarray | None = None) -> AnnealResult:
         """Minimise the horizon cost from ``warm`` (clipped to the box); ``deadline_s``
-        optional wall-clock budget. Draws exactly the random numbers the reference annealer
-        (``tests/annealer_reference.py``) draws."""
+        optional wall-clock budget; ``origin``: chain 1's start (default the zero vector:
+        the pure feed-forward of the offset parametrisations). Draws exactly the random
+        numbers the reference annealer (``tests/annealer_reference.py``) draws."""
         t0 = time.perf_counter()
         m = self.model
         C, D, I = self.chains, m.dim, self.iterations
@@ -210,10 +212,10 @@ class CompiledAnnealer:
         X[:] = w + (self.init_spread * self.sigma)[None, :] * scale[:, None] * noise[0]
         X[0] = w
         if C > 1:
-            X[1] = np.clip(0.0, self.lower, self.upper)
+            X[1] = np.clip(0.0 if origin is None else origin, self.lower, self.upper)
         np.clip(X, self.lower, self.upper, out=X)
         args = (m.model_id, x0, ref, m.block, m.P, m.S, m.wx, m.wy, self.Q, self.L, self.R,
-                m.n_wheels, zprev)
+                m.stride, m.nsplit, zprev)
         self._evaluate(*args[:3], X, *args[3:], self.poses, self.wear, self.cmds, self.J)
         ib = int(np.argmin(self.J))
         self.best_x[:] = X[ib]

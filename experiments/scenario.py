@@ -24,8 +24,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
-SOLVERS = ("sa", "ipopt")  # the annealer (controller.mpc) or IPOPT (controller.ipopt)
-CASES = ("curve", "line")
+SOLVERS = ("sa", "ipopt", "ff")  # the annealer, IPOPT, or no optimisation (the feed-forward)
+CASES = ("curve", "line", "lane", "turn", "random")  # paper Cases 1, 2; the study's paths
 AFTER_END = ("continue", "stop")  # past the reference's end: go on straight, or end the run
 PERIOD = 0.01  # s, the paper's control period T
 # top-level keys of a scenario file that are MPC settings (the rest go under [settings])
@@ -82,6 +82,17 @@ class Scenario:
     fmu, fmu_map, fmu_params : an FMI 2.0 co-simulation FMU as the plant, its name mapping
         file and its parameters by our names.
     period : control period T [s].
+    axles : a vehicle like the scenario's with this many axles, evenly spaced about the
+        centre of mass, each carrying the same load (:func:`plant.vehicle.n_axle_vehicle`).
+    path_seed : the seed of ``case = 'random'`` (:func:`controller.paths.random_path`);
+        ``'lane'`` and ``'turn'`` are :func:`controller.paths.lane_change` and
+        :func:`~controller.paths.tight_turn`, feasible for the vehicle at ``speed``.
+    plant_options : the plant's own realism, on top of the vehicle file's ``[plant]``
+        (``cg_height``, ``wheel_lag``, ``steer_lag``, ``combined_slip``); the controller
+        does not model them.
+    plant_tire_scale : the plant's Magic Formula stiffness factors B and peak friction mu
+        (both curves) times this factor; the controller keeps the nominal tires (a model
+        error of the prediction, as a real tire would make).
     """
 
     vehicle: Any = None
@@ -99,6 +110,10 @@ class Scenario:
     fmu_map: str | None = None
     fmu_params: dict = field(default_factory=dict)
     period: float = PERIOD
+    axles: int | None = None
+    path_seed: int = 0
+    plant_options: dict = field(default_factory=dict)
+    plant_tire_scale: float = 1.0
 
     def __post_init__(self):
         if self.trajectory is not None and self.case is not None:
@@ -120,6 +135,13 @@ class Scenario:
             raise ScenarioError(f"period: must be > 0, got {self.period}")
         if self.mass_kg is not None and not (math.isfinite(self.mass_kg) and self.mass_kg > 0):
             raise ScenarioError(f"mass: must be > 0 kg, got {self.mass_kg}")
+        if self.axles is not None and not (isinstance(self.axles, int) and self.axles >= 1):
+            raise ScenarioError(f"axles: must be an integer >= 1, got {self.axles!r}")
+        if not (math.isfinite(self.plant_tire_scale) and self.plant_tire_scale > 0):
+            raise ScenarioError(f"plant_tire_scale: must be > 0, got {self.plant_tire_scale}")
+        if self.fmu is not None and (self.plant_options or self.plant_tire_scale != 1.0):
+            raise ScenarioError("plant_options and plant_tire_scale apply to the built-in "
+                                "plant, not to an FMU (set the FMU's parameters instead)")
         if self.fmu_map is not None and self.fmu is None:
             raise ScenarioError("--map applies to --fmu: a name mapping needs an FMU plant")
 
@@ -135,6 +157,10 @@ class Scenario:
             v = self.vehicle
         else:
             v = load_vehicle(self.vehicle)
+        if self.axles is not None and given is None and v.n_axles != self.axles:
+            from plant.vehicle import n_axle_vehicle
+
+            v = n_axle_vehicle(self.axles, base=v)
         if self.mass_kg is not None and v.mass != self.mass_kg:
             v = v.replace(mass=float(self.mass_kg))
         return v
@@ -145,6 +171,15 @@ class Scenario:
 
         if self.trajectory is not None:
             ref = from_csv(self.trajectory).with_after_end("continue")
+            return ref, ref.initial_state
+        if self.case in ("lane", "turn", "random"):
+            from controller import paths
+
+            v, speed = self.resolve_vehicle(), float(self.speed if self.speed is not None else 15)
+            ref = (paths.lane_change(v, speed) if self.case == "lane" else
+                   paths.tight_turn(v, speed) if self.case == "turn" else
+                   paths.random_path(v, speed, self.path_seed))
+            ref.after_end = "continue"
             return ref, ref.initial_state
         ref, start = make_case(self.case or "curve", self.speed)
         # both after_end choices continue the reference, so the horizon near the end
@@ -200,9 +235,10 @@ class Scenario:
 
             check_supported(settings)
             return IpoptMPC(vehicle, settings, reference, period=T, options=options)
-        from controller.mpc import MPC
+        from controller.mpc import MPC, FeedForward
 
-        return MPC(vehicle, settings, reference, period=T)
+        cls = FeedForward if self.solver == "ff" else MPC
+        return cls(vehicle, settings, reference, period=T)
 
     def check_solver(self) -> None:
         """Fail early (before any plant or network) if the solver cannot serve the settings
@@ -236,8 +272,27 @@ class Scenario:
         from plant.stepping import Plant
 
         vehicle = self.resolve_vehicle()
-        initial = self.initial_state(vehicle, start)
-        return Plant(vehicle, initial=initial), vehicle, ref, initial
+        actual = self.plant_vehicle(vehicle)
+        initial = self.initial_state(actual, start)
+        return Plant(actual, initial=initial), vehicle, ref, initial
+
+    def plant_vehicle(self, vehicle):
+        """The vehicle the plant simulates: ``vehicle`` with ``plant_options`` and
+        ``plant_tire_scale`` applied (the controller's is ``vehicle`` itself)."""
+        if not self.plant_options and self.plant_tire_scale == 1.0:
+            return vehicle
+        from plant.vehicle import vehicle_from_dict
+
+        d = vehicle.to_dict()
+        unknown = sorted(set(self.plant_options) - set(d["plant"]))
+        if unknown:
+            raise ScenarioError(f"plant_options: unknown option '{unknown[0]}' (known: "
+                                f"{', '.join(d['plant'])})")
+        d["plant"].update({k: float(v) for k, v in self.plant_options.items()})
+        for part in ("longitudinal", "lateral"):
+            d["tire"][part]["B"] *= self.plant_tire_scale
+            d["tire"][part]["mu"] *= self.plant_tire_scale
+        return vehicle_from_dict(d)
 
     def run_duration(self, reference) -> float:
         """Vehicle time to run: ``duration`` (default the reference's), ended at the

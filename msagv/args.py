@@ -139,8 +139,13 @@ def add_case_args(ap: argparse.ArgumentParser, default_case: str = "curve") -> N
 
 
 def add_mpc_args(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--method", choices=["two", "ntwo"], default=None,
-                    help="two: with the wear term (the paper's; default); ntwo: L = 0")
+    ap.add_argument("--method", choices=["two", "two-energy", "ntwo"], default=None,
+                    help="two: the paper's quadratic wear term (weights L; default); "
+                         "two-energy: a linear wear-energy term (weights E); ntwo: no wear term")
+    ap.add_argument("--policy", choices=["offsets", "twist", "raw"], default=None,
+                    help="decision parametrisation: offsets from the feed-forward (default), "
+                         "twist (body-twist offsets, every wheel about one centre: the "
+                         "paper's Kinematic), raw (the commands themselves, eq. 27's U)")
     ap.add_argument("--model", choices=["mf", "dugoff", "kinematic", "tct"], default=None,
                     help="prediction model (mf: the paper's, default; others: the baselines)")
     ap.add_argument("--seed", type=int, default=None, help="annealer seed (default 0)")
@@ -152,9 +157,10 @@ def add_mpc_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="any MPCSettings field, e.g. --set L=0.05,0.05,0.05 --set N_p=12")
     ap.add_argument("--solver", choices=SOLVERS, default=None,
-                    help="horizon solver: sa (simulated annealing, default) or ipopt (CasADi + "
+                    help="horizon solver: sa (simulated annealing, default), ipopt (CasADi + "
                          "IPOPT, exact derivatives; --model mf only, needs msagv[ipopt]; the "
-                         "annealer options are ignored, --deadline-ms is IPOPT's wall-time limit)")
+                         "annealer options are ignored, --deadline-ms is IPOPT's wall-time "
+                         "limit) or ff (no optimisation: the feed-forward policy alone)")
 
 
 def add_fmu_args(ap: argparse.ArgumentParser, positional: bool) -> None:
@@ -178,7 +184,7 @@ def settings_from_args(a) -> dict:
     from controller.models import MPCSettings
 
     kw = {}
-    for k in ("method", "model", "seed", "iterations", "chains", "threads"):
+    for k in ("method", "model", "policy", "seed", "iterations", "chains", "threads"):
         if getattr(a, k, None) is not None:
             kw[k] = getattr(a, k)
     if getattr(a, "deadline_ms", None) is not None:
@@ -255,7 +261,12 @@ def add_session_args(ap: argparse.ArgumentParser, router: bool = False) -> None:
     g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable)")
     g.add_argument("--zenoh-config", metavar="FILE",
-                   help="a zenoh JSON5 config file (the options above are applied on top)")
+                   help="a zenoh JSON5 config file, merged with the defaults (loopback, "
+                        "scouting off): what it sets explicitly wins; the options above win "
+                        "over it")
+    g.add_argument("--secure", metavar="DIR",
+                   help="mutual TLS and access control with the certificates of DIR "
+                        "(msagv certs DIR); endpoints become tls/... (docs/SECURITY.md)")
     g.add_argument("--lease-ms", type=int, default=DEFAULT_LEASE_MS,
                    help=f"transport lease [ms]: how soon a dead process is noticed "
                         f"(default {DEFAULT_LEASE_MS})")
@@ -269,4 +280,5 @@ def options_from_args(a, router: bool = False) -> SessionOptions:
     return SessionOptions(id=check_id(getattr(a, "id", DEFAULT_ID)), connect=list(a.connect),
                           listen=list(a.listen),
                           mode="router" if router else a.mode,
-                          config_file=a.zenoh_config, lease_ms=a.lease_ms)
+                          config_file=a.zenoh_config, lease_ms=a.lease_ms,
+                          secure_dir=getattr(a, "secure", None))

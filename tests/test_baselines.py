@@ -162,7 +162,7 @@ def test_kinematic_body_moves_as_the_wheels_roll():
     (0.1, 351.3855036457986),
 ])
 def test_dh_forces_are_dugoffs_at_hand_computed_points(offset, expected_Ps):
-    dh = model_of("dugoff")
+    dh = model_of("dugoff", dugoff_stiffness="file")  # the hand values use the file's C_s
     x0, ref = straight_case(dh)
     Z = np.zeros((1, dh.dim))
     Z[0, :4] = offset
@@ -263,3 +263,99 @@ def test_tct_never_changes_the_longitudinal_speed(case):
     mf = model_of("mf")
     uv = body_speeds(mf, x0, mf.rollout(x0, ref, Z).poses[0])
     assert np.abs(uv[:, 0] - v_ref).max() > 0.05
+
+
+def test_dh_stiffnesses_are_the_tires_and_scale_with_the_load():
+    """DH's Dugoff stiffnesses are the Magic Formula's slopes at zero slip at the vehicle's
+    load (B C mu F_N), so they scale with the mass; 'file' keeps the file's values."""
+    from controller.models import dugoff_stiffness
+    from plant import layout as lay
+
+    lo, la = VEH.tire_longitudinal, VEH.tire_lateral
+    for mass in (8000.0, 12000.0, 20000.0):
+        v = VEH.replace(mass=mass)
+        FN = mass * 9.81 / 4
+        m = make_model(v, MPCSettings(model="dugoff", method="ntwo"))
+        assert m.P[lay.P_DUGOFF_C_S] == pytest.approx(lo.B * lo.C * lo.mu * FN, rel=1e-12)
+        assert m.P[lay.P_DUGOFF_C_ALPHA] == pytest.approx(la.B * la.C * la.mu * FN, rel=1e-12)
+        # the cornering feed-forward sees the same stiffness: k_alpha = m / (2n C_alpha)
+        assert m.S[lay.S_K_ALPHA] == pytest.approx(mass / (4 * la.B * la.C * la.mu * FN))
+        f = dugoff_stiffness(v, MPCSettings(dugoff_stiffness="file"))
+        assert f == (DUG[0], DUG[1])
+    # at 12 t the file's values are these slopes (to the file's rounding)
+    assert lo.B * lo.C * lo.mu * F_N == pytest.approx(DUG[0], rel=2e-4)
+
+
+# ---- decision parametrisations: twist (single centre), raw (eq. 27's U) ---------------------
+def _policy_commands(model, x0, refk, z, dt=0.01):
+    from controller import rollout as ro
+
+    nw = model.n_wheels
+    om_w, om_s = np.empty(nw), np.empty(nw)
+    ro.commands_from_policy(x0[:3].copy(), x0[6:].copy(), refk, np.ascontiguousarray(z), 0, nw,
+                            model.P, model.S, model.wx, model.wy, dt, om_w, om_s)
+    return om_w, om_s
+
+
+@pytest.mark.parametrize("axles", [2, 3])
+def test_twist_policy_steers_every_wheel_about_one_centre(axles):
+    """Kinematic as the paper defines it: whatever the decision (a body-twist offset),
+    the target steering angles of all wheels have axes that meet in one point, the
+    instantaneous centre of the commanded twist, and the wheel speeds are that twist's."""
+    from controller.models import make_model
+    from plant import n_axle_vehicle
+
+    v = VEH if axles == 2 else n_axle_vehicle(3)
+    m = make_model(v, MPCSettings(model="kinematic", method="ntwo", policy="twist"))
+    assert m.dim == 3 * len(m.settings.blocks) and m.stride == 3
+    rng = np.random.default_rng(1)
+    kservo = (1 - math.exp(-m.settings.K_servo * 0.01)) / 0.01
+    for _ in range(20):
+        phi = rng.uniform(-1, 1)
+        u, r = rng.uniform(2, 8), rng.uniform(-0.3, 0.3)
+        refk = np.array([0.0, 0.0, phi, u * math.cos(phi), u * math.sin(phi), r])
+        z = np.r_[rng.normal(0, 0.3, 3), np.zeros(m.dim - 3)]
+        # the wheels start at angles near their targets, so the rate limits do not bind
+        x0 = np.r_[0.0, 0.0, phi, 0.0, 0.0, 0.0, rng.normal(0, 0.002, v.n_wheels)]
+        for _ in range(100):  # move delta onto the targets (the servo's fixed point)
+            _, om_s = _policy_commands(m, x0, refk, z)
+            x0[6:] += om_s / kservo
+        assert np.abs(om_s).max() < 0.5  # the rate limits (0.8 rad/s) do not bind now
+        om_w, om_s = _policy_commands(m, x0, refk, z)
+        tgt = x0[6:] + om_s / kservo
+        # the body twist in B after the offsets; each wheel's velocity from it
+        ub, vb, rd = u + z[0], z[1], r + z[2]
+        vwx, vwy = ub - rd * v.wheel_y, vb + rd * v.wheel_x
+        assert np.allclose(om_w * v.wheel_radius, np.hypot(vwx, vwy), rtol=1e-9)
+        # axes: (c - w_i) . (cos tgt_i, sin tgt_i) = 0 for one point c; rd != 0 here
+        A = np.c_[np.cos(tgt), np.sin(tgt)]
+        b = v.wheel_x * np.cos(tgt) + v.wheel_y * np.sin(tgt)
+        c, *_ = np.linalg.lstsq(A, b, rcond=None)
+        assert np.abs(A @ c - b).max() < 1e-6
+        assert c == pytest.approx([-vb / rd, ub / rd], rel=1e-6)  # the twist's own centre
+
+
+def test_raw_policy_commands_are_the_decision_clipped_to_eq_27():
+    from controller.models import make_model
+
+    m = make_model(VEH, MPCSettings(method="ntwo", policy="raw"))
+    lo, hi, sig = m.box()
+    lim = VEH.limits
+    assert lo[:4].tolist() == [0.0] * 4 and hi[:4].tolist() == [lim.omega_w_max] * 4
+    assert lo[4:8].tolist() == [lim.omega_s_min] * 4 and hi[4:8].tolist() == [lim.omega_s_max] * 4
+    x0, ref = straight_case(m)
+    z = np.r_[[3.0, 30.0, -1.0, 7.0], [0.2, -0.5, 2.0, 0.0]]
+    z = np.r_[z, np.zeros(m.dim - 8)]
+    om_w, om_s = _policy_commands(m, x0, ref[0], z)
+    assert om_w.tolist() == [3.0, lim.omega_w_max, 0.0, 7.0]
+    assert om_s.tolist() == [0.2, -0.5, lim.omega_s_max, 0.0]
+    # a wheel at its stop cannot turn further into it
+    x0[6] = lim.delta_max
+    _, om_s = _policy_commands(m, x0, ref[0], np.r_[np.zeros(4), 0.5, 0, 0, 0, np.zeros(m.dim - 8)])
+    assert om_s[0] == 0.0
+    # the plain feed-forward is a raw decision too (a fresh controller's warm start)
+    z0 = m.origin(x0, ref[0], 0.01)
+    ff = make_model(VEH, MPCSettings(method="ntwo"))
+    w_ff, s_ff = _policy_commands(ff, x0, ref[0], np.zeros(ff.dim))
+    assert np.allclose(_policy_commands(m, x0, ref[0], z0)[0], w_ff)
+    assert np.allclose(_policy_commands(m, x0, ref[0], z0)[1], s_ff)

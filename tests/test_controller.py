@@ -48,16 +48,16 @@ def test_cost_on_hand_made_rollout():
     wear[0, 0] = [1000.0, 2000.0, 0.0]  # kW: 1, 2, 0
     wear[0, 1] = [0.0, 0.0, 3000.0]  # kW: 0, 0, 3
     Q = np.array([10.0, 20.0, 30.0])
-    L = np.array([1.0, 2.0, 3.0])
+    L = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])  # quadratic weights, no energy term
     R = np.zeros(4)
     Z = np.zeros((1, 2 * nw))
     out = np.empty(1)
-    ro.batch_cost(poses, wear, ref, Z, np.zeros(2 * nw), Q, L, R, nw, out)
+    ro.batch_cost(poses, wear, ref, Z, np.zeros(2 * nw), Q, L, R, 2 * nw, nw, out)
     # tracking: 10*0.01 + 20*0.04 + 30*0.01 = 0.1 + 0.8 + 0.3 = 1.2
     # wear: 1*1 + 2*4 + 3*9 = 1 + 8 + 27 = 36 ; J = (1.2 + 36) / N_p = 18.6
     assert out[0] == pytest.approx(18.6, rel=1e-12)
     # NTWO (L = 0) sees only the tracking part
-    ro.batch_cost(poses, wear, ref, Z, np.zeros(2 * nw), Q, np.zeros(3), R, nw, out)
+    ro.batch_cost(poses, wear, ref, Z, np.zeros(2 * nw), Q, np.zeros(6), R, 2 * nw, nw, out)
     assert out[0] == pytest.approx(0.6, rel=1e-12)
 
 
@@ -71,7 +71,7 @@ def test_regularisation_terms_by_hand():
     zprev = np.array([0.0, 0.0, 0.0, 0.0])
     R = np.array([2.0, 100.0, 0.5, 10.0])
     out = np.empty(1)
-    ro.batch_cost(poses, wear, ref, Z, zprev, np.zeros(3), np.zeros(3), R, nw, out)
+    ro.batch_cost(poses, wear, ref, Z, zprev, np.zeros(3), np.zeros(6), R, 2 * nw, nw, out)
     # smoothness: block0 vs prev: w: 1^2 -> 2*1 = 2; d: 0.1^2 -> 100*0.01 = 1
     #             block1 vs block0: w: (3-1)^2 = 4 -> 8; d: 0^2 + 0.2^2 = 0.04 -> 4
     # ridge: w: 1 + 9 = 10 -> 5; d: 0.01 + 0.01 + 0.04 = 0.06 -> 0.6
@@ -87,8 +87,15 @@ def test_settings_validation_names_field():
         MPCSettings(Q=(1.0, -1.0, 1.0))
     with pytest.raises(ValueError, match="deadline_ms"):
         MPCSettings(deadline_ms=0.0)
-    assert MPCSettings(method="ntwo").effective_L == (0.0, 0.0, 0.0)
-    assert MPCSettings(method="two").effective_L == MPCSettings().L
+    assert MPCSettings(method="ntwo").effective_L == (0.0,) * 6
+    assert MPCSettings(method="two", L=(1, 2, 3), E=(4, 5, 6)).effective_L == (1, 2, 3, 0, 0, 0)
+    assert MPCSettings(method="two-energy", L=(1, 2, 3), E=(4, 5, 6)).effective_L == \
+        (0, 0, 0, 4, 5, 6)
+    for bad in ({"method": "twe"}, {"policy": "wheels"}, {"E": (1.0, -1.0, 0.0)},
+                {"dugoff_stiffness": "fixed"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            MPCSettings(**bad)
+    assert MPCSettings(method="two").effective_L == MPCSettings().L + (0.0, 0.0, 0.0)
 
 
 # ---- bounds of eq. 27: never violated --------------------------------------------------
@@ -231,7 +238,7 @@ def test_compiled_annealer_equals_the_generic_one_on_the_mpc_cost(threads):
 
     def cost(Z):
         mpc.model.rollout(x0, R, Z, out=buf)
-        ro.batch_cost(buf.poses, buf.wear, R, Z, zprev, mpc.Q, mpc.L, mpc.R, 4, costs)
+        ro.batch_cost(buf.poses, buf.wear, R, Z, zprev, mpc.Q, mpc.L, mpc.R, 8, 4, costs)
         return costs
 
     want = anneal(cost, warm, mpc.lower, mpc.upper, mpc.sigma, np.random.default_rng(5),
@@ -370,6 +377,12 @@ def test_metrics_by_hand():
     assert e["e_y_cm"] == pytest.approx(math.sqrt(2.0))
     assert e["e_phi_deg"] == pytest.approx(1.0)
     assert e["e_bar"] == pytest.approx((math.sqrt(0.5) + math.sqrt(2.0) + 1.0) / 3)
+    # lateral error: across the reference heading (0 here, so y): 0, -2, 0, 2 cm
+    assert e["e_lat_rms_cm"] == pytest.approx(math.sqrt(2.0))
+    assert e["e_lat_max_cm"] == pytest.approx(2.0)
+    # along a reference heading of 90 deg the lateral error is -x
+    e90 = tracking_errors([[0.03, 0.5, math.pi / 2]], [[0.0, 0.0, math.pi / 2]])
+    assert e90["e_lat_rms_cm"] == pytest.approx(3.0) and e90["e_lat_max_cm"] == pytest.approx(3.0)
     # Omega's two branches (eq. 33): 1e8^0.5 * 10^0.1 and 1e8^0.5 * 100^0.5
     assert omega_index(1e8, 10.0) == pytest.approx(1e4 * 10 ** 0.1)
     assert omega_index(1e8, 100.0) == pytest.approx(1e5)
@@ -452,3 +465,34 @@ def test_case1_targets(speed):
     assert ntwo["e_bar"] < 2.0
     assert two["e_bar"] < 3.0
     assert two["W_tw"] <= ntwo["W_tw"]
+
+
+def test_wear_energy_term_by_hand():
+    """TWO-energy: the cost adds E . P_k [kW] per step (divided by N_p with the tracking)."""
+    nw, Np = 4, 2
+    ref = np.zeros((Np + 1, 6))
+    poses = np.zeros((1, Np, 3))
+    wear = np.zeros((1, Np, 3))
+    wear[0, 0] = [1000.0, 2000.0, 0.0]
+    wear[0, 1] = [0.0, 500.0, 3000.0]
+    L = np.array([0.0, 0.0, 0.0, 0.5, 0.25, 2.0])
+    out = np.empty(1)
+    ro.batch_cost(poses, wear, ref, np.zeros((1, 2 * nw)), np.zeros(2 * nw), np.zeros(3), L,
+                  np.zeros(4), 2 * nw, nw, out)
+    # 0.5 * 1 + 0.25 * (2 + 0.5) + 2 * 3 = 7.125; / N_p = 3.5625
+    assert out[0] == pytest.approx(3.5625, rel=1e-12)
+
+
+def test_feed_forward_controller_is_the_policy_without_optimisation():
+    from controller.mpc import FeedForward
+
+    ref, init = make_case("curve", 15.0)
+    st = dict(init(VEH), t=0.5)
+    st["delta"] = [st.pop(f"delta_{w}") for w in VEH.wheel_names]
+    ff = FeedForward(VEH, MPCSettings(), ref)
+    cmd = ff.step(st)
+    mpc = MPC(VEH, MPCSettings(), ref)
+    x0, R, _, _ = mpc.horizon_problem(st)
+    w, s = mpc.commands_for(x0, R[0], np.zeros(mpc.model.dim))
+    assert np.array_equal(cmd.omega_w, w) and np.array_equal(cmd.omega_s, s)
+    assert cmd.iterations == 0 and math.isnan(cmd.cost)

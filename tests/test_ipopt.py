@@ -39,7 +39,7 @@ needs_casadi = pytest.mark.skipif(not HAVE_CASADI, reason="casadi not installed 
 
 VEH = default_vehicle()
 METRIC_KEYS = {"W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar",
-               "Omega", "solve_ms", "steps"}
+               "Omega", "e_lat_rms_cm", "e_lat_max_cm", "solve_ms", "steps"}
 
 
 @functools.lru_cache(maxsize=None)
@@ -157,7 +157,8 @@ def test_symbolic_cost_equals_batch_cost(axles, settings):
         x0, R, z, zprev = _random_case(rng, model, ref, kind)
         out = model.rollout(x0, R, z[None, :])
         J = np.empty(1)
-        ro.batch_cost(out.poses, out.wear, R, z[None, :], zprev, Q, L, Rw, model.n_wheels, J)
+        ro.batch_cost(out.poses, out.wear, R, z[None, :], zprev, Q, L, Rw, model.stride,
+                      model.nsplit, J)
         Js = float(nlp.cost_fn(z, nlp.params(x0, R, zprev, eps=0.0)))
         assert Js == pytest.approx(J[0], rel=1e-9, abs=1e-12), kind
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, P_DELTA_MAX, P_DELTA_MIN, P_G,
+from plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX, P_DELTA_MIN, P_G,
                           N_REF, P_K_T, P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C,
                           P_LON_E, P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN,
                           P_OMEGA_W_MAX, P_V_EPS, P_WHEEL_RADIUS, P_YAW_INERTIA, POSE_PHI,
@@ -267,6 +267,7 @@ def _wear_cost(wear, L):
     for wk in wear:
         p0, p1, p2 = wk[WEAR_S] * KW, wk[WEAR_ALPHA] * KW, wk[WEAR_T] * KW
         J += L[L_S] * p0 * p0 + L[L_ALPHA] * p1 * p1 + L[L_T] * p2 * p2
+        J += L[LE_S] * p0 + L[LE_ALPHA] * p1 + L[LE_T] * p2
     return J
 
 
