@@ -23,16 +23,27 @@ Semantics:
   initialization, a vehicle value the vehicle loader refuses) is logged at once and makes
   the next ``doStep`` fail (fmi2Discard/fmi2Error) with that message; the instance stays
   usable. Only a failing ``exitInitializationMode`` is fatal.
-* numba: the plant's kernels are compiled with ``cache=True``. Where the bundled package
-  cannot be written (a read-only unpack directory) and ``NUMBA_CACHE_DIR`` is not set,
-  the bundled kernels cache into a fresh temporary directory instead, so the FMU still
-  loads (it compiles on first use either way: about 3 s).
+* numba: the plant's kernels are compiled with ``cache=True``, and numba keys its cache
+  by the sources' directory and modification times, which are new in every fresh unpack
+  of the FMU (fmpy unpacks into a new temporary directory each time). So the bundled
+  package is imported from a copy kept under the user's cache directory
+  (``$MSAGV_FMU_CACHE``, else ``$XDG_CACHE_HOME/msagv/fmu``, else ``~/.cache/msagv/fmu``),
+  named by the build hash and made once: the first instantiation compiles (about 3 s),
+  later ones, in any process and from any unpack, load the compiled kernels. Where that
+  copy cannot be made, the package is imported from ``resources/``; if that cannot be
+  written either (a read-only unpack directory) and ``NUMBA_CACHE_DIR`` is not set, the
+  kernels cache into a fresh temporary directory, so the FMU still loads.
 * A non-Python importer (the FMU's binary started Python: ``sys.orig_argv == []``):
   numba imports scipy when it is installed, and scipy's bundled libgfortran then aborts
   the importer at process exit ("free(): corrupted unsorted chunks") after pythonfmu has
   finalized the interpreter. The plant needs no BLAS, so in that case scipy is hidden from
   numba while the plant is imported and first compiled (numba then runs without BLAS),
-  unless ``MSAGV_FMU_ALLOW_SCIPY=1``. In a Python host nothing is hidden.
+  unless ``MSAGV_FMU_ALLOW_SCIPY=1``. In a Python host nothing is hidden; there the same
+  libgfortran aborted the host at exit ("corrupted double-linked list", in its
+  ``close_units``) in 30-50 % of fmpy runs that loaded the kernels from numba's cache
+  (none when they were compiled, which imports all of ``scipy.linalg``; none in 50 runs
+  whose host had imported ``scipy.linalg``). So in a Python host the slave imports
+  ``scipy.linalg`` before the plant, when scipy is installed (none in 30 runs since).
 """
 
 from __future__ import annotations
@@ -94,10 +105,75 @@ def _cache_writable(pkg_dir: Path) -> bool:
         return False
 
 
+def _package_digest(pkg: Path) -> str:
+    """SHA-256 over the package's files (paths and contents; ``__pycache__`` excluded)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted(p for p in pkg.rglob("*") if p.is_file() and "__pycache__" not in p.parts):
+        h.update(f.relative_to(pkg).as_posix().encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _stable_copy(name: str, resources: Path) -> Path | None:
+    """The directory holding a kept copy of the bundled package ``name`` (made from
+    ``resources/name`` if missing or different), or None where none can be made."""
+    base = os.environ.get("MSAGV_FMU_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+        "msagv", "fmu")
+    root = Path(base) / name
+    try:
+        src = resources / name
+        want = _package_digest(src)
+        if (root / name).is_dir() and _package_digest(root / name) == want \
+                and _cache_writable(root / name):
+            os.utime(root)  # in use: kept by the pruning below
+            return root
+        root.parent.mkdir(parents=True, exist_ok=True)
+        _prune(root.parent)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=root.parent))
+        shutil.copytree(src, tmp / name, ignore=shutil.ignore_patterns("__pycache__"))
+        if root.exists():  # a damaged or different copy: set it aside, atomically
+            shutil.rmtree(root.rename(root.with_name(f".{name}-old-{os.getpid()}")), True)
+        try:
+            tmp.rename(root)
+        except OSError:  # another process made it meanwhile
+            shutil.rmtree(tmp, True)
+        ok = (root / name).is_dir() and _package_digest(root / name) == want
+        return root if ok and _cache_writable(root / name) else None
+    except OSError:
+        return None
+
+
+KEEP_DAYS = 30  # copies of other builds unused this long are removed
+
+
+def _prune(cache: Path) -> None:
+    """Remove the copies of builds not instantiated for KEEP_DAYS (each use touches its
+    directory), and leftovers of interrupted copies."""
+    import time
+
+    old = time.time() - KEEP_DAYS * 86400
+    for d in cache.iterdir():
+        try:
+            if d.name.startswith(("msagv_plant_", ".msagv_plant_")) and d.stat().st_mtime < old:
+                shutil.rmtree(d, True)
+        except OSError:
+            pass
+
+
 def _import_plant(name: str, resources: Path):
     """Import the bundled plant package, with a usable numba cache location."""
     if name in sys.modules:
         return sys.modules[name]
+    root = _stable_copy(name, resources)
+    if root is not None:
+        sys.path.insert(0, str(root))
+        try:
+            return importlib.import_module(name)
+        finally:
+            sys.path.remove(str(root))
     if _cache_writable(resources / name):
         return importlib.import_module(name)
     from numba.core import config as numba_config
@@ -129,6 +205,11 @@ def _scipy_hidden_if_embedded():
             and os.environ.get("MSAGV_FMU_ALLOW_SCIPY") != "1")
     if hide:
         sys.modules["scipy"] = None  # import scipy -> ImportError: numba goes without it
+    elif not _embedded():
+        try:  # all of scipy.linalg, before numba loads cached kernels (see the module doc)
+            importlib.import_module("scipy.linalg")
+        except ImportError:
+            pass
     try:
         yield
     finally:

@@ -252,7 +252,11 @@ def test_refuses_output_without_fmu_suffix(tmp_path):
 
 
 def test_fmu_help_and_unknown_subcommand(capsys):
-    assert dispatcher(["fmu"]) == 0  # the msagv dispatcher reaches the fmu command
+    # the msagv dispatcher reaches the fmu command; without a sub-command it is a usage
+    # error (exit 2, usage on stderr), as bare msagv is
+    assert dispatcher(["fmu"]) == 2
+    assert "msagv fmu build" in capsys.readouterr().err
+    assert dispatcher(["fmu", "--help"]) == 0
     assert "msagv fmu build" in capsys.readouterr().out
     assert msagv(["fmu", "frobnicate"]) == 2
 

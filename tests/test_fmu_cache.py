@@ -1,0 +1,66 @@
+"""A second instantiation of the FMU, in a new process and from a fresh unpack (as fmpy
+does it), loads the plant's compiled kernels instead of compiling them again (FMU.md,
+"numba inside the FMU"). Checked by numba's own cache counters, not by timing."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+SCRIPT = textwrap.dedent("""
+    import json, sys
+    from fmpy import extract, read_model_description
+    from fmpy.fmi2 import FMU2Slave
+    fmu = sys.argv[1]
+    md = read_model_description(fmu)
+    unzip = extract(fmu)  # a new temporary directory every time
+    f = FMU2Slave(guid=md.guid, unzipDirectory=unzip,
+                  modelIdentifier=md.coSimulation.modelIdentifier, instanceName="p")
+    f.instantiate()
+    f.setupExperiment(startTime=0.0)
+    f.enterInitializationMode()
+    f.exitInitializationMode()
+    f.doStep(0.0, 0.01)
+    hits = misses = 0
+    where = set()
+    for name, mod in list(sys.modules.items()):
+        if not name.startswith("msagv_plant_"):
+            continue
+        where.add(getattr(mod, "__file__", "") or "")
+        for obj in vars(mod).values():
+            stats = getattr(obj, "stats", None)
+            if stats is not None and hasattr(stats, "cache_hits"):
+                hits += sum(stats.cache_hits.values())
+                misses += sum(stats.cache_misses.values())
+    f.terminate(); f.freeInstance()
+    print(json.dumps({"hits": int(hits), "misses": int(misses), "unzip": str(unzip),
+                      "where": sorted(str(w) for w in where)}))
+""")
+
+
+def _instantiate(fmu, env):
+    r = subprocess.run([sys.executable, "-c", SCRIPT, str(fmu)], env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_a_second_instantiation_does_not_compile(paper_fmu, tmp_path):
+    cache = tmp_path / "cache"
+    env = dict(os.environ, MSAGV_FMU_CACHE=str(cache))
+    env.pop("NUMBA_CACHE_DIR", None)
+    first = _instantiate(paper_fmu, env)
+    assert first["misses"] > 0  # compiled (nothing cached yet in this cache directory)
+    # later instantiations, each from its own fresh unpack, load every kernel and exit
+    # cleanly (_instantiate checks the exit code: loading cached kernels in an fmpy host
+    # had made scipy's libgfortran abort the exit in 30-50 % of runs, see slave.py)
+    for _ in range(3):
+        later = _instantiate(paper_fmu, env)
+        assert later["unzip"] != first["unzip"]
+        assert later["misses"] == 0 and later["hits"] > 0
+    # the kept copy, named by the build's hash, is what was imported
+    (copy,) = [p for p in cache.iterdir() if p.name.startswith("msagv_plant_")]
+    assert all(w.startswith(str(copy)) for w in later["where"] if w)
