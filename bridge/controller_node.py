@@ -340,7 +340,8 @@ def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> d
     last_err = None
     while not stop.is_set():
         try:
-            for reply in session.get(keys.params, timeout=1.0):
+            # ?wheel_wear=1: this controller understands the per-wheel wear state fields
+            for reply in session.get(f"{keys.params}?wheel_wear=1", timeout=1.0):
                 if reply.ok is None:
                     last_err = f"error reply: {reply.err.payload.to_bytes()[:200]!r}"
                     continue
@@ -447,6 +448,6 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
     finally:
         if node is not None:
             summary = node.summary()
-        if rec is not None:
-            rec.close(summary)
+        if rec is not None:  # the recorder's counters (errors, drops) in the summary too
+            summary["recording"] = rec.close(summary)
     return summary, rc

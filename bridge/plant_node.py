@@ -36,6 +36,10 @@ from .session import Keys, SessionError, SessionOptions, open_session
 log = logging.getLogger("msagv.plant")
 
 
+WHEEL_WEAR_MODES = ("auto", "on", "off")
+WHEEL_WEAR_PARAM = "wheel_wear"  # the params query's parameter asking for per-wheel wear
+
+
 class PlantRunError(RuntimeError):
     """The run cannot go on (no controller, a lockstep timeout, a failed step)."""
 
@@ -65,6 +69,8 @@ class PlantConfig:
     stale_ms: float = 50.0
     safe_decel: float = 2.0
     linger_s: float = 0.2
+    wheel_wear: str = "auto"  # per-wheel wear in the state: auto (when the params query
+    # asked for it, docs/PROTOCOL.md "Per-wheel wear") | on | off
 
     def __post_init__(self):
         if self.run_mode not in M.RUN_MODES:
@@ -81,6 +87,9 @@ class PlantConfig:
             raise ValueError(f"--stale-ms must be > 0, got {self.stale_ms}")
         if not self.safe_decel > 0:
             raise ValueError(f"--safe-decel must be > 0, got {self.safe_decel}")
+        if self.wheel_wear not in WHEEL_WEAR_MODES:
+            raise ValueError(f"--wheel-wear: expected one of {', '.join(WHEEL_WEAR_MODES)}, "
+                             f"got '{self.wheel_wear}'")
 
 
 def percentiles_ms(values_s) -> dict:
@@ -153,6 +162,9 @@ class PlantNode:
         self._decls = []
         self._token = None
         self.ramp = cfg.safe_decel / self.vehicle.wheel_radius  # rad/s^2
+        # the per-wheel wear fields go out when on, or (auto) when the newest params query
+        # asked for them: a peer of the first protocol version rejects unknown fields
+        self.wheel_wear = cfg.wheel_wear == "on"
 
     # ---- transport ---------------------------------------------------------------------
     def open(self) -> None:
@@ -181,6 +193,17 @@ class PlantNode:
         self._token, self._decls, self._pub = None, [], None
 
     def _on_params_query(self, query) -> None:
+        if self.cfg.wheel_wear == "auto":
+            try:
+                asked = query.parameters.get(WHEEL_WEAR_PARAM) == "1"
+            except Exception:  # no parameters
+                asked = False
+            if asked != self.wheel_wear:
+                self.wheel_wear = asked
+                log.info("per-wheel wear in the state: %s (asked by the params query)",
+                         "on" if asked else "off")
+                if self.rec is not None:
+                    self.rec.event("wheel_wear", on=asked)
         try:
             query.reply(self.keys.params, self._params, encoding=M.CONTENT_TYPE)
         except Exception as e:  # a vanished querier: nothing to do
@@ -269,7 +292,7 @@ class PlantNode:
         st = self.plant.state_message()
         st["t"] = seq * self.cfg.period  # t = seq T exactly (DESIGN.md: time never drifts)
         payload = M.encode_state(seq, st, safe=self.safe if self.cfg.run_mode == "realtime" else None,
-                                 end=True if end else None)
+                                 end=True if end else None, wheel_wear=self.wheel_wear)
         now = time.perf_counter()
         with self._lock:
             self.seq = seq
@@ -470,7 +493,8 @@ class PlantNode:
             "controller_losses": st.controller_losses,
             "rejected": self.rej.summary(),
             "final_state": {k: fs[k] for k in ("t", "x", "y", "phi", "vx", "vy", "r", "W_s",
-                                               "W_alpha", "W_t") if k in fs},
+                                               "W_alpha", "W_t") + M.WHEEL_WEAR_FIELDS
+                            if k in fs},
         }
 
 
@@ -517,6 +541,6 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, recorder=None,
         if signals is not None and signals.name is not None:
             summary["stopped_by"] = signals.name
             log.info("stopped by %s", signals.name)
-        if recorder is not None:
-            recorder.close(summary)
+        if recorder is not None:  # the recorder's counters (errors, drops) in the summary too
+            summary["recording"] = recorder.close(summary)
     return summary, rc

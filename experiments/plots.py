@@ -156,3 +156,62 @@ def plot_run(log, reference, path, title: str = "") -> None:
         fig.tight_layout()
         fig.savefig(path)
         plt.close(fig)
+
+
+def plot_wear(log, path, title: str = "") -> None:
+    """A report figure of the wear per wheel and per axle (1 x 2): each wheel's wear work
+    split into W_s, W_alpha, W_t [kJ] with each axle's total and share; each axle's wear
+    power over time [kW] (mean over each period). Needs the per-wheel wear work in the log
+    (:meth:`controller.loop.RunLog.wheel_wear`); raises ValueError without it."""
+    import numpy as np
+
+    wear = log.wheel_wear()
+    if wear is None:
+        raise ValueError("the log has no per-wheel wear work (W_s_ij, W_alpha_ij, W_t_ij)")
+    plt = pyplot()
+    wheels = list(wear["wheels"])
+    axles = list(wear["axles"])
+    comp = [("W_s", "W_s (slip)", "C0"), ("W_alpha", "W_alpha (slip angle)", "C1"),
+            ("W_t", "W_t (steering)", "C2")]
+    t = np.asarray(log.t, float)
+    Wij = np.asarray(log.W_ij, float)  # (rows, 3, nw)
+    total = sum(a["W_tw"] for a in wear["axles"].values())
+    with style():
+        fig, (ax_w, ax_p) = plt.subplots(1, 2, figsize=(WIDTH, 3.4),
+                                         gridspec_kw={"width_ratios": [1.1, 1.0]})
+        x = np.arange(len(wheels)) + np.repeat(np.arange(len(axles)) * 0.6, 2)
+        bottom = np.zeros(len(wheels))
+        for key, label, c in comp:
+            h = np.array([wear["wheels"][k][key] for k in wheels]) / 1000.0
+            ax_w.bar(x, h, 0.8, bottom=bottom, color=c, label=label)
+            bottom += h
+        for i, a in enumerate(axles):
+            tw = wear["axles"][a]["W_tw"] / 1000.0
+            share = f" ({100.0 * wear['axles'][a]['W_tw'] / total:.0f} %)" if total > 0 else ""
+            ax_w.text(x[2 * i:2 * i + 2].mean(), max(bottom[2 * i:2 * i + 2]) * 1.02,
+                      f"axle {a}\n{tw:.3g} kJ{share}", ha="center", va="bottom", fontsize=8)
+        ax_w.set_xticks(x, wheels)
+        ax_w.set_xlabel("wheel ij (axle i from the front, j = 1 left, 2 right)")
+        ax_w.set_ylabel("wear work [kJ]")
+        ax_w.set_ylim(0, max(bottom.max(), 1e-9) * 1.55)  # room for the labels and legend
+        ax_w.legend(loc="upper center", ncol=3, fontsize=7, handlelength=1.0,
+                    columnspacing=0.8)
+        ax_w.set_title("wear work per wheel")
+        if len(t) > 1:
+            per_wheel = Wij.sum(axis=1)  # W_tw_ij at each row
+            P = np.diff(per_wheel, axis=0) / np.diff(t)[:, None] / 1000.0
+            series = []
+            for i, a in enumerate(axles):
+                pa = P[:, 2 * i] + P[:, 2 * i + 1]
+                series.append(pa)
+                ax_p.plot(t[:-1], pa, lw=1, label=f"axle {a}")
+            robust_ylim(ax_p, t[:-1], series, "kW")
+            ax_p.legend(loc="best")
+        ax_p.set_xlabel("t [s]")
+        ax_p.set_ylabel("wear power [kW]")
+        ax_p.set_title("wear power per axle (mean over each period)")
+        if title:
+            fig.suptitle(title)
+        fig.tight_layout()
+        fig.savefig(path)
+        plt.close(fig)

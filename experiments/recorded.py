@@ -96,7 +96,7 @@ def evaluate(path: str | Path, run_index: int = -1):
     # state -> command time as recorded (record times of one process; without the solve)
     lat = [run.cmd_ts[k] - run.state_ts[k] - run.cmds[k].get("solve_ms", 0.0) / 1000.0
            for k in run.cmds if k in run.state_ts]
-    rejected = sum(1 for r in records if "why" in r)
+    rejected = sum(1 for r in records if "why" in r and "key" in r)  # not events' why
     info = {"recording": str(path), "role": header.get("role"), "id": header.get("id"),
             "run_mode": header.get("run_mode"), "runs": len(runs),
             "run": run_index if run_index >= 0 else len(runs) + run_index,

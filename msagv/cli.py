@@ -204,7 +204,7 @@ def report_main(argv: list[str]) -> int:
     from pathlib import Path
 
     from bridge.recording import RecordingError, read_recording
-    from controller.metrics import format_table
+    from controller.metrics import format_table, format_wheel_wear
     from experiments.recorded import ReportError, evaluate
     from experiments.results import result
 
@@ -223,10 +223,13 @@ def report_main(argv: list[str]) -> int:
     ap.add_argument("--json-out", metavar="FILE", help="also write the JSON result to FILE")
     ap.add_argument("--plot", metavar="FILE", help="write a figure (path, errors, wear power)")
     ap.add_argument("--log", metavar="FILE", help="write the per-step log as CSV")
+    ap.add_argument("--wear-plot", metavar="FILE",
+                    help="write a figure of the wear per wheel and per axle")
     add_common_args(ap)
     a = ap.parse_args(argv)
     try:
         check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
+        check_output(a.wear_plot, "--wear-plot", suffixes=PLOT_SUFFIXES)
         check_output(a.log, "--log")
         check_output(a.json_out, "--json-out")
         m, info, log, ref = evaluate(a.recording, a.run)
@@ -247,7 +250,15 @@ def report_main(argv: list[str]) -> int:
                         f"in the recording")
     warn(prog, warnings)
     scenario = _recording_scenario(info, header, log, ref)
-    doc = result("report", scenario, m, warnings, completed=info["ended"], recording=info)
+    wear = log.wheel_wear()  # None: the plant did not send the per-wheel fields
+    if wear is None and m.get("W_tw") is not None:
+        warnings.append("the recorded states carry no per-wheel wear work (W_s_ij, ...; "
+                        "msagv plant sends it to controllers that ask, or with --wheel-wear "
+                        "on): the wear per wheel and per axle is not measured"
+                        + ("; --wear-plot not written" if a.wear_plot else ""))
+        warn(prog, warnings[-1:])
+    doc = result("report", scenario, m, warnings, completed=info["ended"], recording=info,
+                 wear=wear)
     if a.log:
         log.to_csv(a.log)
     if a.plot:
@@ -255,6 +266,10 @@ def report_main(argv: list[str]) -> int:
 
         plot_run(log, ref, a.plot, title=run_title(
             scenario, f"over Zenoh ({info['run_mode']}, {info['role']} recording)"))
+    if a.wear_plot and wear is not None:
+        from experiments.plots import plot_wear, run_title
+
+        plot_wear(log, a.wear_plot, title=run_title(scenario, f"{info['role']} recording"))
     if a.json_out:
         Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
@@ -262,6 +277,7 @@ def report_main(argv: list[str]) -> int:
     else:
         print(format_table(m, f"{ref.name}: {info['recording']} ({info['role']}, "
                               f"{info['run_mode']}, run {info['run']} of {info['runs']})"))
+        print("\n".join(format_wheel_wear(wear)))
         lat = info["latency_ms"]
         print(f"  answered   {info['answered']} of {info['steps']} states; rejected messages "
               f"{info['rejected']}")

@@ -20,7 +20,7 @@ from bridge import messages as M
 from bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtime_priority,
                             setup_logging)
 
-from .args import (add_case_args, add_common_args, add_fmu_args, add_mpc_args,
+from .args import (OptionError, add_case_args, add_common_args, add_fmu_args, add_mpc_args,
                    add_session_args, check_output, options_from_args, scenario_from_args)
 from .errors import USAGE_ERRORS
 
@@ -30,6 +30,47 @@ def _realtime_priority(a, log: logging.Logger) -> None:
         why = set_realtime_priority(a.rt_priority)
         if why:
             log.warning("%s", why)
+
+
+def add_record_args(ap: argparse.ArgumentParser) -> None:
+    """``--record FILE`` (an MCAP recording, docs/PROTOCOL.md section 9) and its limits."""
+    ap.add_argument("--record", metavar="FILE",
+                    help="record every message with its time (MCAP; a full disk or a slow "
+                         "disk never stops the process: errors and drops are counted)")
+    ap.add_argument("--record-max-mb", type=float, default=1024.0, metavar="MB",
+                    help="continue the recording in FILE.1.mcap, FILE.2.mcap, ... after this "
+                         "many MB per file (default 1024)")
+    ap.add_argument("--record-keep", type=int, default=0, metavar="N",
+                    help="keep only the newest N files of the recording, 0 = all (default)")
+
+
+def check_record_args(a) -> None:
+    """Refuse bad recording options and an unwritable --record path, before start-up."""
+    from bridge.recording import RecordingError, check_writable
+
+    if not a.record_max_mb * (1 << 20) >= 4096:
+        raise OptionError(f"--record-max-mb must be at least 0.004 (4 KiB), got {a.record_max_mb:g}")
+    if a.record_keep < 0:
+        raise OptionError(f"--record-keep must be >= 0, got {a.record_keep}")
+    if a.record:
+        check_output(a.record, "--record")
+        try:
+            check_writable(a.record)
+        except RecordingError as e:
+            raise OptionError(f"--record {e}") from None
+
+
+def open_recording(a, header: dict):
+    """The :class:`bridge.recording.Recorder` of ``--record`` (None without it)."""
+    from bridge.recording import Recorder, RecordingError
+
+    if not a.record:
+        return None
+    try:
+        return Recorder(a.record, header, max_bytes=int(a.record_max_mb * (1 << 20)),
+                        keep=a.record_keep)
+    except RecordingError as e:
+        raise OptionError(f"--record {e}") from None
 
 
 # ---- msagv plant --------------------------------------------------------------------------
@@ -58,7 +99,10 @@ def plant_parser() -> argparse.ArgumentParser:
                          "behaviour (default 50)")
     ap.add_argument("--safe-decel", type=float, default=2.0, metavar="M/S2",
                     help="realtime safe behaviour: wheel ramp-down at the rim (default 2)")
-    ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
+    ap.add_argument("--wheel-wear", choices=["auto", "on", "off"], default="auto",
+                    help="per-wheel wear work in the state (W_s_ij, ...): auto = when the "
+                         "controller's params query asks for it (default), on, off")
+    add_record_args(ap)
     ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
     add_common_args(ap)  # -q: log warnings only; -v: debug
     add_session_args(ap)
@@ -67,8 +111,6 @@ def plant_parser() -> argparse.ArgumentParser:
 
 def plant_main(argv: list[str]) -> int:
     from bridge.plant_node import PlantConfig, serve
-    from bridge.recording import Recorder
-
     a = plant_parser().parse_args(argv)
     setup_logging("msagv plant", a.id, a.quiet, a.verbose)
     log = logging.getLogger("msagv.plant")
@@ -78,7 +120,7 @@ def plant_main(argv: list[str]) -> int:
     plant = None
     try:
         opts = options_from_args(a)
-        check_output(a.record, "--record")
+        check_record_args(a)
         scenario = scenario_from_args(a)
         plant, vehicle, ref, initial = scenario.make_plant()
         for w in scenario.check(vehicle, ref):  # a speed no wheel reaches: exit 2
@@ -87,17 +129,12 @@ def plant_main(argv: list[str]) -> int:
         cfg = PlantConfig(run_mode=a.run_mode, period=a.period,
                           steps=int(round(duration / a.period)) if duration > 0 else 0,
                           timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
-                          safe_decel=a.safe_decel)
-        rec = None
-        if a.record:
-            try:
-                rec = Recorder(a.record, {
-                    "role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),
-                    "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
-                    "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
-                    "fmu": a.fmu, "argv": list(argv)})
-            except OSError as e:
-                raise ValueError(f"--record: {e}") from None
+                          safe_decel=a.safe_decel, wheel_wear=a.wheel_wear)
+        rec = open_recording(a, {
+            "role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),
+            "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
+            "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
+            "fmu": a.fmu, "argv": list(argv)})
     except USAGE_ERRORS as e:
         print(f"msagv plant: {e}", file=sys.stderr)
         if plant is not None and hasattr(plant, "close"):
@@ -141,6 +178,11 @@ def _plant_report(s: dict, as_json: bool) -> None:
         sf = s["safe"]
         lines.append(f"  safe       events {sf['events']}, periods {sf['periods']}, "
                      f"resumes {sf['resumes']}")
+    rec = s.get("recording")
+    if rec:
+        lines.append(f"  recording  {rec['path']}: {rec['records']} records in {len(rec['files'])} "
+                     f"file(s), {rec['bytes'] / 1e6:.2f} MB; dropped {rec['dropped']}, errors "
+                     f"{rec['errors']}" + (f" ({rec['last_error']})" if rec["errors"] else ""))
     print("\n".join(lines), file=sys.stderr, flush=True)
 
 
@@ -161,7 +203,7 @@ def controller_parser() -> argparse.ArgumentParser:
                     help="when the plant's token disappears: wait for it (default) or exit 3")
     ap.add_argument("--exit-at-end", action="store_true",
                     help="exit after the plant's last state (end = true)")
-    ap.add_argument("--record", metavar="FILE", help="record every message (msgpack stream)")
+    add_record_args(ap)
     ap.add_argument("--json", action="store_true", help="print the summary as JSON at exit")
     add_common_args(ap)  # -q: log warnings only; -v: debug
     add_session_args(ap)
@@ -170,8 +212,6 @@ def controller_parser() -> argparse.ArgumentParser:
 
 def controller_main(argv: list[str]) -> int:
     from bridge.controller_node import ControllerConfig, realtime_defaults, serve
-    from bridge.recording import Recorder
-
     a = controller_parser().parse_args(argv)
     setup_logging("msagv controller", a.id, a.quiet, a.verbose)
     log = logging.getLogger("msagv.controller")
@@ -184,7 +224,7 @@ def controller_main(argv: list[str]) -> int:
         return EXIT_USAGE
     try:
         opts = options_from_args(a)
-        check_output(a.record, "--record")
+        check_record_args(a)
         scenario = scenario_from_args(a)
         scenario.check_solver()  # ipopt without CasADi or with model != mf: exit 2
         if a.vehicle:
@@ -205,15 +245,17 @@ def controller_main(argv: list[str]) -> int:
                                         **override)
 
     def open_recorder(mpc, params):
-        if not a.record:
-            return None
         ref = mpc.reference
-        return Recorder(a.record, {
-            "role": "controller", "id": opts.id, "vehicle": mpc.vehicle.to_dict(),
-            "period": mpc.period, "run_mode": params.run_mode if params else None,
-            "reference": dict(ref.to_message(), name=ref.name),
-            "settings": dataclasses.asdict(mpc.settings), "solver": scenario.solver,
-            "argv": list(argv)})
+        try:
+            return open_recording(a, {
+                "role": "controller", "id": opts.id, "vehicle": mpc.vehicle.to_dict(),
+                "period": mpc.period, "run_mode": params.run_mode if params else None,
+                "reference": dict(ref.to_message(), name=ref.name),
+                "settings": dataclasses.asdict(mpc.settings), "solver": scenario.solver,
+                "argv": list(argv)})
+        except OptionError as e:  # checked before start-up; gone since: control goes on
+            log.error("%s; running without a recording", e)
+            return None
 
     sig = StopOnSignal(threading.Event())
     cfg = ControllerConfig(a.max_age_ms, a.on_plant_loss, a.exit_at_end)
@@ -228,6 +270,11 @@ def controller_main(argv: list[str]) -> int:
               f"{summary['skipped']}, rejected {summary['rejected']['total']}, solve p50 "
               f"{(sm['p50'] or 0):.2f} p99 {(sm['p99'] or 0):.2f} ms ({summary['exit_reason']})",
               file=sys.stderr)
+        rec = summary.get("recording")
+        if rec:
+            print(f"  recording  {rec['path']}: {rec['records']} records, dropped "
+                  f"{rec['dropped']}, errors {rec['errors']}"
+                  + (f" ({rec['last_error']})" if rec["errors"] else ""), file=sys.stderr)
     return rc
 
 

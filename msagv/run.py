@@ -42,6 +42,8 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
                                                    ".png, .pdf, .svg)")
     ap.add_argument("--log", metavar="FILE", help="write the per-step log as CSV (columns named "
                                                   "as the signals)")
+    ap.add_argument("--wear-plot", metavar="FILE",
+                    help="write a figure of the wear per wheel and per axle (.png, .pdf, .svg)")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bar on stderr (default: on a terminal for runs > 10 s)")
     add_common_args(ap)
@@ -55,7 +57,7 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     options or input (nothing run), 130 interrupted (the result so far is printed)."""
     a = build_parser(prog, fmu).parse_args(argv)
     from controller.loop import RunLog, closed_loop
-    from controller.metrics import format_table
+    from controller.metrics import format_table, format_wheel_wear
     from experiments.checks import solve_time_warnings
     from experiments.results import result, scenario_info
 
@@ -70,6 +72,7 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
         check_output(a.log, "--log")
         check_output(a.json_out, "--json-out")
+        check_output(a.wear_plot, "--wear-plot", suffixes=PLOT_SUFFIXES)
         scenario = scenario_from_args(a)
         built = scenario.build()
     except USAGE_ERRORS as e:
@@ -107,13 +110,18 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
                         f"cover the {len(log.t)} steps run")
         warn(prog, warnings[-1:])
     m = log.metrics()
-    doc = result(prog.split(" ", 1)[1], info, m, warnings, completed=not interrupted)
+    wear = log.wheel_wear()  # per wheel and per axle
+    doc = result(prog.split(" ", 1)[1], info, m, warnings, completed=not interrupted, wear=wear)
     if a.log:
         log.to_csv(a.log)
     if a.plot:
         from experiments.plots import plot_run, run_title
 
         plot_run(log, ref, a.plot, title=run_title(info))
+    if a.wear_plot:
+        from experiments.plots import plot_wear, run_title
+
+        plot_wear(log, a.wear_plot, title=run_title(info))
     if a.json_out:
         Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
@@ -124,7 +132,9 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         speed = f" at {info['speed_kmh']} km/h" if info["speed_kmh"] is not None else ""
         print(format_table(m, f"{ref.name}{speed}, {settings.method.upper()} ({how}), {where}"
                               f"{' (interrupted)' if interrupted else ''}"))
-        for k, path in (("log", a.log), ("plot", a.plot), ("json", a.json_out)):
+        print("\n".join(format_wheel_wear(wear)))
+        for k, path in (("log", a.log), ("plot", a.plot), ("wear plot", a.wear_plot),
+                        ("json", a.json_out)):
             if path:
                 print(f"  {k:<10} {Path(path)}")
     return EXIT_INTERRUPTED if interrupted else 0
