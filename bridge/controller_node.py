@@ -1,10 +1,14 @@
 """``msagv controller``: the MPC as a Zenoh process.
 
-Gets the vehicle from the plant's ``msagv/{id}/params`` queryable (or ``--vehicle FILE``),
-answers every ``state`` with a ``cmd`` naming the state it answers, takes new references on
-``msagv/{id}/reference``, declares ``msagv/{id}/alive/controller`` once its MPC is warm, and
-stops commanding while the plant's token ``msagv/{id}/alive/plant`` is gone (it never sends
-a command for a state older than ``--max-age-ms``).
+Gets the vehicle from the plant's ``msagv/{id}/params`` queryable (or ``--vehicle FILE``)
+and binds to the plant session that answered (:mod:`bridge.ownership`): states from any
+other session are rejected (``not_bound``). Once its MPC is warm it declares
+``msagv/{id}/alive/controller/{zid}``, claims the vehicle on ``msagv/{id}/claim``, and while
+the plant grants it, answers every ``state`` with a ``cmd`` naming the state it answers
+(never for a state older than ``--max-age-ms``). It takes new references on
+``msagv/{id}/reference``. It stops commanding while the plant's token
+``msagv/{id}/alive/plant/{zid}`` is gone, and decides the plant is lost only after
+:class:`bridge.loss.LossTimer`'s confirmation time of its own running time.
 
 Determinism (lockstep): the MPC is warmed up (kernels compiled) and then reset, and it is
 reset again at every state with ``seq = 0`` (a new plant run), exactly as
@@ -24,6 +28,9 @@ from typing import Callable
 import numpy as np
 
 from . import messages as M
+from .loss import LOST, LossTimer
+from .ownership import CLAIM, CLAIM_REFRESH_S, CLAIM_RETRY_S, RELEASE, claim, params_replies, \
+    source_info, source_zid
 from .plant_node import percentiles_ms
 from .presence import Presence
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, freeze_heap
@@ -35,6 +42,8 @@ REALTIME_DEADLINE_MS = 7.0  # solve budget used against a realtime plant unless 
 
 
 FALLBACK_LOSS_S = 2.0  # s without a state before a plant known only by its states is gone
+LOSS_CONFIRM_S = 2.0  # s of running time without the plant before it is lost
+LOCAL = object()  # handle_state's source when a test feeds it directly: no binding check
 
 
 class ControllerRunError(RuntimeError):
@@ -64,6 +73,7 @@ class ControllerStats:
     new_runs: int = 0
     dropped_stale: int = 0  # solved but too old to send
     ignored_no_plant: int = 0  # states while the plant's token was gone
+    not_granted: int = 0  # solved but not sent: the plant did not grant us the vehicle
     references: int = 0
     ends: int = 0
     solve_ms: list = dataclasses.field(default_factory=list)
@@ -73,7 +83,8 @@ class ControllerNode:
     """The controller process's logic. ``session`` None: a test feeds :meth:`handle_state`
     and reads :attr:`sent`."""
 
-    def __init__(self, mpc, keys: Keys, cfg: ControllerConfig, session=None, recorder=None):
+    def __init__(self, mpc, keys: Keys, cfg: ControllerConfig, session=None, recorder=None,
+                 plant_zid: str | None = None, rebind: Callable[[], str] | None = None):
         self.mpc = mpc
         self.nw = mpc.vehicle.n_wheels
         self.keys = keys
@@ -100,25 +111,116 @@ class ControllerNode:
         self._pub = None
         self._decls: list = []
         self._token = None
+        # ownership: the plant session we are bound to, and whether it grants us the vehicle
+        self.plant_zid = plant_zid
+        self._rebind = rebind  # fetches the params again; returns the new plant's zid
+        self.granted = session is None
+        self.owner: str | None = None
+        self.zid: str | None = None
+        self._claim_wake = threading.Event()
+        self._closing = threading.Event()
+        self._claimer: threading.Thread | None = None
+        self.loss = LossTimer(LOSS_CONFIRM_S)
 
     # ---- transport ---------------------------------------------------------------------
     def open(self) -> None:
         import zenoh
 
         s, k = self.session, self.keys
-        self._plant_presence = Presence(s, k.alive_plant, self._on_plant_change)
-        self._decls.append(self._plant_presence)
+        self.zid = str(s.zid())
+        if self.plant_zid is not None:
+            self._watch_plant(self.plant_zid)
         self._pub = s.declare_publisher(k.cmd, express=True, priority=zenoh.Priority.REAL_TIME,
                                         congestion_control=zenoh.CongestionControl.BLOCK,
                                         encoding=zenoh.Encoding(M.CONTENT_TYPE))
         self._decls.append(s.declare_subscriber(
-            k.state, lambda smp: self.handle_state(smp.payload.to_bytes(), time.perf_counter())))
+            k.state, lambda smp: self.handle_state(smp.payload.to_bytes(), time.perf_counter(),
+                                                   source=source_zid(smp))))
         self._decls.append(s.declare_subscriber(
             k.reference, lambda smp: self.handle_reference(smp.payload.to_bytes())))
-        # the token last: a plant that sees it finds our subscriber declared
-        self._token = s.liveliness().declare_token(k.alive_controller)
+        # the token, then the claim: a plant that grants us the vehicle finds our token and
+        # our state subscriber declared
+        self._token = s.liveliness().declare_token(k.controller_token(self.zid))
+        self._claimer = threading.Thread(target=self._claim_loop, daemon=True,
+                                         name=f"claim {k.id}")
+        self._claimer.start()
+
+    def _watch_plant(self, zid: str) -> None:
+        """Bind to the plant session ``zid``: its token is the plant's presence."""
+        self.plant_zid = zid
+        self._plant_presence = Presence(self.session, self.keys.plant_token(zid),
+                                        self._on_plant_token)
+        self._decls.append(self._plant_presence)
+        log.info("bound to plant session %s", zid)
+
+    def _unbind(self) -> None:
+        pres = self._plant_presence
+        if pres is not None:
+            pres.close()
+            if pres in self._decls:
+                self._decls.remove(pres)
+        self._plant_presence = None
+        self.plant_zid = None
+        self.granted, self.owner = False, None
+        self.plant_present, self.plant_seen, self._fallback = False, False, False
+        with self._lock:
+            self._pending = self._held = None
+        self.loss.reset()
+
+    # ---- ownership ---------------------------------------------------------------------
+    def _claim_loop(self) -> None:
+        """Claim the vehicle from the bound plant (every CLAIM_RETRY_S until granted, then
+        every CLAIM_REFRESH_S, so a lost grant is noticed); with ``--vehicle`` (no params),
+        the one plant that answers the claim is the one we bind to."""
+        n = 0
+        while not self._closing.is_set():
+            bound = self.plant_zid
+            try:
+                replies = claim(self.session, self.keys, source_info(self._pub, n))
+            except Exception as e:  # the session is closing
+                log.debug("claim failed: %s", e)
+                replies = []
+            n += 1
+            if bound is None and self._rebind is None:
+                plants = sorted({z for z, g in replies if g is not None})
+                if len(plants) == 1:
+                    self._watch_plant(plants[0])
+                    bound = plants[0]
+                elif len(plants) > 1:
+                    log.warning("%d plants answer the claim for vehicle %s (%s): binding to "
+                                "none", len(plants), self.keys.id, ", ".join(plants))
+            for z, g in replies:
+                if bound is not None and z == bound and g is not None:
+                    self._last_state_rx = time.monotonic()  # the plant answered: alive
+                    if not self.plant_present and self._plant_presence is not None:
+                        self._fallback = True
+                        self._on_plant_change(True, via="claims")
+                    self._set_granted(g["granted"], g.get("owner"))
+            wait = CLAIM_REFRESH_S if self.granted else CLAIM_RETRY_S
+            self._claim_wake.wait(wait)
+            self._claim_wake.clear()
+
+    def _set_granted(self, granted: bool, owner: str | None) -> None:
+        was, self.granted, self.owner = self.granted, granted, owner
+        if granted and not was:
+            log.info("vehicle %s granted by plant %s", self.keys.id, self.plant_zid)
+        elif was and not granted:
+            log.warning("plant %s no longer grants vehicle %s to this controller (owner: %s): "
+                        "not commanding", self.plant_zid, self.keys.id, owner or "nobody")
+        elif not granted and owner is not None and owner != self.zid:
+            log.debug("vehicle %s is owned by %s; waiting", self.keys.id, owner)
+        if self.rec is not None and granted != was:
+            self.rec.event("granted", granted=granted, owner=owner)
 
     def close(self) -> None:
+        self._closing.set()
+        self._claim_wake.set()
+        if self.granted and self.session is not None and self._pub is not None:
+            try:  # hand the vehicle back at once (the plant also notices our token going)
+                claim(self.session, self.keys, source_info(self._pub, 0), RELEASE, timeout=0.3)
+            except Exception:
+                pass
+            self.granted = False
         for obj in [self._token] + self._decls + [self._pub]:
             if obj is not None:
                 try:
@@ -127,11 +229,26 @@ class ControllerNode:
                     pass
         self._token, self._decls, self._pub = None, [], None
 
+    def _on_plant_token(self, present: bool) -> None:
+        """The bound plant's token appeared or was lost. A loss reported while the plant
+        still shows signs of life (a state or a claim answer within FALLBACK_LOSS_S) is not
+        believed: zenoh once in a while reported a live plant's token gone under CPU load
+        (the link up, the token then unanswered by queries); the plant's silence decides."""
+        if not present and time.monotonic() - self._last_state_rx < FALLBACK_LOSS_S:
+            if not self._fallback:
+                log.info("plant %s: token reported gone, but the plant answered %.2f s ago: "
+                         "its silence decides (%g s)", self.keys.id,
+                         time.monotonic() - self._last_state_rx, FALLBACK_LOSS_S)
+            self._fallback = True
+            return
+        self._on_plant_change(present)
+
     def _on_plant_change(self, present: bool, via: str = "token") -> None:
         if via == "token":
             self._fallback = False
         self.plant_present = present
         if present:
+            self._claim_wake.set()  # (re)appeared: claim at once (a lost grant is renewed)
             self.plant_seen = True
             log.info("plant %s present%s", self.keys.id,
                      "" if via == "token" else " (its states arrive; its liveliness token "
@@ -157,11 +274,17 @@ class ControllerNode:
             self._on_plant_change(False, via="states")
 
     # ---- incoming ----------------------------------------------------------------------
-    def handle_state(self, payload: bytes, rx_perf: float) -> dict | None:
-        """Validate a state; the newest valid one is solved next. Returns it, or None."""
+    def handle_state(self, payload: bytes, rx_perf: float, source=LOCAL) -> dict | None:
+        """Validate a state; the newest valid one is solved next. Returns it, or None.
+        ``source``: the sending session's zid; a state not from the bound plant is
+        rejected as ``not_bound``."""
         key = self.keys.state
         try:
             st = M.decode_state(payload, self.nw)
+            if source is not LOCAL and (source is None or source != self.plant_zid):
+                who = source or "a session without source info"
+                raise M.MessageError(M.NOT_BOUND, f"from {who}; bound to plant "
+                                                  f"{self.plant_zid or '(none yet)'}")
         except M.MessageError as e:
             self.rej.add(e, key)
             if self.rec is not None:
@@ -171,11 +294,14 @@ class ControllerNode:
             self.rec.message("rx", key, payload)
         self._last_state_rx = time.monotonic()
         pres = self._plant_presence
-        if not self.plant_present and pres is not None and pres.generation == 0:
+        if not self.plant_present and pres is not None and (
+                pres.generation == 0 or (source is not LOCAL and source == self.plant_zid)):
             # Zenoh did not deliver the plant's token to this session (seen in a mesh of
-            # peers with gossip off: the token neither arrived nor answered a query),
-            # but its states do: they are the evidence of presence, and their silence
-            # (FALLBACK_LOSS_S) the evidence of loss, until the token shows up
+            # peers with gossip off: the token neither arrived nor answered a query), or
+            # reported it gone while the plant (bound, by its session id) still sends its
+            # states (seen under CPU load: a DELETE while the link stayed up): the states
+            # are the evidence of presence, and their silence (FALLBACK_LOSS_S) the
+            # evidence of loss, until the token shows up again
             self._fallback = True
             self._on_plant_change(True, via="states")
         if not self.plant_present:
@@ -216,12 +342,10 @@ class ControllerNode:
     def run(self) -> dict:
         """Answer states until stopped (or the end, or the plant's loss, as configured)."""
         while not self.stop.is_set():
-            self.check_fallback_loss(time.monotonic())
-            if self.cfg.on_plant_loss == "exit" and self.plant_seen and not self.plant_present:
-                self.exit_reason = "plant gone"
-                raise ControllerRunError(
-                    f"plant '{self.keys.id}' gone (its liveliness token {self.keys.alive_plant} "
-                    f"disappeared); exiting (--on-plant-loss exit)")
+            now = time.monotonic()
+            self.check_fallback_loss(now)
+            if self.plant_seen and self.loss.update(now, self.plant_present) == LOST:
+                self._plant_lost()
             self._event.wait(0.05)
             self._event.clear()
             with self._lock:
@@ -239,9 +363,28 @@ class ControllerNode:
             self.exit_reason = "stopped"
         return self.summary()
 
+    def _plant_lost(self) -> None:
+        """The bound plant is confirmed lost: exit, or wait for a plant and bind to it."""
+        zid = self.plant_zid
+        if self.cfg.on_plant_loss == "exit":
+            self.exit_reason = "plant gone"
+            raise ControllerRunError(
+                f"plant '{self.keys.id}' gone (its liveliness token {self.keys.plant_token(zid)} "
+                f"disappeared and no state came for {self.loss.confirm_s:g} s); exiting "
+                f"(--on-plant-loss exit)")
+        log.warning("plant %s (session %s) lost: waiting for a plant to bind to", self.keys.id, zid)
+        if self.rec is not None:
+            self.rec.event("plant_lost", zid=zid)
+        self._unbind()
+        if self._rebind is not None:
+            new = self._rebind()  # blocks until a plant answers (or stop)
+            if new is not None and not self.stop.is_set():
+                self._watch_plant(new)
+        self._claim_wake.set()
+
     def step(self, st: dict, rx_perf: float) -> str:
         """Solve for one state and send the command. Returns 'sent', 'end', 'duplicate',
-        'stale' or 'no plant'."""
+        'stale', 'no plant' or 'not granted'."""
         seq = st["seq"]
         last = self._last_seq
         if last is not None and seq == last:
@@ -273,14 +416,26 @@ class ControllerNode:
             return "stale"
         if not self.plant_present:
             self.stats.ignored_no_plant += 1
+            if self.stats.ignored_no_plant <= 3:
+                log.warning("state %d solved but not answered: the plant is not present", seq)
+            with self._lock:  # answered if the plant shows up again (unless too old)
+                if self._held is None and self._pending is None:
+                    self._held = (st, rx_perf)
+                    self._last_seq = last
             return "no plant"
+        if not self.granted:
+            self.stats.not_granted += 1
+            if self.stats.not_granted <= 3:
+                log.warning("state %d solved but not answered: the plant does not grant us "
+                            "the vehicle (owner: %s)", seq, self.owner or "nobody")
+            return "not granted"
         payload = M.encode_cmd(self._cmd_seq, st["t"], seq, cmd.omega_w, cmd.omega_s,
                                solve_ms=cmd.solve_ms, cost=cmd.cost)
-        self._cmd_seq += 1
         if self._pub is not None:
-            self._pub.put(payload)
+            self._pub.put(payload, source_info=source_info(self._pub, self._cmd_seq))
         else:
             self.sent.append(payload)
+        self._cmd_seq += 1
         if self.rec is not None:
             self.rec.message("tx", self.keys.cmd, payload)
         self.stats.answered += 1
@@ -306,6 +461,9 @@ class ControllerNode:
                 "solve_ms": percentiles_ms(np.asarray(s.solve_ms) / 1000.0),
                 "skipped": s.skipped, "duplicates": s.duplicates, "new_runs": s.new_runs,
                 "dropped_stale": s.dropped_stale, "ignored_no_plant": s.ignored_no_plant,
+                "not_granted": s.not_granted, "plant_zid": self.plant_zid,
+                "loss": {"state": self.loss.state, "suspicions": self.loss.suspicions,
+                         "stalls": self.loss.stalls},
                 "references": s.references, "ends": s.ends, "rejected": self.rej.summary(),
                 "exit_reason": self.exit_reason,
                 "solver": getattr(self.mpc, "solver_name", "sa"),
@@ -333,23 +491,35 @@ def realtime_defaults(run_mode: str | None, deadline_ms: float | None,
     return deadline_ms, max_age_ms
 
 
-def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> dict:
-    """The plant's params (validated), retrying until ``wait_s`` (0: forever)."""
+def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> tuple[dict, str]:
+    """The plant's params (validated) and the zid of the plant session that answered,
+    retrying until ``wait_s`` (0: forever). Answers from two or more different sessions are
+    refused (a second plant, or a rogue, on the same vehicle id): nothing is bound, and the
+    query is repeated."""
     t0 = time.monotonic()
     told = False
     last_err = None
     while not stop.is_set():
         try:
-            # ?wheel_wear=1: this controller understands the per-wheel wear state fields
-            for reply in session.get(f"{keys.params}?wheel_wear=1", timeout=1.0):
-                if reply.ok is None:
-                    last_err = f"error reply: {reply.err.payload.to_bytes()[:200]!r}"
-                    continue
+            good: dict[str, dict] = {}
+            for zid, payload in params_replies(session, keys, timeout=1.0):
                 try:
-                    return M.decode_params(reply.ok.payload.to_bytes())
+                    m = M.decode_params(payload)
                 except M.MessageError as e:
-                    last_err = f"bad params reply: {e}"
+                    last_err = f"bad params reply from {zid}: {e}"
                     log.warning("%s", last_err)
+                    continue
+                if zid is None:
+                    last_err = "a params reply without the replier's id"
+                    continue
+                good.setdefault(zid, m)
+            if len(good) == 1:
+                (zid, m), = good.items()
+                return m, zid
+            if len(good) > 1:
+                last_err = (f"{len(good)} plant sessions answer {keys.params} "
+                            f"({', '.join(sorted(good))}): binding to none")
+                log.warning("%s", last_err)
         except Exception as e:
             last_err = str(e)
         if wait_s and time.monotonic() - t0 > wait_s:
@@ -396,8 +566,9 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
             if on_signal_install is not None:
                 on_signal_install()
             params = None
+            plant_zid = None
             if fetch:
-                p = fetch_params(session, keys, wait_s, stop)
+                p, plant_zid = fetch_params(session, keys, wait_s, stop)
                 from plant.vehicle import VehicleError, vehicle_from_dict
 
                 try:
@@ -427,7 +598,23 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
                      s.method, s.model, getattr(mpc, "solver_name", "sa"), s.seed)
             if open_recorder is not None:
                 rec = open_recorder(mpc, params)
-            node = ControllerNode(mpc, keys, cfg, session=session, recorder=rec)
+            rebind = None
+            if fetch:
+                def rebind():
+                    """A new plant after the loss of ours: the same params, or exit 3."""
+                    try:
+                        q, zid = fetch_params(session, keys, 0.0, stop)
+                    except ControllerRunError:
+                        return None  # stopped
+                    if q != p:
+                        raise ControllerRunError(
+                            f"the plant now answering {keys.params} (session {zid}) has other "
+                            f"params than the one this controller was built for; restart the "
+                            f"controller")
+                    return zid
+
+            node = ControllerNode(mpc, keys, cfg, session=session, recorder=rec,
+                                  plant_zid=plant_zid, rebind=rebind)
             node.stop = stop
             freeze_heap()
             node.open()

@@ -43,8 +43,11 @@ NEGATIVE_WHEEL_SPEED = "negative_wheel_speed"
 BAD_VALUE = "value"  # out of the field's domain (negative seq, t not increasing, ...)
 UNKNOWN_STATE = "unknown_state"  # a command answering a state the plant never published
 T_MISMATCH = "t_mismatch"  # a command's t is not the t of the state it answers
+NOT_OWNER = "not_owner"  # a command from a session that does not own the vehicle
+NOT_BOUND = "not_bound"  # a state or params from a plant the controller is not bound to
 REASONS = (NOT_MSGPACK, NOT_A_MAP, VERSION_MISMATCH, MISSING_FIELD, EXTRA_FIELD, BAD_TYPE,
-           BAD_LENGTH, NON_FINITE, NEGATIVE_WHEEL_SPEED, BAD_VALUE, UNKNOWN_STATE, T_MISMATCH)
+           BAD_LENGTH, NON_FINITE, NEGATIVE_WHEEL_SPEED, BAD_VALUE, UNKNOWN_STATE, T_MISMATCH,
+           NOT_OWNER, NOT_BOUND)
 
 # field tables: name -> kind. kinds: "int" (>= 0), "float" (finite), "wheels" (2n finite
 # floats), "wheels+" (2n finite floats >= 0), "bool", "float+" (finite, >= 0), "str"

@@ -9,10 +9,16 @@ and declares the liveliness token ``msagv/{id}/alive/plant``. Two stepping modes
   ``state_seq = k`` arrives. Deterministic and as fast as the controller answers; a run
   matches ``msagv run`` in-process. No command within ``--timeout`` ends the run with an
   error (exit 3).
-* ``--run-mode realtime``: step on the wall clock at 1/T with the newest valid command. A
-  command older than ``--stale-ms`` (default 50 ms), or the controller's liveliness token
-  gone, puts the plant in its safe behaviour (steering held, wheels ramped down at
-  ``--safe-decel``) until fresh commands return. Missed periods (overruns) are counted.
+* ``--run-mode realtime``: step on the wall clock at 1/T with the newest valid command.
+  :class:`bridge.loss.CommandWatch` decides every period: more than ``--stale-ms / T``
+  consecutive periods without an answer (default 5), or the owner's liveliness token gone,
+  put the plant in its safe behaviour (steering held, wheels ramped down at
+  ``--safe-decel``) until the owner keeps up again for ``--resume-periods``. Missed
+  periods (overruns) and late commands are counted.
+
+One controller session owns the vehicle (:class:`bridge.ownership.Ownership`): it claims
+it on ``msagv/{id}/claim``; commands from any other session are rejected (``not_owner``)
+and only the owner's token ``alive/controller/{zid}`` counts as the controller's presence.
 """
 
 from __future__ import annotations
@@ -29,7 +35,10 @@ import numpy as np
 from controller.metrics import percentiles
 
 from . import messages as M
-from .presence import Presence
+from .loss import SAFE, CommandWatch
+from .ownership import (CLAIM, Ownership, decode_claim, encode_grant, source_info,
+                        source_zid)
+from .presence import TokenSet
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_heap
 from .session import Keys, SessionError, SessionOptions, open_session
 
@@ -59,6 +68,8 @@ class PlantConfig:
     safe_decel : realtime safe behaviour: wheel-speed ramp-down [m/s^2 at the rim].
     linger_s : after the end state, how long to keep the session open (the last messages
         are delivered, late commands still counted) before closing.
+    resume_periods : realtime: consecutive periods in which the owner keeps up (its newest
+        command answers the current or the previous state) before the safe behaviour ends.
     """
 
     run_mode: str = "lockstep"
@@ -69,6 +80,7 @@ class PlantConfig:
     stale_ms: float = 50.0
     safe_decel: float = 2.0
     linger_s: float = 0.2
+    resume_periods: int = 3
     wheel_wear: str = "auto"  # per-wheel wear in the state: auto (when the params query
     # asked for it, docs/PROTOCOL.md "Per-wheel wear") | on | off
 
@@ -87,9 +99,17 @@ class PlantConfig:
             raise ValueError(f"--stale-ms must be > 0, got {self.stale_ms}")
         if not self.safe_decel > 0:
             raise ValueError(f"--safe-decel must be > 0, got {self.safe_decel}")
+        if not 1 <= self.resume_periods <= 1000:
+            raise ValueError(f"--resume-periods must be 1..1000, got {self.resume_periods}")
         if self.wheel_wear not in WHEEL_WEAR_MODES:
             raise ValueError(f"--wheel-wear: expected one of {', '.join(WHEEL_WEAR_MODES)}, "
                              f"got '{self.wheel_wear}'")
+
+    @property
+    def max_missed(self) -> int:
+        """Consecutive periods without an answer the realtime plant tolerates (DCP's maximum
+        consecutive missed PDUs): ``floor(stale_ms / T)``."""
+        return int(math.floor(self.stale_ms / 1000.0 / self.period + 1e-9))
 
 
 def percentiles_ms(values_s) -> dict:
@@ -112,7 +132,7 @@ class PlantStats:
     stale: int = 0  # valid but older than the newest accepted (out of order)
     duplicate: int = 0
     after_end: int = 0  # valid answers to the end state (never applied)
-    late: int = 0  # realtime: periods stepped with a fresh command answering an earlier state
+    late: int = 0  # realtime: accepted commands that arrived after their state's step
     cmd_seq_gaps: int = 0
     safe_events: int = 0
     safe_periods: int = 0
@@ -124,6 +144,9 @@ class PlantStats:
     roundtrip_s: list = field(default_factory=list)  # state published -> command received
     lateness_s: list = field(default_factory=list)  # state publication - its nominal time
     pub_intervals_s: list = field(default_factory=list)
+
+
+LOCAL = object()  # handle_cmd's source when a test feeds it directly: no ownership check
 
 
 class PlantNode:
@@ -142,6 +165,7 @@ class PlantNode:
         self.rej = M.Rejections(f"plant {keys.id}", log)
         self.stats = PlantStats()
         self.seq = -1  # newest published state
+        self._stepped = -1  # realtime: the newest step taken (its command chosen)
         self._pub_perf: OrderedDict[int, float] = OrderedDict()
         self._answered: set[int] = set()
         self._newest: _Cmd | None = None
@@ -162,6 +186,11 @@ class PlantNode:
         self._decls = []
         self._token = None
         self.ramp = cfg.safe_decel / self.vehicle.wheel_radius  # rad/s^2
+        self.ownership = Ownership(on_change=self._on_owner_change)
+        self.watch = CommandWatch(cfg.max_missed, cfg.resume_periods, cfg.period)
+        self._tokens: TokenSet | None = None
+        self.zid: str | None = None
+        self._refused_logged = 0
         # the per-wheel wear fields go out when on, or (auto) when the newest params query
         # asked for them: a peer of the first protocol version rejects unknown fields
         self.wheel_wear = cfg.wheel_wear == "on"
@@ -173,21 +202,24 @@ class PlantNode:
         import zenoh
 
         s, k = self.session, self.keys
+        self.zid = str(s.zid())
         self._pub = s.declare_publisher(k.state, express=True, priority=zenoh.Priority.REAL_TIME,
                                         congestion_control=zenoh.CongestionControl.BLOCK,
                                         encoding=zenoh.Encoding(M.CONTENT_TYPE))
         self._decls.append(s.declare_subscriber(k.cmd, self._on_cmd_sample))
         self._decls.append(s.declare_queryable(k.params, self._on_params_query))
+        self._decls.append(s.declare_queryable(k.claim, self._on_claim_query))
         if self.rec is not None:
             self._decls.append(s.declare_subscriber(k.reference, self._on_reference_sample))
-        self._decls.append(Presence(s, k.alive_controller, self._on_ctl_change))
-        self._token = s.liveliness().declare_token(k.alive_plant)
+        self._tokens = TokenSet(s, k.alive_controller, self._on_token)
+        self._decls.append(self._tokens)
+        self._token = s.liveliness().declare_token(k.plant_token(self.zid))
 
     def close(self) -> None:
         for obj in [self._token] + self._decls + [self._pub]:
             if obj is not None:
                 try:
-                    obj.close() if isinstance(obj, Presence) else obj.undeclare()
+                    obj.close() if isinstance(obj, TokenSet) else obj.undeclare()
                 except Exception:
                     pass
         self._token, self._decls, self._pub = None, [], None
@@ -209,11 +241,52 @@ class PlantNode:
         except Exception as e:  # a vanished querier: nothing to do
             log.debug("params reply failed: %s", e)
 
+    def _on_claim_query(self, query) -> None:
+        zid = source_zid(query)
+        try:
+            action = decode_claim(query.payload.to_bytes() if query.payload is not None else b"")
+        except M.MessageError as e:
+            self.rej.add(e, self.keys.claim)
+            action = None
+        if action is None:
+            granted, owner = False, self.ownership.owner
+        else:
+            granted, owner = self.ownership.claim(zid, action)
+            if action == CLAIM and not granted:
+                self._refused_logged += 1
+                n = self._refused_logged
+                if n <= 5 or n % 100 == 0:
+                    log.warning("claim of vehicle %s by %s refused: owned by %s (%d refused)",
+                                self.keys.id, zid or "a session without source info", owner, n)
+        try:
+            query.reply(self.keys.claim, encode_grant(granted, owner), encoding=M.CONTENT_TYPE)
+        except Exception as e:
+            log.debug("claim reply failed: %s", e)
+
+    def _on_owner_change(self, owner: str | None, why: str) -> None:
+        log.info("vehicle %s: %s", self.keys.id, why)
+        if self.rec is not None:
+            self.rec.event("owner", owner=owner, why=why)
+        self._update_presence()
+
+    def _on_token(self, zid: str, present: bool) -> None:
+        if zid != self.ownership.owner:
+            log.debug("controller token %s %s (not the owner: ignored)", zid,
+                      "appeared" if present else "gone")
+        self.ownership.token(zid, present)
+        self._update_presence()
+
+    def _update_presence(self) -> None:
+        owner = self.ownership.owner
+        present = owner is not None and (self._tokens is None or self._tokens.present(owner))
+        self._on_ctl_change(present)
+
     def _on_reference_sample(self, sample) -> None:
         if self.rec is not None:
             self.rec.message("rx", self.keys.reference, sample.payload.to_bytes())
 
     def _on_ctl_change(self, present: bool) -> None:
+        """The owner's presence (its token) changed."""
         with self._lock:
             was = self.controller_present
             self.controller_present = present
@@ -232,16 +305,23 @@ class PlantNode:
         self._ctl_event.set()
 
     def _on_cmd_sample(self, sample) -> None:
-        self.handle_cmd(sample.payload.to_bytes(), time.perf_counter(), time.time())
+        self.handle_cmd(sample.payload.to_bytes(), time.perf_counter(), time.time(),
+                        source=source_zid(sample))
 
     # ---- commands ----------------------------------------------------------------------
-    def handle_cmd(self, payload: bytes, rx_perf: float, rx_wall: float | None = None) -> dict | None:
+    def handle_cmd(self, payload: bytes, rx_perf: float, rx_wall: float | None = None,
+                   source=LOCAL) -> dict | None:
         """Validate one command; the newest valid one is kept for the next step. Returns
         the decoded command, or None if rejected or ignored (stale, duplicate, or an answer
-        to the end state: after_end)."""
+        to the end state: after_end). ``source``: the sending session's zid (None: the
+        sample named none); a command not from the owner is rejected as ``not_owner``."""
         key = self.keys.cmd
         try:
             c = M.decode_cmd(payload, self.nw)
+            if source is not LOCAL and not self.ownership.accepts(source):
+                owner = self.ownership.owner
+                raise M.MessageError(M.NOT_OWNER, f"from {source or 'a session without source info'}"
+                                                  f"; the vehicle is owned by {owner or 'nobody'}")
             with self._lock:
                 newest_pub = self.seq
             j = c["state_seq"]
@@ -278,6 +358,8 @@ class PlantNode:
             self._newest = _Cmd(j, c["seq"], c["omega_w"], c["omega_s"], rx_perf)
             self._answered.add(j)
             self.stats.accepted += 1
+            if j <= self._stepped:
+                self.stats.late += 1  # arrived after the plant took the step of its state
             tp = self._pub_perf.get(j)
         if tp is not None:
             rt = rx_perf - tp
@@ -300,7 +382,7 @@ class PlantNode:
             while len(self._pub_perf) > 4096:
                 self._pub_perf.popitem(last=False)
         if self._pub is not None:
-            self._pub.put(payload)
+            self._pub.put(payload, source_info=source_info(self._pub, seq))
         else:
             self.published.append(payload)
         if self.rec is not None:
@@ -402,7 +484,6 @@ class PlantNode:
 
     def _run_realtime(self) -> None:
         cfg, T, st = self.cfg, self.cfg.period, self.stats
-        stale_s = cfg.stale_ms / 1000.0
         self.publish_state(0)
         # the clock starts with the first command (the controller is warm by then); a
         # controller that (re)appears meanwhile is sent state 0 again, as in lockstep
@@ -424,30 +505,26 @@ class PlantNode:
             with self._lock:
                 n = self._newest
                 present = self.controller_present
-            age = (k - n.state_seq) * T
-            fresh = present and age <= stale_s + 1e-9
-            if fresh:
-                if self.safe:
-                    self.safe = False
-                    st.resumes += 1
-                    log.warning("resumed normal operation at t = %.2f s (fresh command for "
-                                "state %d)", k * T, n.state_seq)
-                    if self.rec is not None:
-                        self.rec.event("safe", on=False, t=k * T)
-                if n.state_seq != k:
-                    st.late += 1
+                self._stepped = k
+            d = self.watch.step(k, n.state_seq if n is not None else None, present)
+            if d.resumed:
+                self.safe = False
+                st.resumes += 1
+                log.warning("resumed normal operation at t = %.2f s (the owner kept up for %d "
+                            "periods; newest command answers state %d)", k * T,
+                            cfg.resume_periods, n.state_seq)
+                if self.rec is not None:
+                    self.rec.event("safe", on=False, t=k * T)
+            if d.use_command:
                 u_w, u_s = n.omega_w, n.omega_s
             else:
-                if not self.safe:
+                if d.entered_safe is not None:
                     self.safe = True
                     st.safe_events += 1
-                    why = ("controller token lost" if not present else
-                           f"newest command answers state {n.state_seq}, {age * 1000:.0f} ms old "
-                           f"(bound {cfg.stale_ms:g} ms)")
                     log.warning("SAFE at t = %.2f s: %s; holding steering, ramping the wheels "
-                                "down at %g m/s^2", k * T, why, cfg.safe_decel)
+                                "down at %g m/s^2", k * T, d.entered_safe, cfg.safe_decel)
                     if self.rec is not None:
-                        self.rec.event("safe", on=True, t=k * T, why=why)
+                        self.rec.event("safe", on=True, t=k * T, why=d.entered_safe)
                 st.safe_periods += 1
                 held_w, _ = self.plant.inputs
                 u_w = np.maximum(np.asarray(held_w) - self.ramp * T, 0.0)
@@ -491,6 +568,8 @@ class PlantNode:
                          "after_end": st.after_end},
             "safe": {"events": st.safe_events, "periods": st.safe_periods, "resumes": st.resumes},
             "controller_losses": st.controller_losses,
+            "periods": (self.watch.summary() if self.cfg.run_mode == "realtime" else None),
+            "ownership": self.ownership.summary(),
             "rejected": self.rej.summary(),
             "final_state": {k: fs[k] for k in ("t", "x", "y", "phi", "vx", "vy", "r", "W_s",
                                                "W_alpha", "W_t") + M.WHEEL_WEAR_FIELDS

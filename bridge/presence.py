@@ -60,6 +60,7 @@ class Presence:
         with self._lock:
             self._epoch += 1
             epoch = self._epoch
+        log.debug("presence %s: %s %s (epoch %d)", self.key, sample.kind, sample.key_expr, epoch)
         if sample.kind == zenoh.SampleKind.PUT:
             self._set(True, epoch)
         else:
@@ -104,6 +105,7 @@ class Presence:
         end = time.monotonic() + VERIFY_S
         while True:
             if not self._query():
+                log.debug("presence %s: verified gone (epoch %d)", self.key, epoch)
                 self._set(False, epoch)
                 return
             with self._lock:
@@ -128,6 +130,142 @@ class Presence:
             self.changed.set()
             if self.on_change is not None:
                 self.on_change(present)
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+        self._stop.set()
+        try:
+            self._sub.undeclare()
+        except Exception:
+            pass
+
+
+class TokenSet:
+    """The sessions holding a token under ``prefix/*``: the last chunk of a token's key is
+    the holder's Zenoh id (``msagv/{id}/alive/controller/{zid}``), so a node can tell its
+    peer's token from anyone else's (docs/PROTOCOL.md, "Ownership").
+
+    One liveliness subscriber on ``prefix/*`` (with history) and a reconciling query every
+    ``POLL_S``, as :class:`Presence`; a DELETE (or a token missing from the query) is
+    confirmed by querying that token for up to ``VERIFY_S``. ``on_change(zid, present)`` is
+    called from a zenoh or helper thread.
+    """
+
+    def __init__(self, session, prefix: str,
+                 on_change: Callable[[str, bool], None] | None = None):
+        self.session = session
+        self.prefix = prefix
+        self.on_change = on_change
+        self._present: set[str] = set()
+        self._epoch: dict[str, int] = {}
+        self._verifying: dict[str, int] = {}  # zid -> verifications running
+        self._lock = threading.Lock()
+        self._closed = False
+        self._stop = threading.Event()
+        self._sub = session.liveliness().declare_subscriber(f"{prefix}/*", self._on_sample,
+                                                            history=True)
+        self._poller = threading.Thread(target=self._poll, daemon=True,
+                                        name=f"tokens {prefix}")
+        self._poller.start()
+
+    def present(self, zid: str | None) -> bool:
+        with self._lock:
+            return zid is not None and zid in self._present
+
+    def holders(self) -> set[str]:
+        with self._lock:
+            return set(self._present)
+
+    def _zid(self, key) -> str | None:
+        key = str(key)
+        if not key.startswith(self.prefix + "/"):
+            return None
+        z = key[len(self.prefix) + 1:]
+        return z if z and "/" not in z else None
+
+    def _bump(self, zid: str) -> int:
+        with self._lock:
+            e = self._epoch.get(zid, 0) + 1
+            self._epoch[zid] = e
+            return e
+
+    def _on_sample(self, sample) -> None:
+        import zenoh
+
+        zid = self._zid(sample.key_expr)
+        if zid is None:
+            return
+        epoch = self._bump(zid)
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._set(zid, True, epoch)
+        else:
+            threading.Thread(target=self._verify, args=(zid, epoch), daemon=True).start()
+
+    def _query(self, key: str) -> set[str] | None:
+        """The holders found by a liveliness query on ``key`` (None: the session closed)."""
+        found = set()
+        try:
+            for reply in self.session.liveliness().get(key, timeout=0.3):
+                if reply.ok is not None:
+                    z = self._zid(reply.ok.key_expr)
+                    if z is not None:
+                        found.add(z)
+        except Exception:
+            return None
+        return found
+
+    def _poll(self) -> None:
+        while not self._stop.wait(POLL_S):
+            found = self._query(f"{self.prefix}/*")
+            if found is None:
+                return
+            with self._lock:
+                if self._closed:
+                    return
+                new = found - self._present
+                gone = self._present - found - set(self._verifying)
+            for zid in new:
+                log.debug("tokens %s: %s found by query (no PUT seen)", self.prefix, zid)
+                self._set(zid, True, self._bump(zid))
+            for zid in gone:
+                log.debug("tokens %s: %s missing from query (no DELETE seen)", self.prefix, zid)
+                self._verify(zid, self._bump(zid))
+
+    def _verify(self, zid: str, epoch: int) -> None:
+        with self._lock:
+            self._verifying[zid] = self._verifying.get(zid, 0) + 1
+        try:
+            end = time.monotonic() + VERIFY_S
+            while True:
+                found = self._query(f"{self.prefix}/{zid}")
+                if not found:
+                    self._set(zid, False, epoch)
+                    return
+                with self._lock:
+                    if self._epoch.get(zid) != epoch or self._closed:
+                        return
+                if time.monotonic() >= end:
+                    self._set(zid, True, epoch)
+                    return
+                time.sleep(VERIFY_EVERY_S)
+        finally:
+            with self._lock:
+                n = self._verifying.pop(zid) - 1
+                if n:
+                    self._verifying[zid] = n
+
+    def _set(self, zid: str, present: bool, epoch: int) -> None:
+        with self._lock:
+            if self._epoch.get(zid) != epoch or self._closed:
+                return
+            was = zid in self._present
+            if present:
+                self._present.add(zid)
+            else:
+                self._present.discard(zid)
+        if present != was and self.on_change is not None:
+            self.on_change(zid, present)
 
     def close(self) -> None:
         with self._lock:

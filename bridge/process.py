@@ -25,6 +25,7 @@ def setup_logging(prog: str, vid: str, quiet: bool = False, verbose: bool = Fals
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
     logging.basicConfig(level=level, stream=sys.stderr,
                         format=f"{prog} [{vid}] %(levelname)s: %(message)s", force=True)
+    logging.getLogger("numba").setLevel(max(level, logging.INFO))
 
 
 class StopOnSignal:

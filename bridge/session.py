@@ -12,7 +12,15 @@ One helper turns ``--id/--connect/--listen/--mode/--zenoh-config/--lease-ms`` in
 * a fast reconnect (``connect/retry`` set as one object), so a restarted process is found
   again within ~250 ms;
 * a shortened transport lease (default 1 s instead of 10 s), so the loss of a process and
-  of its liveliness token is noticed within about a second.
+  of its liveliness token is noticed within about a second;
+* a maximum message size on the transport (:data:`MAX_MESSAGE_BYTES`, just above the
+  largest message of the protocol): a larger message is dropped by Zenoh before it is
+  reassembled, so it never reaches, nor stalls, a process.
+
+A ``--zenoh-config`` file is merged with these defaults: a key the file sets explicitly
+wins, every other default stays (so a file that sets only TLS still listens on loopback
+with scouting off). ``--secure DIR`` adds mutual TLS and access control
+(:mod:`bridge.security`).
 
 See docs/PROTOCOL.md for the key expressions and the messages.
 """
@@ -28,6 +36,8 @@ DEFAULT_PORT = 7448  # the plant's default loopback endpoint (7447 is left to a 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 ROUTER_PORT = 7447  # zenoh's usual router port: ``msagv router``'s default
 DEFAULT_LEASE_MS = 1000
+MAX_MESSAGE_BYTES = 33 * 1024 * 1024  # the largest message (a reference, 32 MiB) + 1 MiB
+RETRY = "{period_init_ms: 50, period_max_ms: 250, period_increase_factor: 1.5}"
 _ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 
 
@@ -61,12 +71,26 @@ class Keys:
         return f"msagv/{self.id}/reference"
 
     @property
+    def claim(self) -> str:
+        return f"msagv/{self.id}/claim"
+
+    @property
     def alive_plant(self) -> str:
+        """The prefix of the plant's token ``alive/plant/{zid}`` (:meth:`plant_token`)."""
         return f"msagv/{self.id}/alive/plant"
 
     @property
     def alive_controller(self) -> str:
+        """The prefix of a controller's token ``alive/controller/{zid}``."""
         return f"msagv/{self.id}/alive/controller"
+
+    def plant_token(self, zid: str = "*") -> str:
+        """The liveliness token of the plant session ``zid`` (``*``: any plant's)."""
+        return f"{self.alive_plant}/{zid}"
+
+    def controller_token(self, zid: str = "*") -> str:
+        """The liveliness token of the controller session ``zid`` (``*``: any controller's)."""
+        return f"{self.alive_controller}/{zid}"
 
 
 def check_id(vid: str) -> str:
@@ -87,10 +111,14 @@ class SessionOptions:
         ``tcp/127.0.0.1:7447``.
     mode : ``peer`` (default) or ``client`` (needs a router to connect to); ``router``
         only for ``msagv router``.
-    config_file : a zenoh JSON5 config file; applied first, the options above on top
-        (only those given explicitly), and scouting is left as the file sets it.
+    config_file : a zenoh JSON5 config file, merged with the defaults: what it sets
+        explicitly wins over the defaults (loopback endpoints, scouting off, the message
+        size limit); the options above that are given win over the file.
     lease_ms : the transport lease [ms]; a dead peer (and its liveliness tokens) is
         noticed after at most this long.
+    secure_dir : a certificate directory (``msagv certs``): mutual TLS and access control
+        with the identity ``identity`` (default: the role's); every endpoint must be
+        ``tls/...``.
     """
 
     id: str = DEFAULT_ID
@@ -99,10 +127,42 @@ class SessionOptions:
     mode: str = "peer"
     config_file: str | None = None
     lease_ms: int = DEFAULT_LEASE_MS
+    secure_dir: str | None = None
+    identity: str | None = None
+
+
+def _file_keys(path: str) -> dict:
+    """The keys a JSON5 config file sets explicitly (nested dicts), for the merge."""
+    import json5
+
+    try:
+        with open(path) as f:
+            d = json5.load(f)
+    except OSError as e:
+        raise SessionError(f"--zenoh-config {path}: {e.strerror or e}") from None
+    except ValueError as e:
+        raise SessionError(f"--zenoh-config {path}: not JSON5 ({e})") from None
+    if not isinstance(d, dict):
+        raise SessionError(f"--zenoh-config {path}: expected a JSON5 object")
+    return d
+
+
+def _has(d: dict, path: str) -> bool:
+    for part in path.split("/"):
+        if not isinstance(d, dict) or part not in d:
+            return False
+        d = d[part]
+    return True
 
 
 def make_config(opts: SessionOptions, role: str):
-    """A :class:`zenoh.Config` for ``role`` in {'plant', 'controller', 'router', 'tool'}."""
+    """A :class:`zenoh.Config` for ``role`` in {'plant', 'controller', 'router', 'tool'}.
+
+    Precedence: the command-line options that are given, then what the ``--zenoh-config``
+    file sets explicitly, then the project's defaults (loopback endpoints of the role,
+    multicast and gossip scouting off, the message size limit), then Zenoh's defaults.
+    ``mode``, the retry keys and the lease always come from the options; ``--secure``
+    always sets TLS and access control."""
     import zenoh
 
     if opts.mode not in ("peer", "client", "router"):
@@ -112,38 +172,67 @@ def make_config(opts: SessionOptions, role: str):
     for ep in opts.connect + opts.listen:
         if "/" not in ep:
             raise SessionError(f"endpoint '{ep}': expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7448")
+    secure = None
+    if opts.secure_dir is not None:
+        from .security import SecurityError, secure_config
+
+        ident = opts.identity or role
+        try:
+            secure = secure_config(opts.secure_dir, ident)
+        except SecurityError as e:
+            raise SessionError(str(e)) from None
+        bad = [ep for ep in opts.connect + opts.listen if not ep.startswith("tls/")]
+        if bad:
+            raise SessionError(f"--secure: endpoint '{bad[0]}' is not TLS; use tls/ADDRESS, "
+                               f"e.g. tls/127.0.0.1:{DEFAULT_PORT}")
+    proto = "tls" if secure else "tcp"
     connect, listen = list(opts.connect), list(opts.listen)
-    from_file = opts.config_file is not None
-    if from_file:
+    explicit: dict = {}
+    if opts.config_file is not None:
+        explicit = _file_keys(opts.config_file)
         try:
             conf = zenoh.Config.from_file(opts.config_file)
         except Exception as e:
             raise SessionError(f"--zenoh-config {opts.config_file}: {e}") from None
     else:
         conf = zenoh.Config()
-        if not connect and not listen:
-            if role == "plant":
-                listen = [DEFAULT_ENDPOINT]
-            elif role == "router":
-                listen = [f"tcp/127.0.0.1:{ROUTER_PORT}"]
-            else:
-                connect = [DEFAULT_ENDPOINT]
+    file_eps = _has(explicit, "connect/endpoints") or _has(explicit, "listen/endpoints")
+    if not connect and not listen and not file_eps:
+        if role == "plant":
+            listen = [f"{proto}/127.0.0.1:{DEFAULT_PORT}"]
+        elif role == "router":
+            listen = [f"{proto}/127.0.0.1:{ROUTER_PORT}"]
+        else:
+            connect = [f"{proto}/127.0.0.1:{DEFAULT_PORT}"]
     ins = conf.insert_json5
+
+    def default(key: str, value: str) -> None:
+        if not _has(explicit, key):
+            ins(key, value)
+
     ins("mode", json.dumps(opts.mode))
-    if connect or not from_file:
+    if connect or listen:  # given (or the role's default): both lists are ours
         ins("connect/endpoints", json.dumps(connect))
-    if listen or not from_file:
         # an empty list: a peer would otherwise listen on every interface
         ins("listen/endpoints", json.dumps(listen))
-    if not from_file:
-        ins("scouting/multicast/enabled", "false")
-        ins("scouting/gossip/enabled", "false")
-        ins("scouting/delay", "0")
+    else:  # the file names endpoints; whichever list it leaves out stays empty
+        default("connect/endpoints", "[]")
+        default("listen/endpoints", "[]")
+    default("scouting/multicast/enabled", "false")
+    default("scouting/gossip/enabled", "false")
+    default("scouting/delay", "0")
+    default("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
     # DESIGN.md: the retry keys are accepted only as one object
-    ins("connect/retry", "{period_init_ms: 50, period_max_ms: 250, period_increase_factor: 1.5}")
+    ins("connect/retry", RETRY)
     if opts.mode != "client":
-        ins("listen/retry", "{period_init_ms: 50, period_max_ms: 250, period_increase_factor: 1.5}")
+        ins("listen/retry", RETRY)
     ins("transport/link/tx/lease", str(int(opts.lease_ms)))
+    if secure is not None:
+        if _has(explicit, "access_control") or _has(explicit, "transport/link/tls"):
+            raise SessionError("--secure and a --zenoh-config that sets access_control or "
+                               "transport/link/tls: use one of the two")
+        for key, value in secure.items():
+            ins(key, json.dumps(value))
     return conf
 
 

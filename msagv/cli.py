@@ -19,6 +19,7 @@ COMMANDS = {
     "plant": "the plant as a Zenoh process; 'plant replay' for open-loop CSV replay",
     "controller": "the MPC as a Zenoh process",
     "router": "a Zenoh router for plants and controllers on several machines",
+    "certs": "certs DIR: a CA and per-role certificates for --secure (mutual TLS, access control)",
     "run": "in-process closed loop (controller at 100 Hz on the stepping plant)",
     "report": "the paper's metrics and plots from a recording",
     "experiment": "the paper's Cases 1-3, the Pareto front and the ridge study",
@@ -50,6 +51,9 @@ def _dispatch(cmd: str, rest: list[str]) -> int:
     if cmd == "controller":
         from .nodes import controller_main
         return controller_main(rest)
+    if cmd == "certs":
+        from .certs import main as certs_main
+        return certs_main(rest)
     if cmd == "router":
         from .nodes import router_main
         return router_main(rest)

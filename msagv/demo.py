@@ -52,22 +52,25 @@ def _last_json(text: str) -> dict | None:
 def run_demo(duration: float = 20.0, speed: str = "15", run_mode: str = "realtime",
              deadline_ms: float | None = 7.0, seed: int = 0, workdir: str | Path | None = None,
              quiet: bool = True, extra_plant: list[str] | None = None,
-             extra_controller: list[str] | None = None, timeout: float | None = None) -> dict:
-    """Run plant + controller; returns ``{"metrics", "plant", "controller", "recording"}``."""
+             extra_controller: list[str] | None = None, timeout: float | None = None,
+             secure: str | Path | None = None) -> dict:
+    """Run plant + controller; returns ``{"metrics", "plant", "controller", "recording"}``.
+    ``secure``: a certificate directory (``msagv certs``): mutual TLS and access control."""
     from experiments.recorded import evaluate
 
     work = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="msagv-demo-"))
     work.mkdir(parents=True, exist_ok=True)
     port = free_port()
-    ep = f"tcp/127.0.0.1:{port}"
+    ep = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
+    sec = ["--secure", str(secure)] if secure else []
     q = ["-q"] if quiet else []
     plant_rec, ctl_rec = work / "plant.rec", work / "controller.rec"
     plant_cmd = msagv_cmd("plant", "--run-mode", run_mode, "--case", "curve", "--speed", speed,
                           "--duration", f"{duration:g}", "--listen", ep, "--record", str(plant_rec),
-                          "--json", *q, *(extra_plant or []))
+                          "--json", *q, *sec, *(extra_plant or []))
     ctl_cmd = msagv_cmd("controller", "--case", "curve", "--speed", speed, "--seed", str(seed),
                         "--connect", ep, "--exit-at-end", "--record", str(ctl_rec), "--json", *q,
-                        *(extra_controller or []))
+                        *sec, *(extra_controller or []))
     if deadline_ms is not None:
         ctl_cmd += ["--deadline-ms", f"{deadline_ms:g}"]
     timeout = timeout if timeout is not None else 120.0 + 3.0 * duration
@@ -143,6 +146,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--rt-priority", type=int, default=0, metavar="N",
                     help="run both processes under SCHED_FIFO priority N (needs CAP_SYS_NICE; "
                          "default 0: normal priority)")
+    ap.add_argument("--secure", action="store_true",
+                    help="mutual TLS and access control (certificates made for the run by "
+                         "msagv certs; docs/SECURITY.md)")
     add_common_args(ap)  # -v also shows the processes' logs
     a = ap.parse_args(argv)
     if a.keep:
@@ -169,9 +175,15 @@ def main(argv: list[str]) -> int:
                   f"{a.speed} km/h, {a.duration:g} s, {a.run_mode}...", file=sys.stderr, flush=True)
         try:
             rt = ["--rt-priority", str(a.rt_priority)] if a.rt_priority else []
+            certs = None
+            if a.secure:
+                from bridge.security import create_certs
+
+                certs = Path(work) / "certs"
+                create_certs(certs)
             r = run_demo(a.duration, a.speed, a.run_mode, a.deadline_ms, a.seed, work,
                          quiet=not a.verbose, extra_plant=rt,
-                         extra_controller=rt + ["--solver", a.solver])
+                         extra_controller=rt + ["--solver", a.solver], secure=certs)
         except (RuntimeError, ValueError) as e:
             return fail(prog, e, a, 1)
         except KeyboardInterrupt:
@@ -187,7 +199,8 @@ def main(argv: list[str]) -> int:
     m, ps, cs = r["metrics"], r["plant"], r["controller"]
     rejected = ps["rejected"]["total"] + cs.get("rejected", {}).get("total", 0)
     lat = {k: ps["latency_ms"][k] for k in ("p50", "p99", "max")}
-    transport = {"run_mode": a.run_mode, "missed_periods": ps["missed_periods"],
+    transport = {"run_mode": a.run_mode, "secure": a.secure,
+                 "missed_periods": ps["missed_periods"],
                  "latency_ms": lat, "rejected": rejected,
                  "period_jitter_ms": {k: ps["period_jitter_ms"][k] for k in ("p50", "p99", "max")},
                  "accepted_commands": ps["commands"]["accepted"],
@@ -206,7 +219,7 @@ def main(argv: list[str]) -> int:
         print(json.dumps(doc))
         return 0
     print(format_table(m, f"{r['reference'].name}, TWO (mf), two processes over Zenoh, "
-                          f"{a.run_mode}"))
+                          f"{a.run_mode}{', mutual TLS + access control' if a.secure else ''}"))
     c = ps["commands"]
     print(f"  commands   {c['accepted']} accepted, {c['late']} late, {c['lost']} lost; "
           f"rejected messages {rejected}")

@@ -95,8 +95,11 @@ def plant_parser() -> argparse.ArgumentParser:
     ap.add_argument("--wait", type=float, default=60.0, metavar="S",
                     help="wait this long for a controller at start, 0 = forever (default 60)")
     ap.add_argument("--stale-ms", type=float, default=50.0,
-                    help="realtime: a command older than this puts the plant in its safe "
-                         "behaviour (default 50)")
+                    help="realtime: more than stale-ms/T consecutive periods without an "
+                         "answer put the plant in its safe behaviour (default 50)")
+    ap.add_argument("--resume-periods", type=int, default=3, metavar="N",
+                    help="realtime: the safe behaviour ends after N consecutive periods in "
+                         "which the owner keeps up (default 3)")
     ap.add_argument("--safe-decel", type=float, default=2.0, metavar="M/S2",
                     help="realtime safe behaviour: wheel ramp-down at the rim (default 2)")
     ap.add_argument("--wheel-wear", choices=["auto", "on", "off"], default="auto",
@@ -129,7 +132,8 @@ def plant_main(argv: list[str]) -> int:
         cfg = PlantConfig(run_mode=a.run_mode, period=a.period,
                           steps=int(round(duration / a.period)) if duration > 0 else 0,
                           timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
-                          safe_decel=a.safe_decel, wheel_wear=a.wheel_wear)
+                          safe_decel=a.safe_decel, resume_periods=a.resume_periods,
+                          wheel_wear=a.wheel_wear)
         rec = open_recording(a, {
             "role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),
             "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,

@@ -45,8 +45,9 @@ class Bus:
         self._subs = [
             self.session.declare_subscriber(self.keys.state, self._on_state),
             self.session.declare_subscriber(self.keys.cmd, self._on_cmd)]
-        self.plant = Presence(self.session, self.keys.alive_plant)
-        self.controller = Presence(self.session, self.keys.alive_controller)
+        # any plant's and any controller's token (alive/plant/{zid}, alive/controller/{zid})
+        self.plant = Presence(self.session, self.keys.plant_token())
+        self.controller = Presence(self.session, self.keys.controller_token())
 
     def _on_state(self, s):
         try:

@@ -5,8 +5,10 @@ bridge/, controller/ or plant/). The harness (tests/helpers.py: a free port, sta
 stopping processes) runs a real ``msagv plant`` in lockstep on a free loopback port, and
 the client does the following:
 
-- fetches the vehicle from the params queryable;
-- answers every state with a constant wheel speed and zero steering rate;
+- fetches the vehicle from the params queryable and binds to the plant session that
+  answered (states from any other session are ignored);
+- claims the vehicle and answers every state with a constant wheel speed and zero
+  steering rate, each command carrying its session's source info;
 - sends one malformed command for each documented reason code, plus one duplicate and
   one stale command.
 
@@ -43,16 +45,39 @@ def client_config(port: int) -> zenoh.Config:
     return conf
 
 
-def get_params(session, vid: str, deadline_s: float) -> dict:
-    """Section 3.4: a get on msagv/{id}/params, retried until the plant replies."""
+def get_params(session, vid: str, deadline_s: float) -> tuple[dict, str]:
+    """Sections 3.4 and 4.6: a get on msagv/{id}/params (every replier, no consolidation),
+    retried until exactly one plant session replies; returns the params and its zid."""
     t0 = time.monotonic()
     while time.monotonic() - t0 < deadline_s:
-        for reply in session.get(f"msagv/{vid}/params", timeout=1.0):
+        replies = {}
+        for reply in session.get(f"msagv/{vid}/params", target=zenoh.QueryTarget.ALL,
+                                 consolidation=zenoh.ConsolidationMode.NONE, timeout=1.0):
             if reply.ok is not None:
                 assert str(reply.ok.key_expr) == f"msagv/{vid}/params"
-                return msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
+                replies[str(reply.replier_id.zid)] = msgpack.unpackb(
+                    reply.ok.payload.to_bytes(), raw=False)
+        if len(replies) == 1:
+            (zid, params), = replies.items()
+            return params, zid
         time.sleep(0.1)
-    raise AssertionError(f"no params reply within {deadline_s} s")
+    raise AssertionError(f"no params reply from exactly one plant within {deadline_s} s")
+
+
+def claim(session, vid: str, pub, plant_zid: str, deadline_s: float) -> dict:
+    """Section 4.6: claim the vehicle (a get on msagv/{id}/claim carrying our source info)
+    until the bound plant grants it."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < deadline_s:
+        for reply in session.get(f"msagv/{vid}/claim",
+                                 payload=msgpack.packb({"v": 1, "action": "claim"}),
+                                 source_info=zenoh.SourceInfo(pub.id, 0), timeout=1.0):
+            if reply.ok is not None and str(reply.replier_id.zid) == plant_zid:
+                grant = msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
+                if grant["granted"]:
+                    return grant
+        time.sleep(0.25)
+    raise AssertionError(f"the vehicle was not granted within {deadline_s} s")
 
 
 def check_state(st: dict, nw: int, period: float) -> None:
@@ -101,17 +126,28 @@ def run_controller(port: int, vid: str, plant: subprocess.Popen, bad_at: int = 3
     seen: list[dict] = []
     sent_bad: dict[str, int] = {}
     with zenoh.open(client_config(port)) as session:
-        params = get_params(session, vid, deadline_s=60.0)
+        params, plant_zid = get_params(session, vid, deadline_s=60.0)
         nw, period = params["n_wheels"], params["period"]
-        # subscriber and publisher first, the token last (section 4)
-        sub = session.declare_subscriber(f"msagv/{vid}/state",
-                                         lambda s: states.put(s.payload.to_bytes()))
+
+        def on_state(s):  # only the bound plant's states (section 4.6)
+            if s.source_info is not None and str(s.source_info.source_id.zid) == plant_zid:
+                states.put(s.payload.to_bytes())
+
+        # subscriber and publisher first, then the token, then the claim (sections 4, 4.6)
+        sub = session.declare_subscriber(f"msagv/{vid}/state", on_state)
         pub = session.declare_publisher(f"msagv/{vid}/cmd")
-        token = session.liveliness().declare_token(f"msagv/{vid}/alive/controller")
+        token = session.liveliness().declare_token(
+            f"msagv/{vid}/alive/controller/{session.zid()}")
+        grant = claim(session, vid, pub, plant_zid, deadline_s=30.0)
+        assert grant == {"v": 1, "granted": True, "owner": str(session.zid())}
         alive = [str(r.ok.key_expr) for r in
-                 session.liveliness().get(f"msagv/{vid}/alive/plant", timeout=2.0)
+                 session.liveliness().get(f"msagv/{vid}/alive/plant/{plant_zid}", timeout=2.0)
                  if r.ok is not None]
         n_cmd = 0
+
+        def put(payload: bytes) -> None:  # every command names our session (section 4.6)
+            pub.put(payload, source_info=zenoh.SourceInfo(pub.id, n_cmd))
+
         last_cmd = None  # the accepted answer to the previous state
         try:
             while True:
@@ -127,24 +163,27 @@ def run_controller(port: int, vid: str, plant: subprocess.Popen, bad_at: int = 3
                 prev = last_cmd
                 if st["seq"] == bad_at:
                     # the accepted answer to state bad_at - 1 again: a duplicate
-                    pub.put(msgpack.packb(prev))
+                    put(msgpack.packb(prev))
                     sent_bad["duplicate"] = 1
                     for payload, reason in malformed(cmd(n_cmd, st, nw), nw, period):
-                        pub.put(payload)
+                        put(payload)
                         sent_bad[reason] = sent_bad.get(reason, 0) + 1
+                    # a valid command without source info: not from the owner
+                    pub.put(msgpack.packb(cmd(n_cmd, st, nw)))
+                    sent_bad["not_owner"] = 1
                 last_cmd = cmd(n_cmd, st, nw)
-                pub.put(msgpack.packb(last_cmd))
+                put(msgpack.packb(last_cmd))
                 n_cmd += 1
                 if st["seq"] == bad_at:
                     # and once more after the answer to bad_at: now stale
-                    pub.put(msgpack.packb(prev))
+                    put(msgpack.packb(prev))
                     sent_bad["stale"] = 1
         finally:
             token.undeclare()
             sub.undeclare()
             pub.undeclare()
     return {"params": params, "states": seen, "sent": n_cmd, "bad": sent_bad,
-            "plant_token": alive}
+            "plant_token": alive, "plant_zid": plant_zid}
 
 
 # ---- the test -----------------------------------------------------------------------------
@@ -175,7 +214,7 @@ def test_a_controller_written_from_protocol_md_completes_a_lockstep_run(tmp_path
     assert p["v"] == 1 and p["id"] == VID and p["run_mode"] == "lockstep"
     assert p["period"] == 0.01 and p["n_wheels"] == 2 * len(p["vehicle"]["axle_x"]) == 4
     assert {"mass", "wheel_radius", "axle_x", "half_track", "tire", "limits"} <= set(p["vehicle"])
-    assert seen["plant_token"] == [f"msagv/{VID}/alive/plant"]
+    assert seen["plant_token"] == [f"msagv/{VID}/alive/plant/{seen['plant_zid']}"]
 
     # the states (sections 3.2, 4.1): seq 0..steps once each, end only on the last
     sts = seen["states"]
@@ -195,10 +234,11 @@ def test_a_controller_written_from_protocol_md_completes_a_lockstep_run(tmp_path
     assert c == {"accepted": steps, "stale": 1, "duplicate": 1, "late": 0, "lost": 0,
                  "seq_gaps": 0, "after_end": 0}, c
     bad = {k: v for k, v in seen["bad"].items() if k not in ("duplicate", "stale")}
-    assert len(bad) == 12  # every reason code of section 5
+    assert len(bad) == 13  # every reason code of section 5 the plant gives
     assert s["rejected"]["by_reason"] == bad
     assert s["rejected"]["total"] == sum(bad.values())
     assert s["rejected"]["by_key"] == {f"msagv/{VID}/cmd": sum(bad.values())}
     assert s["final_state"]["t"] == pytest.approx(DURATION)
+    assert s["ownership"]["grants"] == 1 and s["ownership"]["refused"] == 0
     print(f"\nPROTOCOL.md client: {steps} steps, rejected {s['rejected']['by_reason']}, "
           f"{elapsed:.1f} s including the plant's start")

@@ -1,0 +1,187 @@
+"""Who drives the vehicle: one controller session owns it, and each controller is bound to
+one plant session (docs/PROTOCOL.md, "Ownership").
+
+Identity is the Zenoh session id (zid). The sender of a sample is the ``zid`` of the
+``source_info`` the sender attaches (the controller to every ``cmd`` and ``claim``, the
+plant to every ``state``); the sender of a reply is Zenoh's ``replier_id``; the holder of
+a liveliness token is the last chunk of its key (``alive/controller/{zid}``,
+``alive/plant/{zid}``). On a plain bus these are what the sender says (Zenoh's Python API
+can only attach the ids of its own session); ``--secure`` makes Zenoh check who may send
+what (:mod:`bridge.security`).
+
+* The plant (:class:`Ownership`) grants the vehicle to the first controller that claims
+  it (a ``get`` on ``msagv/{id}/claim``), applies commands only from that session
+  (others are rejected as ``not_owner``), counts only that session's token as the
+  controller's presence, and hands the vehicle over only when its owner releases it or
+  its token is lost.
+* The controller binds to the one plant that answers its ``params`` (two different
+  answers: it binds to neither), takes states only from that session (others:
+  ``not_bound``), and commands only while the plant grants it the vehicle.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from . import messages as M
+
+log = logging.getLogger("msagv.bridge")
+
+CLAIM, RELEASE = "claim", "release"
+CLAIM_REQUIRED = {"v": "int", "action": "str"}
+GRANT_REQUIRED = {"v": "int", "granted": "bool"}
+GRANT_OPTIONAL = {"owner": "str"}
+MAX_CLAIM_BYTES = 1024
+GRANT_TOKEN_S = 3.0  # a grant whose owner never shows its token is void after this long
+CLAIM_RETRY_S = 0.25  # the controller's claim period while not granted
+CLAIM_REFRESH_S = 1.0  # ... and while granted (it learns of a lost grant within this)
+
+
+# ---- messages ------------------------------------------------------------------------------
+def encode_claim(action: str = CLAIM) -> bytes:
+    return M.pack({"v": M.VERSION, "action": action})
+
+
+def decode_claim(payload) -> str:
+    m = M._fields(M.unpack(payload, MAX_CLAIM_BYTES), CLAIM_REQUIRED, {}, None)
+    if m["action"] not in (CLAIM, RELEASE):
+        raise M.MessageError(M.BAD_VALUE, f"action '{m['action']}' is not claim or release")
+    return m["action"]
+
+
+def encode_grant(granted: bool, owner: str | None) -> bytes:
+    m = {"v": M.VERSION, "granted": bool(granted)}
+    if owner is not None:
+        m["owner"] = owner
+    return M.pack(m)
+
+
+def decode_grant(payload) -> dict:
+    return M._fields(M.unpack(payload, MAX_CLAIM_BYTES), GRANT_REQUIRED, GRANT_OPTIONAL, None)
+
+
+def source_zid(sample_or_query) -> str | None:
+    """The zid in a sample's (or query's) ``source_info``; None if it carries none."""
+    si = getattr(sample_or_query, "source_info", None)
+    if si is None or si.source_id is None:
+        return None
+    return str(si.source_id.zid)
+
+
+def source_info(entity, sn: int):
+    """The ``source_info`` naming ``entity``'s session (a publisher's ``id``)."""
+    import zenoh
+
+    return zenoh.SourceInfo(entity.id, int(sn) & 0xFFFFFFFF)
+
+
+# ---- the plant's side ----------------------------------------------------------------------
+class Ownership:
+    """The plant's owner (one controller session at a time). Thread-safe; ``on_change(owner,
+    why)`` is called (outside the lock) whenever the owner changes."""
+
+    def __init__(self, on_change=None):
+        self.owner: str | None = None
+        self.owner_seen = False  # the owner's token has been seen since the grant
+        self.granted_at = 0.0
+        self.on_change = on_change
+        self.grants = 0  # owners granted (a refresh by the owner is not counted)
+        self.refused = 0  # claims refused (another session owns the vehicle)
+        self.releases = 0
+        self.losses = 0  # owners whose token was lost
+        self._lock = threading.Lock()
+
+    def claim(self, zid: str | None, action: str = CLAIM, now: float | None = None
+              ) -> tuple[bool, str | None]:
+        """Handle a claim or release from session ``zid``; returns (granted, owner after)."""
+        now = time.monotonic() if now is None else now
+        changed = None
+        with self._lock:
+            if zid is None:
+                self.refused += 1
+                return False, self.owner
+            if action == RELEASE:
+                if zid == self.owner:
+                    self.owner, self.releases = None, self.releases + 1
+                    changed = (None, f"released by {zid}")
+                granted, owner = False, self.owner
+            elif self.owner == zid:
+                granted, owner = True, zid
+            else:
+                void = (self.owner is not None and not self.owner_seen
+                        and now - self.granted_at > GRANT_TOKEN_S)
+                if self.owner is None or void:
+                    why = (f"granted to {zid}" if self.owner is None else
+                           f"granted to {zid} (the grant to {self.owner} was void: no token "
+                           f"within {GRANT_TOKEN_S:g} s)")
+                    self.owner, self.owner_seen, self.granted_at = zid, False, now
+                    self.grants += 1
+                    changed = (zid, why)
+                    granted, owner = True, zid
+                else:
+                    self.refused += 1
+                    granted, owner = False, self.owner
+        if changed is not None and self.on_change is not None:
+            self.on_change(*changed)
+        return granted, owner
+
+    def token(self, zid: str, present: bool) -> None:
+        """A controller token appeared or was lost (confirmed)."""
+        changed = None
+        with self._lock:
+            if zid != self.owner:
+                return
+            if present:
+                self.owner_seen = True
+            else:
+                self.owner, self.losses = None, self.losses + 1
+                changed = (None, f"owner {zid} lost (its token is gone)")
+        if changed is not None and self.on_change is not None:
+            self.on_change(*changed)
+
+    def accepts(self, zid: str | None) -> bool:
+        with self._lock:
+            return zid is not None and zid == self.owner
+
+    def summary(self) -> dict:
+        with self._lock:
+            return {"owner": self.owner, "grants": self.grants, "refused": self.refused,
+                    "releases": self.releases, "losses": self.losses}
+
+
+# ---- the controller's side -----------------------------------------------------------------
+def claim(session, keys, src, action: str = CLAIM, timeout: float = 1.0
+          ) -> list[tuple[str, dict | None]]:
+    """Send a claim (or release) with ``source_info`` ``src``; returns ``[(replier zid,
+    grant or None if malformed)]`` for every plant that answered."""
+    import zenoh
+
+    out = []
+    for reply in session.get(keys.claim, payload=encode_claim(action), source_info=src,
+                             target=zenoh.QueryTarget.ALL,
+                             consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout):
+        if reply.ok is None or reply.replier_id is None:
+            continue
+        try:
+            g = decode_grant(reply.ok.payload.to_bytes())
+        except M.MessageError:
+            g = None
+        out.append((str(reply.replier_id.zid), g))
+    return out
+
+
+def params_replies(session, keys, timeout: float = 1.0) -> list[tuple[str | None, bytes]]:
+    """Every answer to a ``get`` on ``params``: ``[(replier zid, payload)]``."""
+    import zenoh
+
+    out = []
+    # ?wheel_wear=1: this controller understands the per-wheel wear fields of the state
+    for reply in session.get(f"{keys.params}?wheel_wear=1", target=zenoh.QueryTarget.ALL,
+                             consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout):
+        if reply.ok is None:
+            continue
+        rid = reply.replier_id
+        out.append((None if rid is None else str(rid.zid), reply.ok.payload.to_bytes()))
+    return out

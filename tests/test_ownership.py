@@ -1,0 +1,318 @@
+"""Who drives the vehicle (issue 13, items 1 and 5): ownership, binding and the loss state
+machines, fed directly and as real processes.
+
+The process tests join the bus with their own session (a rogue peer) on a port the
+processes also connect to, and assert counts and behaviour measured in vehicle time
+(state sequence numbers), never wall-clock speed."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+
+import msgpack
+import pytest
+
+from bridge import messages as M
+from bridge.loss import HOLD, LOST, PRESENT, RUN, SAFE, SUSPECT, CommandWatch, LossTimer
+from bridge.ownership import CLAIM, RELEASE, Ownership
+from helpers import ep, free_port, msagv
+
+T = 0.01
+
+
+# ---- the plant's owner ----------------------------------------------------------------------
+def test_the_first_claim_wins_and_the_vehicle_changes_hands_only_on_release_or_loss():
+    o = Ownership()
+    assert o.claim("a", now=0.0) == (True, "a")
+    assert o.claim("b", now=0.1) == (False, "a")  # owned
+    o.token("a", True)
+    assert o.claim("b", now=10.0) == (False, "a")  # still owned: its token is present
+    o.token("b", False)  # not the owner's token: nothing happens
+    assert o.accepts("a") and not o.accepts("b") and not o.accepts(None)
+    assert o.claim("b", RELEASE) == (False, "a")  # only the owner releases
+    assert o.claim("a", RELEASE) == (False, None)
+    assert o.claim("b", now=11.0) == (True, "b")
+    o.token("b", True)
+    o.token("b", False)  # the owner lost
+    assert o.owner is None and o.claim("c", now=12.0) == (True, "c")
+    assert o.claim(None) == (False, "c")  # a claim without source info
+    s = o.summary()
+    assert s == {"owner": "c", "grants": 3, "refused": 3, "releases": 1, "losses": 1}
+
+
+def test_a_grant_whose_owner_never_shows_its_token_is_void_after_a_while():
+    o = Ownership()
+    assert o.claim("a", now=0.0)[0]
+    assert o.claim("b", now=1.0) == (False, "a")
+    assert o.claim("b", now=10.0) == (True, "b")
+
+
+# ---- the realtime plant's state machine ----------------------------------------------------
+def test_command_watch_holds_then_goes_safe_after_max_missed_and_resumes_by_rule():
+    w = CommandWatch(max_missed=5, resume_periods=3)
+    assert w.step(0, 0, True).state == RUN
+    assert [w.step(k, 0, True).state for k in range(1, 6)] == [HOLD] * 5
+    d = w.step(6, 0, True)  # the 6th period without an answer
+    assert d.state == SAFE and not d.use_command and "no answer for 6 periods" in d.entered_safe
+    assert w.step(7, 7, True).state == SAFE  # 1 qualifying period
+    assert w.step(8, 7, True).state == SAFE  # 2 (one period late still qualifies)
+    d = w.step(9, 9, True)
+    assert d.resumed and d.use_command and d.state == RUN
+    d = w.step(10, 10, False)  # the owner's token gone: safe at once
+    assert d.state == SAFE and d.entered_safe == "controller token lost"
+    for k in range(11, 20):  # never resumes without the owner
+        assert w.step(k, k, False).state == SAFE
+    s = w.summary()
+    assert s["on_time"] == 2 and s["held"] == 5 and s["max_consecutive_missed"] == 6
+    assert s["safe"] == 13
+
+
+def test_command_watch_streak_restarts_on_a_bad_period():
+    w = CommandWatch(max_missed=2, resume_periods=2)
+    w.step(0, None, True)
+    assert w.state == SAFE
+    assert w.step(1, 1, True).state == SAFE
+    assert w.step(2, 0, True).state == SAFE  # age 2: streak restarts
+    assert w.step(3, 3, True).state == SAFE
+    assert w.step(4, 4, True).resumed
+
+
+# ---- the controller's loss timer -------------------------------------------------------------
+def test_loss_timer_confirms_a_loss_only_after_running_time_and_restarts_after_a_stall():
+    lt = LossTimer(confirm_s=2.0, stall_s=0.5)
+    assert lt.update(0.0, True) == PRESENT
+    assert lt.update(0.1, False) == SUSPECT
+    for t in (0.4, 0.8, 1.2, 1.6):
+        assert lt.update(t, False) == SUSPECT
+    assert lt.update(3.6, False) == SUSPECT  # a 2 s gap in our own loop: a stall
+    assert lt.stalls == 1
+    assert lt.update(3.7, True) == PRESENT  # the plant found alive: carry on
+    assert lt.update(3.8, False) == SUSPECT
+    for t in (4.2, 4.6, 5.0, 5.4, 5.7):
+        assert lt.update(t, False) == SUSPECT
+    assert lt.update(5.8, False) == LOST
+
+
+# ---- the nodes -----------------------------------------------------------------------------
+@pytest.fixture
+def plant_node():
+    from bridge.plant_node import PlantConfig, PlantNode
+    from bridge.session import Keys
+    from plant import Plant, default_vehicle
+
+    node = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), Keys("t0"),
+                     PlantConfig(run_mode="realtime", steps=10))
+    node.publish_state(0)
+    return node
+
+
+def _cmd(state_seq, seq=0):
+    return M.encode_cmd(seq, state_seq * T, state_seq, [8.0] * 4, [0.0] * 4, solve_ms=1.0)
+
+
+def test_plant_rejects_commands_not_from_its_owner(plant_node):
+    n = plant_node
+    assert n.handle_cmd(_cmd(0), time.perf_counter(), source="rogue") is None  # nobody owns
+    n.ownership.claim("ctl")
+    assert n.handle_cmd(_cmd(0), time.perf_counter(), source="rogue") is None
+    assert n.handle_cmd(_cmd(0), time.perf_counter(), source=None) is None
+    assert n.handle_cmd(M.pack({"v": 1}), time.perf_counter(), source="rogue") is None
+    assert n._newest is None and n.stats.accepted == 0
+    assert n.handle_cmd(_cmd(0), time.perf_counter(), source="ctl") is not None
+    assert n.rej.summary()["by_reason"] == {M.NOT_OWNER: 3, M.MISSING_FIELD: 1}
+
+
+def test_plant_counts_a_command_that_arrives_after_its_step_as_late(plant_node):
+    n = plant_node
+    n.ownership.claim("ctl")
+    n._stepped = 0  # the plant took step 0 before the answer to state 0 arrived
+    n.publish_state(1)
+    assert n.handle_cmd(_cmd(0), time.perf_counter(), source="ctl") is not None
+    assert n.handle_cmd(_cmd(1, 1), time.perf_counter(), source="ctl") is not None
+    assert n.stats.late == 1 and n.summary()["commands"]["late"] == 1
+
+
+def test_controller_rejects_states_not_from_its_plant():
+    from bridge.controller_node import ControllerConfig, ControllerNode
+    from bridge.session import Keys
+    from controller.models import MPCSettings
+    from controller.mpc import MPC
+    from controller.reference import case1_curve
+    from plant import default_vehicle
+
+    v = default_vehicle()
+    node = ControllerNode(MPC(v, MPCSettings(iterations=3, chains=4), case1_curve(15.0)),
+                          Keys("t0"), ControllerConfig(), plant_zid="p1")
+    st = {"t": 0.0, "x": 0.0, "y": 0.0, "phi": 0.0, "vx": 4.0, "vy": 0.0, "r": 0.0,
+          "delta": [0.0] * 4, "omega_w": [8.0] * 4}
+    payload = M.encode_state(0, st)
+    assert node.handle_state(payload, time.perf_counter(), source="rogue") is None
+    assert node.handle_state(payload, time.perf_counter(), source=None) is None
+    assert node.handle_state(payload, time.perf_counter(), source="p1") is not None
+    assert node.rej.summary()["by_reason"] == {M.NOT_BOUND: 2}
+
+
+# ---- processes: a rogue peer against the real-time plant -------------------------------------
+class Rogue:
+    """A peer that answers every state first (steering at the limit, wheels at 20 rad/s),
+    declares the old controller token and the owner's token (its zid read from the owner's
+    commands), and claims the vehicle every 50 ms."""
+
+    def __init__(self, port: int, vid: str = "agv0"):
+        import zenoh
+
+        from bridge.session import Keys, SessionOptions, open_session
+
+        self.keys = Keys(vid)
+        self.port = port
+        self.session = open_session(SessionOptions(id=vid, listen=[ep(port)]), "tool")
+        self.pub = self.session.declare_publisher(self.keys.cmd)
+        self.states: list[tuple[float, dict]] = []
+        self.sent = 0
+        self.owner: str | None = None
+        self.tokens = [self.session.liveliness().declare_token(f"msagv/{vid}/alive/controller")]
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._zenoh = zenoh
+        self._subs = [self.session.declare_subscriber(self.keys.state, self._on_state),
+                      self.session.declare_subscriber(self.keys.cmd, self._on_cmd)]
+        self._claimer = threading.Thread(target=self._claim, daemon=True)
+        self._claimer.start()
+
+    def _on_state(self, s):
+        try:
+            st = M.decode_state(s.payload.to_bytes(), 4)
+        except M.MessageError:
+            return
+        with self._lock:
+            self.states.append((time.monotonic(), st))
+        if st.get("end"):
+            return
+        c = M.encode_cmd(10 ** 9 + self.sent, st["t"], st["seq"], [20.0] * 4, [0.8] * 4)
+        self.pub.put(c, source_info=self._zenoh.SourceInfo(self.pub.id, self.sent))
+        self.pub.put(c)  # and once without source info
+        self.sent += 2
+
+    def _on_cmd(self, s):  # learn the owner's zid from its commands
+        if self.owner is None and s.source_info is not None:
+            self.owner = str(s.source_info.source_id.zid)
+            self.tokens.append(self.session.liveliness().declare_token(
+                self.keys.controller_token(self.owner)))
+
+    def _claim(self):
+        from bridge.ownership import claim, source_info
+
+        n = 0
+        while not self._stop.wait(0.05):
+            try:
+                claim(self.session, self.keys, source_info(self.pub, n), timeout=0.2)
+            except Exception:
+                pass
+            n += 1
+
+    def seq_at(self, t: float) -> int:
+        with self._lock:
+            return max((st["seq"] for ts, st in self.states if ts <= t), default=-1)
+
+    def close(self):
+        self._stop.set()
+        self._claimer.join(2)
+        for x in self.tokens + self._subs + [self.pub]:
+            x.undeclare()
+        self.session.close()
+
+
+def _rogue_run(procs, duration: float, kill_after: float):
+    P = free_port()
+    rogue = Rogue(free_port())
+    try:
+        procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", duration,
+                                   "--listen", ep(P), "--connect", ep(rogue.port), "--json",
+                                   "-q"))
+        procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(rogue.port),
+                                 "-q"))
+        t0 = time.monotonic()
+        while rogue.seq_at(time.monotonic()) < int(kill_after / T):
+            assert time.monotonic() - t0 < 180, "the run did not start"
+            time.sleep(0.02)
+        t_kill = time.monotonic()
+        procs.p["ctl"].kill()
+        k_kill = rogue.seq_at(t_kill)
+        assert procs.wait("plant", 120 + 3 * duration) == 0, procs.err("plant")
+        s = procs.json("plant")
+        states = [st for _, st in rogue.states]
+        return s, states, k_kill, rogue.sent, rogue.owner
+    finally:
+        rogue.close()
+
+
+def _check_rogue_run(s, states, k_kill, sent, owner, duration):
+    steps = int(round(duration / T))
+    assert owner is not None  # the rogue learned the owner's zid and forged its token
+    assert s["completed"] and s["steps"] == steps
+    c = s["commands"]
+    # before the kill: the rogue answered first, yet no command of it was accepted (an
+    # accepted rogue command would have made the owner's answer a duplicate or stale)
+    assert c["duplicate"] == 0 and c["stale"] == 0
+    assert s["rejected"]["by_reason"].get(M.NOT_OWNER, 0) >= sent // 4 > 0
+    assert s["ownership"]["grants"] == 1 and s["ownership"]["refused"] > 0
+    # after the kill: safe within 100 ms of vehicle time, and safe to the end (no command
+    # of anyone applied: the rogue's forged owner token keeps the vehicle owned)
+    first_safe = next(st["seq"] for st in states if st["seq"] > k_kill and st.get("safe"))
+    assert (first_safe - k_kill) * T <= 0.1, (k_kill, first_safe)
+    after = [st for st in states if st["seq"] >= first_safe]
+    assert after and all(st.get("safe") for st in after)
+    assert s["safe"]["resumes"] == 0 and s["safe"]["events"] == 1
+    return first_safe
+
+
+@pytest.mark.timeout(300)
+def test_rogue_peer_answering_first_and_spoofing_the_token_drives_nothing(procs):
+    duration, kill_after = 6.0, 3.0
+    s, states, k_kill, sent, owner = _rogue_run(procs, duration, kill_after)
+    first_safe = _check_rogue_run(s, states, k_kill, sent, owner, duration)
+    print(f"\nrogue: {sent} rogue commands sent, rejected {s['rejected']['by_reason']}, "
+          f"accepted (owner) {s['commands']['accepted']}; owner killed at state {k_kill}, "
+          f"safe at state {first_safe} ({(first_safe - k_kill) * T * 1000:.0f} ms of vehicle "
+          f"time); periods {s['periods']}")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_rogue_peer_long(procs):
+    duration, kill_after = 30.0, 20.0
+    s, states, k_kill, sent, owner = _rogue_run(procs, duration, kill_after)
+    first_safe = _check_rogue_run(s, states, k_kill, sent, owner, duration)
+    print(f"\nrogue (30 s): {sent} sent, rejected {s['rejected']['by_reason']}, accepted "
+          f"{s['commands']['accepted']}, safe {(first_safe - k_kill) * T * 1000:.0f} ms after "
+          f"the kill, missed periods {s['missed_periods']}")
+
+
+# ---- processes: a stalled controller finds its plant alive and carries on --------------------
+@pytest.mark.timeout(300)
+def test_a_stalled_controller_carries_on_with_a_live_plant(procs):
+    P = free_port()
+    procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 12,
+                               "--listen", ep(P), "--json", "-q"))
+    ctl = procs.start("ctl", msagv("controller", "--connect", ep(P), "--on-plant-loss",
+                                   "exit", "--exit-at-end", "--json"))
+    t0 = time.monotonic()
+    while "vehicle agv0 granted" not in procs.err("ctl"):
+        assert time.monotonic() - t0 < 180 and ctl.poll() is None, procs.err("ctl")
+        time.sleep(0.05)
+    time.sleep(2.0)
+    os.kill(ctl.pid, signal.SIGSTOP)
+    time.sleep(2.0)
+    os.kill(ctl.pid, signal.SIGCONT)
+    assert procs.wait("plant", 120) == 0, procs.err("plant")
+    rc = procs.wait("ctl", 30)
+    assert rc == 0, procs.err("ctl")  # not 3: the plant was alive
+    s, c = procs.json("plant"), procs.json("ctl")
+    assert s["completed"] and s["safe"]["events"] >= 1 and s["safe"]["resumes"] >= 1
+    assert c["exit_reason"] == "end of run"
+    print(f"\nstall: plant safe {s['safe']}, ownership {s['ownership']}, controller loss "
+          f"{c['loss']}")
