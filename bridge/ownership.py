@@ -11,7 +11,8 @@ what (:mod:`bridge.security`).
 
 * The plant (:class:`Ownership`) grants the vehicle to the first controller that claims
   it (a ``get`` on ``msagv/{id}/claim``), applies commands only from that session
-  (others are rejected as ``not_owner``), counts only that session's token as the
+  (others are rejected as ``not_owner``, and a session that commands while another owns
+  the vehicle is never granted it), counts only that session's token as the
   controller's presence, and hands the vehicle over only when its owner releases it or
   its token is lost.
 * The controller binds to the one plant that answers its ``params`` (two different
@@ -34,6 +35,7 @@ CLAIM_REQUIRED = {"v": "int", "action": "str"}
 GRANT_REQUIRED = {"v": "int", "granted": "bool"}
 GRANT_OPTIONAL = {"owner": "str"}
 MAX_CLAIM_BYTES = 1024
+MAX_BANNED = 1024
 GRANT_TOKEN_S = 3.0  # a grant whose owner never shows its token is void after this long
 CLAIM_RETRY_S = 0.25  # the controller's claim period while not granted
 CLAIM_REFRESH_S = 1.0  # ... and while granted (it learns of a lost grant within this)
@@ -91,15 +93,20 @@ class Ownership:
         self.refused = 0  # claims refused (another session owns the vehicle)
         self.releases = 0
         self.losses = 0  # owners whose token was lost
+        self.banned: set[str] = set()  # sessions that commanded while another owned it
         self._lock = threading.Lock()
 
-    def claim(self, zid: str | None, action: str = CLAIM, now: float | None = None
-              ) -> tuple[bool, str | None]:
-        """Handle a claim or release from session ``zid``; returns (granted, owner after)."""
+    def claim(self, zid: str | None, action: str = CLAIM, now: float | None = None,
+              token_present: bool = False) -> tuple[bool, str | None]:
+        """Handle a claim or release from session ``zid`` (``token_present``: its token is
+        visible now); returns (granted, owner after)."""
         now = time.monotonic() if now is None else now
         changed = None
         with self._lock:
             if zid is None:
+                self.refused += 1
+                return False, self.owner
+            if action != RELEASE and zid in self.banned:
                 self.refused += 1
                 return False, self.owner
             if action == RELEASE:
@@ -108,6 +115,7 @@ class Ownership:
                     changed = (None, f"released by {zid}")
                 granted, owner = False, self.owner
             elif self.owner == zid:
+                self.owner_seen = self.owner_seen or token_present
                 granted, owner = True, zid
             else:
                 void = (self.owner is not None and not self.owner_seen
@@ -116,7 +124,7 @@ class Ownership:
                     why = (f"granted to {zid}" if self.owner is None else
                            f"granted to {zid} (the grant to {self.owner} was void: no token "
                            f"within {GRANT_TOKEN_S:g} s)")
-                    self.owner, self.owner_seen, self.granted_at = zid, False, now
+                    self.owner, self.owner_seen, self.granted_at = zid, token_present, now
                     self.grants += 1
                     changed = (zid, why)
                     granted, owner = True, zid
@@ -141,6 +149,17 @@ class Ownership:
         if changed is not None and self.on_change is not None:
             self.on_change(*changed)
 
+    def violation(self, zid: str | None) -> None:
+        """Session ``zid`` sent a command while another session owned the vehicle: it is
+        never granted the vehicle by this plant (at most MAX_BANNED sessions are kept)."""
+        with self._lock:
+            if zid is not None and self.owner is not None and zid != self.owner \
+                    and len(self.banned) < MAX_BANNED:
+                if zid not in self.banned:
+                    log.warning("session %s commanded vehicle owned by %s: it will not be "
+                                "granted the vehicle", zid, self.owner)
+                self.banned.add(zid)
+
     def accepts(self, zid: str | None) -> bool:
         with self._lock:
             return zid is not None and zid == self.owner
@@ -148,7 +167,8 @@ class Ownership:
     def summary(self) -> dict:
         with self._lock:
             return {"owner": self.owner, "grants": self.grants, "refused": self.refused,
-                    "releases": self.releases, "losses": self.losses}
+                    "releases": self.releases, "losses": self.losses,
+                    "banned": len(self.banned)}
 
 
 # ---- the controller's side -----------------------------------------------------------------

@@ -251,7 +251,8 @@ class PlantNode:
         if action is None:
             granted, owner = False, self.ownership.owner
         else:
-            granted, owner = self.ownership.claim(zid, action)
+            granted, owner = self.ownership.claim(
+                zid, action, token_present=self._tokens is not None and self._tokens.present(zid))
             if action == CLAIM and not granted:
                 self._refused_logged += 1
                 n = self._refused_logged
@@ -319,6 +320,7 @@ class PlantNode:
         try:
             c = M.decode_cmd(payload, self.nw)
             if source is not LOCAL and not self.ownership.accepts(source):
+                self.ownership.violation(source)
                 owner = self.ownership.owner
                 raise M.MessageError(M.NOT_OWNER, f"from {source or 'a session without source info'}"
                                                   f"; the vehicle is owned by {owner or 'nobody'}")
