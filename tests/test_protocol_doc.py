@@ -46,7 +46,7 @@ def client_config(port: int) -> zenoh.Config:
 
 
 def get_params(session, vid: str, deadline_s: float) -> tuple[dict, str]:
-    """Sections 3.4 and 4.6: a get on msagv/{id}/params (every replier, no consolidation),
+    """Sections 3.4 and 4.7: a get on msagv/{id}/params (every replier, no consolidation),
     retried until exactly one plant session replies; returns the params and its zid."""
     t0 = time.monotonic()
     while time.monotonic() - t0 < deadline_s:
@@ -65,7 +65,7 @@ def get_params(session, vid: str, deadline_s: float) -> tuple[dict, str]:
 
 
 def claim(session, vid: str, pub, plant_zid: str, deadline_s: float) -> dict:
-    """Section 4.6: claim the vehicle (a get on msagv/{id}/claim carrying our source info)
+    """Sections 3.7 and 4.7: claim the vehicle (a get on msagv/{id}/claim with our source info)
     until the bound plant grants it."""
     t0 = time.monotonic()
     while time.monotonic() - t0 < deadline_s:
@@ -129,11 +129,11 @@ def run_controller(port: int, vid: str, plant: subprocess.Popen, bad_at: int = 3
         params, plant_zid = get_params(session, vid, deadline_s=60.0)
         nw, period = params["n_wheels"], params["period"]
 
-        def on_state(s):  # only the bound plant's states (section 4.6)
+        def on_state(s):  # only the bound plant's states (section 4.7)
             if s.source_info is not None and str(s.source_info.source_id.zid) == plant_zid:
                 states.put(s.payload.to_bytes())
 
-        # subscriber and publisher first, then the token, then the claim (sections 4, 4.6)
+        # subscriber and publisher first, then the token, then the claim (sections 4, 4.7)
         sub = session.declare_subscriber(f"msagv/{vid}/state", on_state)
         pub = session.declare_publisher(f"msagv/{vid}/cmd")
         token = session.liveliness().declare_token(
@@ -145,7 +145,7 @@ def run_controller(port: int, vid: str, plant: subprocess.Popen, bad_at: int = 3
                  if r.ok is not None]
         n_cmd = 0
 
-        def put(payload: bytes) -> None:  # every command names our session (section 4.6)
+        def put(payload: bytes) -> None:  # every command names our session (section 4.7)
             pub.put(payload, source_info=zenoh.SourceInfo(pub.id, n_cmd))
 
         last_cmd = None  # the accepted answer to the previous state
