@@ -9,11 +9,12 @@ role is given), and ``roles.json``, the identities the access-control rules name
 from __future__ import annotations
 
 import argparse
-import sys
 
 
 def main(argv: list[str]) -> int:
     from bridge.security import ROLES, SecurityError, create_certs, parse_extra
+
+    from .args import add_common_args, fail, note
 
     ap = argparse.ArgumentParser(
         prog="msagv certs",
@@ -30,15 +31,14 @@ def main(argv: list[str]) -> int:
                                                            "certificates (default 825)")
     ap.add_argument("--force", action="store_true",
                     help="start a new CA and sign every identity again")
+    add_common_args(ap)
     a = ap.parse_args(argv)
     try:
         extras = [parse_extra(e) for e in a.extra]
         m = create_certs(a.dir, extras, a.san, a.days, a.force)
     except (SecurityError, OSError) as e:
-        print(f"msagv certs: {e}", file=sys.stderr)
-        return 2
+        return fail("msagv certs", e, a)
     ids = ", ".join(f"{n} ({v['role']}, CN {v['cn']})" for n, v in m["identities"].items())
-    print(f"msagv certs: {a.dir}: CA ca.pem; identities {ids}. Keep ca.key off the vehicles; "
-          f"give each machine ca.pem, roles.json and its own NAME.pem/NAME.key.",
-          file=sys.stderr)
+    note(a, f"msagv certs: {a.dir}: CA ca.pem; identities {ids}. Keep ca.key off the "
+            f"vehicles; give each machine ca.pem, roles.json and its own NAME.pem/NAME.key.")
     return 0
