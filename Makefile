@@ -17,7 +17,12 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/msagv demo
 
+# the web-viewer test screenshots Rerun's viewer in headless Chromium (Debian's package);
+# installed here when missing and possible (root with apt-get), else that test skips
+CHROMIUM_CHECK = command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && { apt-get install -y -q chromium >/dev/null 2>&1 || { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q chromium >/dev/null 2>&1; }; }; } || echo "chromium not installed: the web-viewer screenshot test will skip"
+
 test: $(STAMP)
+	@$(CHROMIUM_CHECK)
 	$(BIN)/python -m pytest -q
 
 test-all: $(STAMP)

@@ -22,6 +22,7 @@ COMMANDS = {
     "certs": "certs DIR: a CA and per-role certificates for --secure (mutual TLS, access control)",
     "run": "in-process closed loop (controller at 100 Hz on the stepping plant)",
     "report": "the paper's metrics and plots from a recording",
+    "view": "view FILE: a recording in Rerun's 3D viewer (vehicle, wheel wear, paths, errors)",
     "experiment": "the paper's Cases 1-3, the Pareto front and the ridge study",
     "fmu": "fmu build | fmu simulate",
     "bench": "benchmarks (plant, rollout, controller, optimality, transport, fmu)",
@@ -60,6 +61,9 @@ def _dispatch(cmd: str, rest: list[str]) -> int:
     if cmd == "run":
         from .run import main
         return main(rest)
+    if cmd == "view":
+        from .view import main as view_main
+        return view_main(rest)
     if cmd == "report":
         return report_main(rest)
     if cmd == "experiment":
@@ -213,6 +217,7 @@ def report_main(argv: list[str]) -> int:
     from experiments.results import result
 
     from .args import PLOT_SUFFIXES, OptionError, add_common_args, check_output, fail, warn
+    from .view import add_view_args, check_view_args, serve_until_stopped, view_kwargs
 
     prog = "msagv report"
     ap = argparse.ArgumentParser(prog=prog,
@@ -229,9 +234,11 @@ def report_main(argv: list[str]) -> int:
     ap.add_argument("--log", metavar="FILE", help="write the per-step log as CSV")
     ap.add_argument("--wear-plot", metavar="FILE",
                     help="write a figure of the wear per wheel and per axle")
+    add_view_args(ap)  # --view, --view-save, --view-port: the run in Rerun (msagv view)
     add_common_args(ap)
     a = ap.parse_args(argv)
     try:
+        want_view = check_view_args(a)
         check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
         check_output(a.wear_plot, "--wear-plot", suffixes=PLOT_SUFFIXES)
         check_output(a.log, "--log")
@@ -274,6 +281,14 @@ def report_main(argv: list[str]) -> int:
         from experiments.plots import plot_wear, run_title
 
         plot_wear(log, a.wear_plot, title=run_title(scenario, f"{info['role']} recording"))
+    view = None
+    if want_view:
+        from experiments.viewer import ViewerError, view_recording
+
+        try:
+            view, _ = view_recording(a.recording, view_kwargs(a), a.run)
+        except (ViewerError, OSError) as e:
+            return fail(prog, f"--view: {e}", a)
     if a.json_out:
         Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
@@ -288,9 +303,15 @@ def report_main(argv: list[str]) -> int:
         if lat["p50"] is not None:
             print(f"  latency    p50 {lat['p50']:.3f}  p99 {lat['p99']:.3f}  max {lat['max']:.3f} ms "
                   f"(state -> command, without the solve; as recorded)")
-        for k, path in (("log", a.log), ("plot", a.plot), ("json", a.json_out)):
+        for k, path in (("log", a.log), ("plot", a.plot), ("wear plot", a.wear_plot),
+                        ("view", a.view_save), ("json", a.json_out)):
             if path:
                 print(f"  {k:<10} {Path(path)}")
+    if view is not None:
+        if a.view:
+            serve_until_stopped(view, prog)
+        else:
+            view.close()
     return 0
 
 

@@ -23,6 +23,7 @@ from bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtime_prio
 from .args import (OptionError, add_case_args, add_common_args, add_fmu_args, add_mpc_args,
                    add_session_args, check_output, options_from_args, scenario_from_args)
 from .errors import USAGE_ERRORS
+from .view import add_view_args, announce, check_view_args, view_kwargs
 
 
 def _realtime_priority(a, log: logging.Logger) -> None:
@@ -106,6 +107,7 @@ def plant_parser() -> argparse.ArgumentParser:
                     help="per-wheel wear work in the state (W_s_ij, ...): auto = when the "
                          "controller's params query asks for it (default), on, off")
     add_record_args(ap)
+    add_view_args(ap)  # --view, --view-save, --view-port: the running plant in Rerun
     ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
     add_common_args(ap)  # -q: log warnings only; -v: debug
     add_session_args(ap)
@@ -124,6 +126,7 @@ def plant_main(argv: list[str]) -> int:
     try:
         opts = options_from_args(a)
         check_record_args(a)
+        want_view = check_view_args(a)
         scenario = scenario_from_args(a)
         plant, vehicle, ref, initial = scenario.make_plant()
         for w in scenario.check(vehicle, ref):  # a speed no wheel reaches: exit 2
@@ -139,6 +142,12 @@ def plant_main(argv: list[str]) -> int:
             "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
             "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
             "fmu": a.fmu, "argv": list(argv)})
+        if want_view:  # beside the recorder: it only queues, a thread logs
+            from experiments.viewer import RunView, Tee, ViewSink
+
+            view = RunView(vehicle, ref, name=f"msagv plant {opts.id}", **view_kwargs(a))
+            announce(view, "msagv plant")
+            rec = Tee(rec, ViewSink(view, plant))
     except USAGE_ERRORS as e:
         print(f"msagv plant: {e}", file=sys.stderr)
         if plant is not None and hasattr(plant, "close"):

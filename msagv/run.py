@@ -16,6 +16,7 @@ from pathlib import Path
 
 from .args import (PLOT_SUFFIXES, OptionError, add_case_args, add_common_args, add_fmu_args,
                    add_mpc_args, check_output, fail, scenario_from_args, warn)
+from .view import add_view_args, announce, check_view_args, serve_until_stopped, view_kwargs
 
 EXIT_INTERRUPTED = 130  # Ctrl-C: the shell's 128 + SIGINT
 EXIT_FAILED = 1  # the run itself failed (a diverging plant, an FMU that stopped)
@@ -44,6 +45,7 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
                                                   "as the signals)")
     ap.add_argument("--wear-plot", metavar="FILE",
                     help="write a figure of the wear per wheel and per axle (.png, .pdf, .svg)")
+    add_view_args(ap)  # --view, --view-save, --view-port: the run in Rerun
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bar on stderr (default: on a terminal for runs > 10 s)")
     add_common_args(ap)
@@ -73,6 +75,7 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         check_output(a.log, "--log")
         check_output(a.json_out, "--json-out")
         check_output(a.wear_plot, "--wear-plot", suffixes=PLOT_SUFFIXES)
+        want_view = check_view_args(a)
         scenario = scenario_from_args(a)
         built = scenario.build()
     except USAGE_ERRORS as e:
@@ -83,11 +86,22 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         print(f"{prog}: interrupted before the run started", file=sys.stderr)
         return EXIT_INTERRUPTED
     warn(prog, built.warnings)
+    view = None
+    if want_view:
+        from experiments.viewer import RunView, ViewerError
+
+        try:
+            view = RunView(built.vehicle, built.reference, name=prog, **view_kwargs(a))
+        except (ViewerError, OSError) as e:
+            built.close()
+            return fail(prog, f"--view: {e}", a)
+        announce(view, prog)
     log = RunLog()
     interrupted = False
     try:
         closed_loop(built.plant, built.controller, built.reference, built.duration,
-                    period=scenario.period, progress=False if a.quiet else a.progress, log=log)
+                    period=scenario.period, progress=False if a.quiet else a.progress, log=log,
+                    on_step=view.on_step if view is not None else None)
     except KeyboardInterrupt:
         interrupted = True
         log.cut_short()
@@ -96,6 +110,8 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         return fail(prog, f"the run failed at t = {t:.2f} s: {e}", a, EXIT_FAILED)
     finally:
         built.close()
+    if view is not None:
+        view.finish(log.final_state or None)
     if not log.t:
         print(f"{prog}: interrupted before the first step", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -134,7 +150,12 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
                               f"{' (interrupted)' if interrupted else ''}"))
         print("\n".join(format_wheel_wear(wear)))
         for k, path in (("log", a.log), ("plot", a.plot), ("wear plot", a.wear_plot),
-                        ("json", a.json_out)):
+                        ("view", a.view_save), ("json", a.json_out)):
             if path:
                 print(f"  {k:<10} {Path(path)}")
+    if view is not None and not interrupted:
+        if a.view:
+            serve_until_stopped(view, prog)
+        else:
+            view.close()
     return EXIT_INTERRUPTED if interrupted else 0
