@@ -204,6 +204,10 @@ class ControllerNode:
         was, self.granted, self.owner = self.granted, granted, owner
         if granted and not was:
             log.info("vehicle %s granted by plant %s", self.keys.id, self.plant_zid)
+            with self._lock:  # a state that arrived before the grant's reply
+                if self._held is not None and self._pending is None and self.plant_present:
+                    self._pending, self._held = self._held, None
+            self._event.set()
         elif was and not granted:
             log.warning("plant %s no longer grants vehicle %s to this controller (owner: %s): "
                         "not commanding", self.plant_zid, self.keys.id, owner or "nobody")
@@ -418,16 +422,16 @@ class ControllerNode:
             self.stats.ignored_no_plant += 1
             if self.stats.ignored_no_plant <= 3:
                 log.warning("state %d solved but not answered: the plant is not present", seq)
-            with self._lock:  # answered if the plant shows up again (unless too old)
-                if self._held is None and self._pending is None:
-                    self._held = (st, rx_perf)
-                    self._last_seq = last
+            self._hold(st, rx_perf, last)  # answered if the plant shows up again
             return "no plant"
         if not self.granted:
             self.stats.not_granted += 1
             if self.stats.not_granted <= 3:
                 log.warning("state %d solved but not answered: the plant does not grant us "
                             "the vehicle (owner: %s)", seq, self.owner or "nobody")
+            # answered once the grant comes: the plant publishes its first state as soon
+            # as it grants, which can arrive before the grant's reply
+            self._hold(st, rx_perf, last)
             return "not granted"
         payload = M.encode_cmd(self._cmd_seq, st["t"], seq, cmd.omega_w, cmd.omega_s,
                                solve_ms=cmd.solve_ms, cost=cmd.cost)
@@ -440,6 +444,19 @@ class ControllerNode:
             self.rec.message("tx", self.keys.cmd, payload)
         self.stats.answered += 1
         return "sent"
+
+    def _hold(self, st: dict, rx_perf: float, last: int | None) -> None:
+        """Keep a solved but unanswered state to answer later (unless a newer one came);
+        ``--max-age-ms`` still drops it if it is too old by then."""
+        with self._lock:
+            if self._held is None and self._pending is None:
+                self._last_seq = last
+                if self.granted and self.plant_present:
+                    # the grant (or the plant) came while this state was being solved
+                    self._pending = (st, rx_perf)
+                    self._event.set()
+                else:
+                    self._held = (st, rx_perf)
 
     def _set_reference(self, m: dict, t_now: float) -> None:
         from controller.reference import from_samples
