@@ -12,8 +12,9 @@ exactly and quasi-steadily (tire forces follow the slips at once, as in the pape
 model), at every sample of the reference:
 
 1. The body force and yaw moment the motion needs, from the reference's accelerations in
-   the body frame: ``F_B = m R(phi)^T d(vx, vy)/dt`` (eq. 17 read backwards; it contains
-   the centripetal force ``m v^2 kappa``) and ``M_z = I_vz dr/dt``.
+   the body frame: ``F_B = m (u' - r v, v' + r u)`` (eq. 17 read backwards, with (u, v) the
+   reference velocity in B; it contains the centripetal force ``m v^2 kappa``) and
+   ``M_z = I_vz r'``, the derivatives by a Savitzky-Golay filter over 0.2 s.
 2. Each wheel moves with the velocity the rigid body gives it (eq. 6-7), at speed ``v_i``
    and heading ``theta_i``. A wheel producing a lateral force ``F_y`` (perpendicular to
    its velocity) runs at the slip angle ``alpha = f_lat^-1(F_y)`` and dissipates
@@ -44,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize
+from scipy.signal import savgol_filter
 
 from plant.tire import magic_formula
 from plant.vehicle import G_ACCEL, Vehicle
@@ -126,19 +128,31 @@ def wear_floors(reference, vehicle: Vehicle, t0: float, t1: float, dt: float = 0
     (module docstring). ``dt``: the sample step of the integral [s]."""
     if not t1 > t0:
         raise ValueError(f"wear_floors: empty window [{t0}, {t1}]")
+    # the motion's accelerations from a fine sampling of the reference, differentiated in
+    # the body frame (the speed along and across the heading varies slowly, unlike vx, vy)
+    # with a Savitzky-Golay filter over 0.2 s: finite differences of the linearly
+    # interpolated table would add noise, and noise adds dissipation (the costs are convex)
+    fine = 0.01
+    tf = np.arange(t0 - 0.2, t1 + 0.2 + 0.5 * fine, fine)
+    Rf = reference.sample(tf)
+    phi_f, r_f = Rf[:, 2], Rf[:, 5]
+    cf, sf = np.cos(phi_f), np.sin(phi_f)
+    u_f = cf * Rf[:, 3] + sf * Rf[:, 4]
+    v_f = -sf * Rf[:, 3] + cf * Rf[:, 4]
+    win = 21
+    du = savgol_filter(u_f, win, 3, deriv=1, delta=fine)
+    dv = savgol_filter(v_f, win, 3, deriv=1, delta=fine)
+    dr_f = savgol_filter(r_f, win, 3, deriv=1, delta=fine)
     t = np.arange(t0, t1 + 0.5 * dt, dt)
     R = reference.sample(t)
-    phi, vx, vy, r = R[:, 2], R[:, 3], R[:, 4], R[:, 5]
-    ax = np.gradient(vx, t)
-    ay = np.gradient(vy, t)
-    dr = np.gradient(r, t)
+    phi, r = R[:, 2], R[:, 5]
     c, s = np.cos(phi), np.sin(phi)
+    ub = c * R[:, 3] + s * R[:, 4]
+    vb = -s * R[:, 3] + c * R[:, 4]
     m, Iz = vehicle.mass, vehicle.yaw_inertia
-    FBx = m * (c * ax + s * ay)  # R(phi)^T m a_G
-    FBy = m * (-s * ax + c * ay)
-    Mz = Iz * dr
-    ub = c * vx + s * vy
-    vb = -s * vx + c * vy
+    FBx = m * (np.interp(t, tf, du) - r * vb)  # eq. (17) in B: m (u' - r v)
+    FBy = m * (np.interp(t, tf, dv) + r * ub)  # m (v' + r u): the centripetal force
+    Mz = Iz * np.interp(t, tf, dr_f)
     wx, wy = vehicle.wheel_x, vehicle.wheel_y
     nw = vehicle.n_wheels
     vwx = ub[:, None] - r[:, None] * wy[None, :]  # eq. (6)

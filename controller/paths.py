@@ -93,17 +93,21 @@ def _ramp(k0: float, k1: float, length: float, ds: float = DS) -> np.ndarray:
 def lane_change(vehicle, speed_kmh: float, width: float = 3.5, straight: float = 15.0
                 ) -> Reference:
     """A lane change of ``width`` [m] to the left: y follows the smooth step
-    ``width (1 - cos(pi u)) / 2`` over a length that keeps the curvature and its rate
-    within :func:`feasible_bounds` (at least 30 m), between straights."""
+    ``width (u - sin(2 pi u) / (2 pi))`` over a length L (u = x / L), whose curvature
+    ``~ 2 pi width / L^2 sin(2 pi u)`` is zero at both ends (no jump in the yaw rate), L
+    chosen so that the curvature and its rate stay within :func:`feasible_bounds` (at least
+    30 m), between straights."""
     b = feasible_bounds(vehicle, speed_kmh)
-    # the step's peak curvature is width pi^2 / (2 L^2), its peak rate width pi^3 / (2 L^3)
-    L = max(30.0, math.sqrt(width * math.pi ** 2 / (2 * b.kappa)),
-            (width * math.pi ** 3 / (2 * b.kappa_rate)) ** (1 / 3))
-    s = np.arange(0.0, L, DS)
-    u = s / L
-    dy = width * math.pi / (2 * L) * np.sin(math.pi * u)
-    d2y = width * math.pi ** 2 / (2 * L ** 2) * np.cos(math.pi * u)
-    kappa = d2y / (1 + dy ** 2) ** 1.5  # curvature of y(x); s ~ x for a gentle step
+    # peak curvature 2 pi width / L^2, peak rate 4 pi^2 width / L^3
+    L = max(30.0, math.sqrt(2 * math.pi * width / b.kappa),
+            (4 * math.pi ** 2 * width / b.kappa_rate) ** (1 / 3))
+    x = np.arange(0.0, L, DS / 4)
+    u = x / L
+    dy = width / L * (1 - np.cos(2 * math.pi * u))
+    d2y = width * 2 * math.pi / L ** 2 * np.sin(2 * math.pi * u)
+    kappa_x = d2y / (1 + dy ** 2) ** 1.5  # curvature of y(x)
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(np.cumsum(dy) * DS / 4)))])
+    kappa = np.interp(np.arange(0.0, s[-1], DS), s, kappa_x)
     flat = np.zeros(int(round(straight / DS)))
     return path_from_curvature(np.concatenate([flat, kappa, flat]), speed_kmh, "lane-change")
 

@@ -1,5 +1,7 @@
 """Runs of the experiments: one closed-loop run per configuration, cached on disk under a
-hash of that configuration, executed in parallel over the machine's cores.
+hash of that configuration, executed in parallel by Dask (a local cluster of one process
+per core, or the cluster of ``--scheduler ADDRESS``), as FMPy's parameter-variation
+example spreads FMU runs.
 
 A run is ``Plant(vehicle, initial) + MPC(vehicle, settings, reference) + closed_loop`` at
 T = 0.01 s, with the annealer's fixed iteration budget and seed, so it is deterministic: the
@@ -25,7 +27,6 @@ import math
 import os
 import sys
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -37,7 +38,9 @@ PERIOD = 0.01  # s, the paper's control period T
 # own prediction model with the wear weight L = 0 (their source papers have no wear term);
 # every other setting is the same for all five.
 METHODS: dict[str, dict] = {
-    "Kinematic": {"model": "kinematic", "method": "ntwo"},
+    # the paper's Kinematic: "considers only geometric relationships" (Section 4.2), every
+    # wheel steered about one instantaneous centre: the decision is the body twist
+    "Kinematic": {"model": "kinematic", "method": "ntwo", "policy": "twist"},
     "DH": {"model": "dugoff", "method": "ntwo"},
     "TCT": {"model": "tct", "method": "ntwo"},
     "NTWO": {"model": "mf", "method": "ntwo"},
@@ -58,6 +61,9 @@ class RunSpec:
     duration : vehicle time [s]; None runs the whole reference.
     vehicle : vehicle TOML path; None is the built-in paper vehicle.
     tags : free data carried into the result (Pareto family and scale).
+    extra : further :class:`experiments.scenario.Scenario` fields (``solver``, ``axles``,
+        ``path_seed``, ``plant_options``, ``plant_tire_scale``); ``case`` may then also be
+        ``lane``, ``turn`` or ``random``.
     """
 
     label: str
@@ -69,6 +75,7 @@ class RunSpec:
     duration: float | None = None
     vehicle: str | None = None
     tags: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -84,15 +91,19 @@ class RunSpec:
 
         settings = dict(self.settings)
         settings.setdefault("threads", 1)
+        if self.case == "file":  # a trajectory CSV (extra["trajectory"]) carries its timing
+            return Scenario(vehicle=self.vehicle, mass_kg=self.mass_kg,
+                            duration=self.duration, settings=settings, period=PERIOD,
+                            **self.extra)
         return Scenario(vehicle=self.vehicle, mass_kg=self.mass_kg, case=self.case,
                         speed=self.speed_kmh, duration=self.duration, settings=settings,
-                        period=PERIOD)
+                        period=PERIOD, **self.extra)
 
     def estimated_steps(self) -> int:
         """Control periods this run will take (for scheduling the longest first)."""
         if self.duration is not None:
             return int(self.duration / PERIOD)
-        if self.case == "line":
+        if self.case == "line" or self.case in ("lane", "turn", "random"):
             return int(20.0 / PERIOD)
         return int(150.0 / (max(self.speed_kmh, 0.1) / 3.6) / PERIOD)
 
@@ -129,6 +140,10 @@ def config_of(spec: RunSpec, digest: str | None = None) -> dict:
         "duration": None if spec.duration is None else float(spec.duration),
         "period": PERIOD,
         "vehicle": build_vehicle(spec).to_dict(),
+        "extra": dict(spec.extra),
+        # a trajectory file by its content: an edited file reruns its runs
+        "trajectory_sha": (hashlib.sha256(Path(spec.extra["trajectory"]).read_bytes()).hexdigest()
+                           if spec.extra.get("trajectory") else None),
         "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
         "code": digest or code_digest(),
     }
@@ -145,15 +160,17 @@ def _atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def execute(spec_d: dict, out_dir: str, key: str) -> dict:
-    """Run one configuration and store it (worker side). Errors of the simulation itself
-    (a diverging plant, refused commands) are stored as a failed run: they are as
-    deterministic as a result."""
+def execute(spec_d: dict, key: str) -> dict:
+    """Run one configuration (on a worker): the result with its per-step log as CSV text
+    (``log_csv``), stored by :func:`store` where the experiment runs. Errors of the
+    simulation itself (a diverging plant, refused commands) make a failed run: they are
+    as deterministic as a result."""
+    import tempfile
+
     from controller.loop import closed_loop
 
+    _worker_init()
     spec = RunSpec.from_dict(spec_d)
-    runs = Path(out_dir) / "runs"
-    runs.mkdir(parents=True, exist_ok=True)
     t0, c0 = time.perf_counter(), time.process_time()
     res = {"key": key, "spec": spec.to_dict(), "status": "ok", "error": None, "metrics": None}
     try:
@@ -166,9 +183,9 @@ def execute(spec_d: dict, out_dir: str, key: str) -> dict:
         # stored logs (msagv run --log has them)
         log = closed_loop(plant, mpc, ref, duration, period=PERIOD, progress=False,
                           outputs=False)
-        tmp = runs / f"{key}.csv.tmp{os.getpid()}"
-        log.to_csv(tmp)
-        os.replace(tmp, runs / f"{key}.csv")
+        with tempfile.TemporaryDirectory() as td:
+            log.to_csv(Path(td) / "log.csv")
+            res["log_csv"] = (Path(td) / "log.csv").read_text()
         m = log.metrics()
         res["metrics"] = m
         res["warnings"] = list(built.warnings)
@@ -181,7 +198,19 @@ def execute(spec_d: dict, out_dir: str, key: str) -> dict:
     res["cpu_s"] = time.process_time() - c0
     res["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     res["config"] = config_of(spec)
-    _atomic_write(runs / f"{key}.json", json.dumps(res, indent=1, sort_keys=True))
+    return res
+
+
+def store(res: dict, out_dir: str | Path) -> dict:
+    """Write a result under ``OUT/runs/``: the log CSV, then the JSON (last and atomically:
+    its presence means the run finished). Returns the result without its log text."""
+    runs = Path(out_dir) / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    res = dict(res)
+    text = res.pop("log_csv", None)
+    if text is not None:
+        _atomic_write(runs / f"{res['key']}.csv", text)
+    _atomic_write(runs / f"{res['key']}.json", json.dumps(res, indent=1, sort_keys=True))
     return res
 
 
@@ -197,15 +226,6 @@ def _worker_init() -> None:
         pass
 
 
-def _pool_worker_init() -> None:
-    # Ctrl-C goes to the whole process group: the parent reports and stops the workers,
-    # which would otherwise each print a KeyboardInterrupt traceback
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _worker_init()
-
-
 def load_result(out_dir: Path, key: str) -> dict | None:
     p = Path(out_dir) / "runs" / f"{key}.json"
     if not p.is_file():
@@ -217,13 +237,15 @@ def load_result(out_dir: Path, key: str) -> dict | None:
 
 
 def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
-            force: bool = False, progress: bool = True, desc: str = "runs") -> tuple[list[dict], dict]:
+            force: bool = False, progress: bool = True, desc: str = "runs",
+            scheduler: str | None = None) -> tuple[list[dict], dict]:
     """Run every spec not already finished under ``out_dir`` (all of them with ``force``).
 
     Returns the results in the order of ``specs`` and a summary
-    ``{"runs", "reused", "executed", "failed", "wall_s"}``. With ``jobs`` > 1 (default: the
-    machine's cores) the runs go to a process pool, longest first; progress is a bar over
-    finished runs on stderr.
+    ``{"runs", "reused", "executed", "failed", "wall_s"}``. The runs go to Dask, longest
+    first (:func:`dask_map`); ``jobs = 1`` without a scheduler runs them in this process.
+    Results are stored here as they finish (an interrupted experiment resumes); progress
+    is a bar over finished runs on stderr.
     """
     out_dir = Path(out_dir)
     (out_dir / "runs").mkdir(parents=True, exist_ok=True)
@@ -250,6 +272,7 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
         bar = tqdm(total=len(order), desc=desc, unit="run", file=sys.stderr, dynamic_ncols=True)
 
     def done(res):
+        res = store(res, out_dir)
         results[res["key"]] = res
         _log.info("%s %s: %s (%.1f s)", res["spec"]["label"], res["spec"]["group"],
                   res["status"] if res["status"] != "ok" else
@@ -259,29 +282,12 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
             bar.set_postfix_str(f"{res['spec']['label']} {res['spec']['group']}", refresh=False)
             bar.update(1)
 
-    if order and (jobs == 1 or len(order) == 1):
-        _worker_init()
+    if order and jobs == 1 and scheduler is None:
         for k in order:
-            done(execute(todo[k].to_dict(), str(out_dir), k))
+            done(execute(todo[k].to_dict(), k))
     elif order:
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")  # fresh interpreters: no inherited numba/thread state
-        with ProcessPoolExecutor(max_workers=min(jobs, len(order)), mp_context=ctx,
-                                 initializer=_pool_worker_init) as pool:
-            pending = {pool.submit(execute, todo[k].to_dict(), str(out_dir), k) for k in order}
-            try:
-                while pending:
-                    fin, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for f in fin:
-                        done(f.result())
-            except BaseException as e:
-                for f in pending:
-                    f.cancel()
-                if isinstance(e, KeyboardInterrupt):  # stop the runs under way (unstored)
-                    for proc in list(getattr(pool, "_processes", {}).values()):
-                        proc.terminate()
-                raise
+        dask_map(execute, [(todo[k].to_dict(), k) for k in order], done, jobs=jobs,
+                 scheduler=scheduler)
     if bar is not None:
         bar.close()
     out = [results[k] for k in keys]
@@ -293,3 +299,39 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
 
 def finite(x) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def dask_map(fn, arg_tuples: list[tuple], on_result, *, jobs: int | None = None,
+             scheduler: str | None = None) -> None:
+    """``fn(*args)`` for every tuple on Dask, ``on_result(value)`` for each as it finishes
+    (in this process). ``scheduler``: the address of a running cluster
+    (``dask scheduler`` + ``dask worker`` on other machines, with this package installed);
+    else a local cluster of ``jobs`` worker processes (default: the machine's cores), one
+    thread each (numba threads 1), without a dashboard. Ctrl-C cancels what is queued and
+    closes the cluster; finished results are already stored."""
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise RuntimeError("parallel runs need Dask (pip install 'msagv[study]'); or run "
+                           "them one by one with --jobs 1") from None
+    cluster = None
+    if scheduler:
+        client = Client(scheduler, timeout="20s")
+    else:
+        n = max(1, int(jobs or os.cpu_count() or 1))
+        cluster = LocalCluster(n_workers=min(n, len(arg_tuples)), threads_per_worker=1,
+                               processes=True, dashboard_address=None,
+                               silence_logs=logging.ERROR)
+        client = Client(cluster)
+    try:
+        futures = [client.submit(fn, *args, pure=False) for args in arg_tuples]
+        try:
+            for f in as_completed(futures):
+                on_result(f.result())
+        except BaseException:
+            client.cancel(futures)
+            raise
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -348,7 +348,8 @@ def report_ridge(results: list[dict], out: Path, run_summary: dict) -> dict:
 def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None = None,
                    force: bool = False, progress: bool = True, duration: float | None = None,
                    speeds=None, masses_t=None, methods=None, vehicle: str | None = None,
-                   two_scales=None, smooth_scales=None, ridge_scales=None) -> dict:
+                   two_scales=None, smooth_scales=None, ridge_scales=None,
+                   scheduler: str | None = None) -> dict:
     """Run (or resume) one experiment and write its outputs; returns its summary."""
     if name not in EXPERIMENTS:
         raise ValueError(f"unknown experiment '{name}' (expected {', '.join(EXPERIMENTS)})")
@@ -369,7 +370,8 @@ def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None
     else:
         specs = case_specs(name, speeds=speeds, masses_t=masses_t, methods=methods,
                            duration=duration, vehicle=vehicle)
-    results, summ = run_all(specs, out, jobs=jobs, force=force, progress=progress, desc=name)
+    results, summ = run_all(specs, out, jobs=jobs, force=force, progress=progress, desc=name,
+                            scheduler=scheduler)
     summ["total_wall_s"] = time.perf_counter() - t0
     summ["jobs"] = int(jobs or os.cpu_count() or 1)
     if name == "pareto":

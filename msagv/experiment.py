@@ -45,7 +45,10 @@ def _masses_kg(a) -> tuple | None:
 def main(argv: list[str]) -> int:
     prog = "msagv experiment"
     ap = argparse.ArgumentParser(prog=prog, description=studies.__doc__.splitlines()[0])
-    ap.add_argument("experiment", choices=studies.EXPERIMENTS)
+    ap.add_argument("experiment", choices=studies.EXPERIMENTS + ("study",),
+                    help="the paper's Cases 1-3, the Pareto and ridge experiments, or the "
+                         "study (experiments.study: every family on many scenarios, wear at "
+                         "matched accuracy with confidence intervals)")
     ap.add_argument("-o", "--out", metavar="DIR",
                     help="output directory (default runs/<experiment>)")
     ap.add_argument("--jobs", type=int, metavar="N", help="parallel runs (default: all cores)")
@@ -67,6 +70,14 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--smooth-scales", metavar="S,...", help="pareto: factors on NTWO's R_dw, R_dd")
     ap.add_argument("--ridge-scales", metavar="S,...",
                     help="pareto: factors of NTWO's R_ow, R_od; ridge: the levels (default 0,0.1,1)")
+    ap.add_argument("--quick", action="store_true",
+                    help="study: the reduced design (about 10 minutes on 2 cores)")
+    ap.add_argument("--trajectory", metavar="FILE",
+                    help="study: add a scenario on this t,x,y,phi CSV (with --vehicle: "
+                         "driven by that vehicle)")
+    ap.add_argument("--scheduler", metavar="ADDRESS",
+                    help="a Dask scheduler (tcp://HOST:8786) whose workers run the runs "
+                         "(default: a local Dask cluster of --jobs processes)")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bar over finished runs on stderr (default: on a terminal)")
     add_common_args(ap)
@@ -83,15 +94,24 @@ def main(argv: list[str]) -> int:
         check_output(a.json_out, "--json-out")
         methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
         masses = _masses_kg(a)
-        summary = studies.run_experiment(
-            a.experiment, a.out, jobs=a.jobs, force=a.force, progress=progress,
-            duration=a.duration, speeds=_floats(a.speeds, "--speeds"),
-            masses_t=None if masses is None else tuple(m / 1000.0 for m in masses),
-            methods=methods, vehicle=a.vehicle,
-            two_scales=_floats(a.two_scales, "--two-scales"),
-            smooth_scales=_floats(a.smooth_scales, "--smooth-scales"),
-            ridge_scales=_floats(a.ridge_scales, "--ridge-scales"))
-    except (ValueError, FileNotFoundError) as e:
+        if a.experiment != "study" and (a.quick or a.trajectory):
+            raise OptionError("--quick and --trajectory apply to the study")
+        if a.experiment == "study":
+            from experiments.study import run_study
+
+            summary = run_study(a.out, quick=a.quick, jobs=a.jobs, scheduler=a.scheduler,
+                                force=a.force, progress=progress, vehicle=a.vehicle,
+                                trajectory=a.trajectory)
+        else:
+            summary = studies.run_experiment(
+                a.experiment, a.out, jobs=a.jobs, force=a.force, progress=progress,
+                duration=a.duration, speeds=_floats(a.speeds, "--speeds"),
+                masses_t=None if masses is None else tuple(m / 1000.0 for m in masses),
+                methods=methods, vehicle=a.vehicle,
+                two_scales=_floats(a.two_scales, "--two-scales"),
+                smooth_scales=_floats(a.smooth_scales, "--smooth-scales"),
+                ridge_scales=_floats(a.ridge_scales, "--ridge-scales"), scheduler=a.scheduler)
+    except (ValueError, FileNotFoundError, RuntimeError) as e:
         return fail(prog, e, a)
     except KeyboardInterrupt:
         out = Path(a.out) if a.out else Path("runs") / a.experiment
@@ -113,6 +133,8 @@ def main(argv: list[str]) -> int:
         print((out / "pareto.md").read_text())
     elif a.experiment == "ridge":
         print((out / "ridge.md").read_text())
+    elif a.experiment == "study":
+        print((out / "study.md").read_text())
     else:
         print((out / "table.md").read_text())
     return 0
