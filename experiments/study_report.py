@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .tables import fmt
+from .tables import fmt, lower_front
 
 METRICS = ("W_tw", "W_s", "W_alpha", "W_t", "e_lat_rms_cm", "e_lat_max_cm", "e_phi_deg",
            "e_bar", "Omega")
@@ -46,13 +46,7 @@ FAMILY_STYLE = {"FF": ("0.4", "x"), "NTWO": ("C0", "o"), "NTWO-wheel": ("C9", "s
 
 def lower_envelope(points):
     """The non-dominated ``(e, W)`` points (both minimised), sorted by e."""
-    front = []
-    for e, w in sorted(points):
-        if not front or w < front[-1][1]:
-            if front and e == front[-1][0]:
-                continue
-            front.append((e, w))
-    return front
+    return lower_front(points)
 
 
 def wear_at_accuracy(front, e):
