@@ -102,6 +102,7 @@ class ControllerNode:
         self._fallback = False  # present because its states arrive, its token never seen
         self._last_state_rx = 0.0  # time.monotonic() of the last valid state
         self._pending_ref = None  # decoded reference message
+        self._again = None  # a held state to answer although its seq was seen
         self._last_seq: int | None = None
         self._cmd_seq = 0
         self.plant_present = session is None
@@ -391,10 +392,13 @@ class ControllerNode:
         'stale', 'no plant' or 'not granted'."""
         seq = st["seq"]
         last = self._last_seq
-        if last is not None and seq == last:
+        again = st is self._again  # a held state, solved before, answered now
+        if again:
+            self._again = None
+        if last is not None and seq == last and not again:
             self.stats.duplicates += 1
             return "duplicate"
-        if last is None or seq == 0 or seq < last:
+        if not again and (last is None or seq == 0 or seq < last):
             # a new plant run (or the first state seen): forget the warm start and reseed,
             # as closed_loop does after its warm-up
             self.mpc.reset()
@@ -445,12 +449,12 @@ class ControllerNode:
         self.stats.answered += 1
         return "sent"
 
-    def _hold(self, st: dict, rx_perf: float, last: int | None) -> None:
+    def _hold(self, st: dict, rx_perf: float, last: int | None = None) -> None:
         """Keep a solved but unanswered state to answer later (unless a newer one came);
         ``--max-age-ms`` still drops it if it is too old by then."""
         with self._lock:
             if self._held is None and self._pending is None:
-                self._last_seq = last
+                self._again = st
                 if self.granted and self.plant_present:
                     # the grant (or the plant) came while this state was being solved
                     self._pending = (st, rx_perf)
