@@ -342,3 +342,26 @@ def test_a_stalled_controller_carries_on_with_a_live_plant(procs):
     assert c["exit_reason"] == "end of run"
     print(f"\nstall: plant safe {s['safe']}, ownership {s['ownership']}, controller loss "
           f"{c['loss']}")
+
+
+# ---- processes: two plants answer the params: the controller binds to neither ---------------
+@pytest.mark.timeout(300)
+def test_a_controller_refuses_to_bind_when_two_plants_answer_its_params(procs):
+    from bridge.ownership import params_replies
+    from bridge.session import Keys, SessionOptions, open_session
+
+    p1, p2 = free_port(), free_port()
+    for name, port in (("plant1", p1), ("plant2", p2)):  # e.g. a rogue with a lighter vehicle
+        procs.start(name, msagv("plant", "--listen", ep(port), "--mass", 1200 if port == p2
+                                else 12000, "--wait", 120, "-q"))
+    with open_session(SessionOptions(connect=[ep(p1), ep(p2)]), "tool") as s:
+        t0 = time.monotonic()
+        while len(params_replies(s, Keys("agv0"))) < 2:  # both plants are up
+            assert time.monotonic() - t0 < 120, procs.err("plant2")
+            time.sleep(0.2)
+    procs.start("ctl", msagv("controller", "--connect", ep(p1), "--connect", ep(p2),
+                             "--wait", 3))
+    assert procs.wait("ctl", 60) == 3
+    err = procs.err("ctl")
+    assert "2 plant sessions answer msagv/agv0/params" in err and "binding to none" in err
+    assert "MPC warm" not in err  # nothing was built for either vehicle
