@@ -431,8 +431,11 @@ class ControllerNode:
         if not self.granted:
             self.stats.not_granted += 1
             if self.stats.not_granted <= 3:
-                log.warning("state %d solved but not answered: the plant does not grant us "
-                            "the vehicle (owner: %s)", seq, self.owner or "nobody")
+                # nobody owns it yet: our claim's answer is on its way (the plant publishes
+                # its first state as it grants); another owner: we are not driving
+                (log.info if self.owner is None else log.warning)(
+                    "state %d solved but not answered: the plant does not grant us the "
+                    "vehicle (owner: %s)", seq, self.owner or "nobody yet")
             # answered once the grant comes: the plant publishes its first state as soon
             # as it grants, which can arrive before the grant's reply
             self._hold(st, rx_perf, last)
