@@ -87,8 +87,8 @@ class MPCSettings:
     r_fb_max: float = 0.3
     offset_w_max: float = 3.0
     offset_d_max: float = 0.3
-    chains: int = 2
-    iterations: int = 240
+    chains: int = 8
+    iterations: int = 40
     deadline_ms: float | None = None
     seed: int = 0
     sigma_w: float = 0.3
@@ -284,8 +284,10 @@ class PredictionModel:
                        np.empty((batch, 2, nw)))
 
     def rollout(self, x0: np.ndarray, ref: np.ndarray, Z: np.ndarray,
-                out: Rollout | None = None) -> Rollout:
-        """Predict every row of ``Z`` (B, D) from ``x0`` against ``ref`` (N_p + 1, 6)."""
+                out: Rollout | None = None, exact: bool = False) -> Rollout:
+        """Predict every row of ``Z`` (B, D) from ``x0`` against ``ref`` (N_p + 1, 6) with
+        the controller's SIMD prediction (:data:`controller.rollout.FAST`), or with
+        ``exact`` the same kernels on the math library's functions (``EXACT``)."""
         Z = np.ascontiguousarray(Z, dtype=np.float64)
         if Z.ndim == 1:
             Z = Z[None, :]
@@ -294,7 +296,8 @@ class PredictionModel:
         if ref.shape != (self.settings.N_p + 1, lay.N_REF):
             raise ValueError(f"rollout: reference must have shape ({self.settings.N_p + 1}, 6)")
         out = out if out is not None and out.poses.shape[0] == Z.shape[0] else self.allocate(Z.shape[0])
-        fn = _ro.rollout_batch if self.settings.threads <= 1 else _ro.rollout_batch_parallel
+        pred = _ro.EXACT if exact else _ro.FAST
+        fn = pred.rollout_batch if self.settings.threads <= 1 else pred.rollout_batch_parallel
         fn(self.model_id, np.ascontiguousarray(x0, dtype=np.float64),
                           np.ascontiguousarray(ref), Z, self.block, self.P, self.S, self.wx,
                           self.wy, out.poses, out.wear, out.first_commands)

@@ -8,21 +8,22 @@ Layouts (indices named in :mod:`plant.layout`)
 ``ref`` (N_p + 1, 6): reference rows ``REF_*`` (``x, y, phi, vx, vy, r``) at
 ``t0 + k dt``, k = 0..N_p.
 
-``Z`` (B, D), ``D = n_blocks * 4n``: per move block b, per wheel k, the offsets
-``Z[b*4n + k] = d_omega_w`` [rad/s] and ``Z[b*4n + 2n + k] = d_delta`` [rad] from the
-kinematic feed-forward (see :func:`commands_from_policy`). Step k of the horizon uses
-block ``block[k]``; blocks after N_c repeat the last one (controls held after N_c).
+``Z`` (B, D), ``D = n_blocks * stride``: per move block b the decision variables of the
+parametrisation ``S[S_POLICY]`` (:func:`commands_from_policy`); for the default offsets,
+per wheel k, ``Z[b*4n + k] = d_omega_w`` [rad/s] and ``Z[b*4n + 2n + k] = d_delta``
+[rad] from the kinematic feed-forward. Step k of the horizon uses block ``block[k]``;
+blocks after N_c repeat the last one (controls held after N_c).
 
 ``P`` is the plant's parameter vector (:func:`plant.dynamics.pack_params`, ``P_*``: every
 vehicle value, limits and Dugoff coefficients included); ``S`` the MPC's settings vector
 (:func:`controller.models.pack_settings`, ``S_*``: dt, gains, feedback limits, the
-cornering feed-forward gain k_alpha).
+cornering feed-forward gain k_alpha, the parametrisation).
 
 Outputs: ``poses`` (B, N_p, 3) predicted ``x, y, phi`` (``POSE_*``) at k+1, ``wear``
 (B, N_p, 3) the wear powers ``P_s, P_alpha, P_t`` [W] (``WEAR_*``) over step k (eq. 16),
 and ``cmds`` (B, 2, 2n) the first step's ``omega_w, omega_s`` (rows ``CMD_*``).
 
-Models (``model`` argument), all sharing the policy; :func:`_model_step` dispatches:
+Models (``model`` argument), all sharing the policy:
 
 * ``MODEL_MF`` (0): the paper's model, eq. (17)-(21) with Magic Formula tires.
 * ``MODEL_DUGOFF`` (1): DH baseline, the same rigid body with Dugoff tires.
@@ -30,10 +31,27 @@ Models (``model`` argument), all sharing the policy; :func:`_model_step` dispatc
 * ``MODEL_TCT`` (3): TCT baseline, lateral and yaw dynamics only, longitudinal speed held
   at the reference speed.
 
-The three dynamic models share one step, :func:`_rigid_body_step`, with the tire model
-chosen inside (:func:`_tire_mf`, :func:`_tire_dugoff`); the kinematic model has its own,
-:func:`_kinematic_step`. Slips, Magic Formula and wear powers are :mod:`plant.tire`'s
-functions, inlined and compiled here with ``fastmath``.
+The three dynamic models share one step (:func:`_wheel_lane`'s rigid-body branch and
+:func:`_rigid_body_update`), with the tire model chosen inside (MF or Dugoff); the
+kinematic model has its own (:func:`_kinematic_update`). Slips, Magic Formula and wear
+powers are :mod:`plant.tire`'s equations (:func:`plant.tire.make_tire`), inlined.
+
+SIMD layout
+-----------
+The batch is cut into *tiles* of :data:`LANES` candidates, and each tile is predicted in
+structure-of-arrays form: every per-candidate quantity (pose, velocity, each wheel's
+angle, the decision variables, the force and Jacobian sums) is a row of ``LANES`` doubles
+in one workspace vector, and the innermost loops run across the row. Those loops touch
+that one vector only, at compile-time-constant offsets (the per-wheel rows are copied
+into fixed rows around them), so LLVM proves them free of aliasing and vectorises them;
+with the math library's transcendentals they would still be scalar calls, so the
+prediction is built with the branch-free approximations of :mod:`controller.approx`
+(:data:`FAST`). :data:`EXACT` is the same code built with the math library: the
+reference the mirrors (``controller/mirrors/``) are pinned to, and what
+``tests/test_rollout_simd.py`` compares the prediction with. A candidate's result does not
+depend on its lane, its tile or the batch it is in (a short tile repeats its last
+candidate in the spare lanes), so any split of a batch over threads gives identical
+results.
 
 DEVIATION(eq. 19-21): the velocity update of the dynamic models is a *linearly implicit
 trapezoidal* step in the body frame, ``(I - dt/2 J) du = dt f(u)``, with f the body-frame
@@ -47,42 +65,52 @@ over a 1 s horizon was 41 cm at dt = 0.1 s; this form is stable at every speed, 
 to eq. (19)-(21) as dt -> 0.
 
 The cost (:func:`candidate_cost`) is the sum of named terms, one small function each:
-:func:`tracking_cost`, :func:`wear_cost`, :func:`smoothing_cost`, :func:`ridge_cost`.
+:func:`tracking_cost`, :func:`wear_cost`, :func:`smoothing_cost`, :func:`ridge_cost` (the
+per-step terms :func:`tracking_term` and :func:`wear_term` are what the tiles accumulate).
 
 Mirrors of this module (the CasADi graph for IPOPT, the C reference) live in
-``controller/mirrors/``, pinned to it by tests.
+``controller/mirrors/``, pinned to :data:`EXACT` by tests.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
 
 import plant.tire as _tire
 from plant import layout as lay
-from plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, P_DELTA_MAX, P_DELTA_MIN,
-                          P_DUGOFF_C_ALPHA, P_DUGOFF_C_S, P_DUGOFF_MU, P_G, P_K_T, P_LAT_B,
-                          P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C, P_LON_E, P_LON_MU,
-                          P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN, P_OMEGA_W_MAX, P_V_EPS,
-                          P_WHEEL_RADIUS, P_YAW_INERTIA, POSE_PHI, POSE_X, POSE_Y, Q_PHI, Q_X,
-                          Q_Y, R_DD, R_DW, R_OD, R_OW, REF_PHI, REF_R, REF_VX, REF_VY, REF_X,
-                          REF_Y, S_DT, S_K_ALPHA, S_K_PHI, S_K_POS, S_K_SERVO, S_R_FB_MAX,
-                          S_V_FB_MAX, S_POLICY, S_STRIDE, LE_S, LE_ALPHA, LE_T,
-                          POLICY_TWIST, POLICY_RAW, WEAR_ALPHA, WEAR_S, WEAR_T, X0_DELTA,
-                          X0_PHI, X0_R,
+from plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX,
+                          P_DELTA_MIN, P_DUGOFF_C_ALPHA, P_DUGOFF_C_S, P_DUGOFF_MU, P_G, P_K_T,
+                          P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C, P_LON_E,
+                          P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN, P_OMEGA_W_MAX,
+                          N_L, P_V_EPS, P_WHEEL_RADIUS, P_YAW_INERTIA, POLICY_RAW, POLICY_TWIST,
+                          POSE_PHI, POSE_X, POSE_Y, Q_PHI, Q_X, Q_Y, R_DD, R_DW, R_OD, R_OW,
+                          REF_PHI, REF_R, REF_VX, REF_VY, REF_X, REF_Y, S_DT, S_K_ALPHA,
+                          S_K_PHI, S_K_POS, S_K_SERVO, S_POLICY, S_R_FB_MAX, S_STRIDE,
+                          S_V_FB_MAX, WEAR_ALPHA, WEAR_S, WEAR_T, X0_DELTA, X0_PHI, X0_R,
                           X0_VX, X0_VY, X0_X, X0_Y)
-from plant.tire import (dugoff_forces, magic_formula_and_slope, slip_angle, slip_jacobian,
-                        slip_ratio, wear_power_angle, wear_power_slip, wear_power_steer,
-                        wheel_to_body, wheel_velocity)
+
+from . import approx as _approx
+
+# The names the kernels below call are bound per set of primitives by make_prediction
+# (plant.tire.bind_globals); these module-level ones are the math library's, for reading.
+from plant.tire import (dugoff_forces, magic_formula_and_slope, slip_angle,  # noqa: E402,F401
+                        slip_jacobian, slip_ratio, wear_power_angle, wear_power_slip,
+                        wear_power_steer, wheel_to_body, wheel_velocity)
+from .approx import atan2_exact as atan2, cos_exact as cos, sin_exact as sin  # noqa: E402
 
 MODEL_MF, MODEL_DUGOFF, MODEL_KINEMATIC, MODEL_TCT = 0, 1, 2, 3
 THETA = 0.5  # the trapezoidal rule's weight of the new velocity
 KW = 1e-3  # W -> kW: the cost's wear powers are in kW so that L has usable magnitudes
+LANES = 8  # candidates per tile (a multiple of the widest SIMD register in doubles)
+L = LANES  # (short, in the kernels' row indices)
+H = LANES // 2  # the wheel loop's iterations (two lanes each)
 
-# stale-cache guard (plant.layout): the layout and the inlined plant.tire functions
-_STAMP = lay.kernel_stamp(_tire.__file__)
+# stale-cache guard (plant.layout): the layout and the inlined plant.tire and approx
+_STAMP = lay.kernel_stamp(_tire.__file__, _approx.__file__)
 
 
 @njit(cache=True)
@@ -92,128 +120,14 @@ def _layout_stamp():
 
 lay.drop_stale_cache(_layout_stamp, _STAMP, __file__)
 
-_FAST = dict(cache=True, fastmath=True, error_model="numpy")
-_INLINE = dict(_FAST, inline="always")
+_EXACT_FLAGS = True  # the exact kernels: numba's fastmath, as before the SIMD layout
+_FAST_FLAGS = set(_approx.FASTMATH)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _wrap(a):
     """Angle wrapped to (-pi, pi]."""
     return a - 2.0 * math.pi * math.ceil((a - math.pi) / (2.0 * math.pi))
-
-
-@njit(**_FAST)
-def commands_from_policy(x, delta, refk, z, base, nw, P, S, wx, wy, dt,
-                         om_w, om_s):
-    """Wheel-speed and steering-rate commands of the policy at one state (eq. 27 bounds).
-
-    The decision parametrisation ``S[S_POLICY]`` says what a block's variables
-    ``z[base:base + stride]`` are: ``POLICY_OFFSETS`` (ours, default), per-wheel offsets
-    of wheel speed and steering target from the feed-forward below (2n + 2n);
-    ``POLICY_TWIST``, offsets ``(du, dv, dr)`` [m/s, m/s, rad/s] of the desired body twist
-    in B, every wheel then following the feed-forward's kinematics of that twist, so all
-    wheels are steered about one instantaneous centre (the paper's Kinematic baseline);
-    ``POLICY_RAW``, the commands themselves, ``omega_w`` (2n) and ``omega_s`` (2n), the
-    paper's decision vector U of eq. 27 (clipped to its bounds and to the steering stops).
-
-    Kinematic feed-forward with a saturated pose feedback: desired velocity in G
-    ``v_ref + K_pos (p_ref - p)`` (correction limited to ``v_fb_max``), desired yaw rate
-    ``r_ref + K_phi wrap(phi_ref - phi)`` (limited to ``r_fb_max``); each wheel's desired
-    velocity ``v + r x p_w`` gives its feed-forward angle (atan2, clipped to the steering
-    limits) and speed (projected on that angle, >= 0). A dynamic model adds the steady
-    cornering slip angle ``k_alpha v r`` (the centripetal force m v r shared equally by
-    the 2n wheels over the model's cornering stiffness; 0 for the kinematic model). The
-    decision offsets ``z[base:]``
-    are added; the steering rate is a first-order servo toward the target angle with the
-    exact discrete gain ``(1 - exp(-K dt)) / dt``, then clipped to the rate limits and so
-    that delta stays inside its limits after ``dt``. ``x = (x, y, phi)`` (``POSE_*``).
-    """
-    r_w = P[P_WHEEL_RADIUS]
-    policy = int(S[S_POLICY])
-    dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
-    w_max, ws_min, ws_max = P[P_OMEGA_W_MAX], P[P_OMEGA_S_MIN], P[P_OMEGA_S_MAX]
-    if policy == POLICY_RAW:
-        for k in range(nw):
-            w = z[base + k]
-            om_w[k] = w_max if w > w_max else (0.0 if w < 0.0 else w)
-            lo = max(ws_min, (dmin - delta[k]) / dt)
-            hi = min(ws_max, (dmax - delta[k]) / dt)
-            if lo > hi:  # numerically at a stop: hold
-                lo = 0.0
-                hi = 0.0
-            ws = z[base + nw + k]
-            om_s[k] = hi if ws > hi else (lo if ws < lo else ws)
-        return
-    phi = x[POSE_PHI]
-    ex = refk[REF_X] - x[POSE_X]
-    ey = refk[REF_Y] - x[POSE_Y]
-    k_pos, v_fb_max, r_fb_max = S[S_K_POS], S[S_V_FB_MAX], S[S_R_FB_MAX]
-    cx = k_pos * ex
-    cy = k_pos * ey
-    cn = math.sqrt(cx * cx + cy * cy)
-    if cn > v_fb_max:
-        cx *= v_fb_max / cn
-        cy *= v_fb_max / cn
-    vdx = refk[REF_VX] + cx
-    vdy = refk[REF_VY] + cy
-    cr = S[S_K_PHI] * _wrap(refk[REF_PHI] - phi)
-    if cr > r_fb_max:
-        cr = r_fb_max
-    elif cr < -r_fb_max:
-        cr = -r_fb_max
-    rd = refk[REF_R] + cr
-    c = math.cos(phi)
-    s = math.sin(phi)
-    ub = c * vdx + s * vdy
-    vb = -s * vdx + c * vdy
-    twist = policy == POLICY_TWIST
-    if twist:
-        ub += z[base]
-        vb += z[base + 1]
-        rd += z[base + 2]
-        vdx = c * ub - s * vb
-        vdy = s * ub + c * vb
-    kservo = (1.0 - math.exp(-S[S_K_SERVO] * dt)) / dt
-    acorner = S[S_K_ALPHA] * math.sqrt(vdx * vdx + vdy * vdy) * rd
-    for k in range(nw):
-        wvx = ub - rd * wy[k]
-        wvy = vb + rd * wx[k]
-        dff = math.atan2(wvy, wvx) + acorner
-        if dff > dmax or dff < dmin:
-            dff = dmax if dff > dmax else dmin
-            wff = (wvx * math.cos(dff) + wvy * math.sin(dff)) / r_w
-            if wff < 0.0:
-                wff = 0.0
-        else:
-            wff = math.sqrt(wvx * wvx + wvy * wvy) / r_w
-        w = wff if twist else wff + z[base + k]
-        if w < 0.0:
-            w = 0.0
-        elif w > w_max:
-            w = w_max
-        tgt = dff if twist else dff + z[base + nw + k]
-        if tgt > dmax:
-            tgt = dmax
-        elif tgt < dmin:
-            tgt = dmin
-        ws = kservo * (tgt - delta[k])
-        lo = ws_min
-        hi = ws_max
-        lo2 = (dmin - delta[k]) / dt
-        hi2 = (dmax - delta[k]) / dt
-        if lo2 > lo:
-            lo = lo2
-        if hi2 < hi:
-            hi = hi2
-        if lo > hi:  # numerically at a stop: hold
-            lo = 0.0
-            hi = 0.0
-        if ws < lo:
-            ws = lo
-        elif ws > hi:
-            ws = hi
-        om_w[k] = w
-        om_s[k] = ws
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -226,309 +140,94 @@ def _solve3(a, bb, c, d, e, f, g, h, i, b0, b1, b2):
             (a * (e * b2 - b1 * h) - bb * (d * b2 - b1 * g) + b0 * (d * h - e * g)) / det)
 
 
-# ---- the prediction's tire models: forces in W_ij and their velocity Jacobian ----------
-@njit(**_INLINE)
-def _tire_mf(vwx, vwy, omw, FN, P):
-    """Magic Formula forces (eq. 9-12) of one wheel and their Jacobian K with respect to
-    the wheel velocity: ``(Fx, Fy, dFx/dvwx, dFx/dvwy, dFy/dvwx, dFy/dvwy)``."""
-    r_w, v_eps = P[P_WHEEL_RADIUS], P[P_V_EPS]
-    sl = slip_ratio(omw, r_w, vwx, v_eps)  # eq. (10)
-    al = slip_angle(vwx, vwy, v_eps)  # eq. (9)
-    ds_dx, da_dx, da_dy = slip_jacobian(omw, r_w, vwx, vwy, v_eps)
-    Fx, dFx_ds = magic_formula_and_slope(sl, P[P_LON_B], P[P_LON_C], P[P_LON_MU] * FN,
-                                         P[P_LON_E])  # eq. (11)
-    Fy, dFy_da = magic_formula_and_slope(al, P[P_LAT_B], P[P_LAT_C], P[P_LAT_MU] * FN,
-                                         P[P_LAT_E])  # eq. (12)
-    return Fx, Fy, dFx_ds * ds_dx, 0.0, dFy_da * da_dx, dFy_da * da_dy
-
-
-@njit(**_INLINE)
-def _tire_dugoff(vwx, vwy, omw, FN, P):
-    """As :func:`_tire_mf` with Dugoff's forces (DH baseline); the Jacobian by central
-    differences in (s, alpha)."""
-    r_w, v_eps = P[P_WHEEL_RADIUS], P[P_V_EPS]
-    C_s, C_a, mu = P[P_DUGOFF_C_S], P[P_DUGOFF_C_ALPHA], P[P_DUGOFF_MU]
-    sl = slip_ratio(omw, r_w, vwx, v_eps)
-    al = slip_angle(vwx, vwy, v_eps)
-    ds_dx, da_dx, da_dy = slip_jacobian(omw, r_w, vwx, vwy, v_eps)
-    Fx, Fy = dugoff_forces(sl, al, FN, C_s, C_a, mu)
-    hs = 1e-6 + 1e-6 * abs(sl)
-    ha = 1e-7 + 1e-6 * abs(al)
-    fxp, fyp = dugoff_forces(sl + hs, al, FN, C_s, C_a, mu)
-    fxm, fym = dugoff_forces(sl - hs, al, FN, C_s, C_a, mu)
-    dFx_ds = (fxp - fxm) / (2 * hs)
-    dFy_ds = (fyp - fym) / (2 * hs)
-    fxp, fyp = dugoff_forces(sl, al + ha, FN, C_s, C_a, mu)
-    fxm, fym = dugoff_forces(sl, al - ha, FN, C_s, C_a, mu)
-    dFx_da = (fxp - fxm) / (2 * ha)
-    dFy_da = (fyp - fym) / (2 * ha)
-    return (Fx, Fy, dFx_ds * ds_dx + dFx_da * da_dx, dFx_da * da_dy,
-            dFy_ds * ds_dx + dFy_da * da_dx, dFy_da * da_dy)
-
-
-# ---- one prediction step per motion model ----------------------------------------------
-# The steps take and return the pose and velocity as scalars and keep their 3x3 systems in
-# scalars: every array argument of an inlined function costs a reference-count pair per
-# call, which at 2 axles was 10 % of the prediction.
-@njit(**_INLINE)
-def _rigid_body_step(model, x, y, phi, vx, vy, r, delta, om_w, om_s, vref, P, wx, wy, dt, FN):
-    """One linearly implicit trapezoidal step of the rigid body with tire forces (eq. 4, 5,
-    17; the module's DEVIATION) from pose ``(x, y, phi)`` and velocity ``(vx, vy, r)`` (in
-    G), the tire model chosen by ``model`` (MF, Dugoff, or TCT: MF lateral forces only, the
-    longitudinal speed held at the reference speed ``vref``). Returns the new pose and
-    velocity and the step's wear powers: ``(x, y, phi, vx, vy, r, P_s, P_alpha)``
-    (eq. 13, 14)."""
-    m, Iz, r_w = P[P_MASS], P[P_YAW_INERTIA], P[P_WHEEL_RADIUS]
-    c = math.cos(phi)
-    s = math.sin(phi)
-    ub = c * vx + s * vy
-    vb = -s * vx + c * vy
-    ps = 0.0
-    pa = 0.0
-    # A = sum_j Lw^T R K R^T Lw (the tire forces' Jacobian), F = sum_j Lw^T R F_W
-    a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0
-    f0 = f1 = f2 = 0.0
-    tct = model == MODEL_TCT
-    if tct:
-        ub = vref  # TCT (Tang et al. 2024): longitudinal speed held at the reference speed
-    for j in range(wx.shape[0]):
-        # forces at the step's mid steering angle (the wheel turns during the step; using
-        # the start angle delays the steering by dt / 2)
-        dm = delta[j] + 0.5 * dt * om_s[j]
-        cd = math.cos(dm)
-        sd = math.sin(dm)
-        xw = wx[j]
-        yw = wy[j]
-        vwx, vwy = wheel_velocity(ub, vb, r, xw, yw, dm)  # eq. (6)-(8)
-        if model == MODEL_DUGOFF:
-            Fx, Fy, k11, k12, k21, k22 = _tire_dugoff(vwx, vwy, om_w[j], FN, P)
-        else:
-            Fx, Fy, k11, k12, k21, k22 = _tire_mf(vwx, vwy, om_w[j], FN, P)
-        ps += wear_power_slip(Fx, om_w[j], r_w, vwx)  # eq. (13)
-        pa += wear_power_angle(Fy, vwy)  # eq. (14)
-        if tct:
-            Fx = 0.0  # lateral dynamics only
-            k11 = 0.0
-            k12 = 0.0
-        # generalised force (F_Bx, F_By, M_z) = Lw^T R(delta) F_W
-        fbx, fby = wheel_to_body(Fx, Fy, dm)  # eq. (4)
-        f0 += fbx
-        f1 += fby
-        f2 += xw * fby - yw * fbx  # eq. (5)
-        # Jacobian: Lw^T R K R^T Lw, K = d(Fx, Fy)/d(vwx, vwy); M = R K R^T
-        b11 = cd * k11 - sd * k21
-        b12 = cd * k12 - sd * k22
-        b21 = sd * k11 + cd * k21
-        b22 = sd * k12 + cd * k22
-        m11 = b11 * cd - b12 * sd
-        m12 = b11 * sd + b12 * cd
-        m21 = b21 * cd - b22 * sd
-        m22 = b21 * sd + b22 * cd
-        # Lw = [[1, 0, -y], [0, 1, x]]
-        a00 += m11
-        a01 += m12
-        a02 += -m11 * yw + m12 * xw
-        a10 += m21
-        a11 += m22
-        a12 += -m21 * yw + m22 * xw
-        a20 += -yw * m11 + xw * m21
-        a21 += -yw * m12 + xw * m22
-        a22 += (-yw * (-m11 * yw + m12 * xw) + xw * (-m21 * yw + m22 * xw))
-    # (I - THETA dt M^-1 A) du = dt M^-1 F + transport terms of the body-frame eq. (17):
-    # u' = F/m + (r vb, -r ub), r' = M_z / I_vz; the transport terms enter the Jacobian too
-    hm = THETA * dt / m
-    hi = THETA * dt / Iz
-    a00 = 1.0 - hm * a00
-    a01 = -hm * a01 - THETA * dt * r
-    a02 = -hm * a02 - THETA * dt * vb
-    a10 = -hm * a10 + THETA * dt * r
-    a11 = 1.0 - hm * a11
-    a12 = -hm * a12 + THETA * dt * ub
-    a20 = -hi * a20
-    a21 = -hi * a21
-    a22 = 1.0 - hi * a22
-    f0 = dt / m * f0 + dt * r * vb
-    f1 = dt / m * f1 - dt * r * ub
-    f2 = dt / Iz * f2
-    if tct:
-        # the longitudinal row is not modelled: no longitudinal acceleration
-        a00 = 1.0
-        a01 = 0.0
-        a02 = 0.0
-        f0 = 0.0
-    du0, du1, du2 = _solve3(a00, a01, a02, a10, a11, a12, a20, a21, a22, f0, f1, f2)
-    r1 = r + du2
-    # DEVIATION(eq. 21): trapezoidal heading and position updates (mean of old and new
-    # velocity); eq. (21)'s old velocity alone misplaces a vehicle turning at speed by
-    # ~v r dt / 2 per step (41 cm over 1 s at 35 km/h with dt = 0.1 s)
-    phi1 = phi + 0.5 * dt * (r + r1)
-    c1 = math.cos(phi1)
-    s1 = math.sin(phi1)
-    vx1 = c1 * (ub + du0) - s1 * (vb + du1)  # back to G (eq. 20)
-    vy1 = s1 * (ub + du0) + c1 * (vb + du1)
-    return (x + 0.5 * dt * (vx + vx1), y + 0.5 * dt * (vy + vy1), phi1, vx1, vy1, r1,
-            ps, pa)
-
-
-@njit(**_INLINE)
-def _kinematic_step(x, y, phi, delta, om_w, P, wx, wy, dt):
-    """Kinematic baseline (Zhang et al. 2016): the body twist is the least-squares rigid
-    motion of the commanded wheel velocities omega_w r_w (cos delta, sin delta); wheels
-    roll without slip (no slip wear). Returns the new pose and velocity (forward Euler)."""
-    r_w = P[P_WHEEL_RADIUS]
-    nw = wx.shape[0]
-    sx = 0.0
-    sy = 0.0
-    sxx = 0.0
-    syy = 0.0
-    sw1 = 0.0
-    sw2 = 0.0
-    sw3 = 0.0
-    for j in range(nw):
-        vwx = om_w[j] * r_w * math.cos(delta[j])
-        vwy = om_w[j] * r_w * math.sin(delta[j])
-        sx += wx[j]
-        sy += wy[j]
-        sxx += wx[j] * wx[j]
-        syy += wy[j] * wy[j]
-        sw1 += vwx
-        sw2 += vwy
-        sw3 += wx[j] * vwy - wy[j] * vwx
-    ub, vb, r = _solve3(nw, 0.0, -sy, 0.0, nw, sx, -sy, sx, sxx + syy, sw1, sw2, sw3)
-    c = math.cos(phi)
-    s = math.sin(phi)
-    vx = c * ub - s * vb
-    vy = s * ub + c * vb
-    return x + dt * vx, y + dt * vy, phi + dt * r, vx, vy, r
-
-
-@njit(**_INLINE)
-def _model_step(model, x, y, phi, vx, vy, r, delta, om_w, om_s, vref, P, wx, wy, dt, FN):
-    """One prediction step of ``model``: ``(x, y, phi, vx, vy, r, P_s, P_alpha)``."""
-    if model == MODEL_KINEMATIC:
-        x, y, phi, vx, vy, r = _kinematic_step(x, y, phi, delta, om_w, P, wx, wy, dt)
-        return x, y, phi, vx, vy, r, 0.0, 0.0
-    return _rigid_body_step(model, x, y, phi, vx, vy, r, delta, om_w, om_s, vref, P, wx, wy,
-                            dt, FN)
-
-
-@njit(**_FAST)
-def _simulate(model, x0, ref, z, block, P, S, wx, wy, poses, wear, cmds):
-    """Predict one candidate over the horizon; fills poses (N_p, 3), wear (N_p, 3) and the
-    first step's commands ``cmds`` (2, 2n)."""
-    nw = wx.shape[0]
-    Np = block.shape[0]
-    dt = S[S_DT]
-    k_t = P[P_K_T]
-    FN = P[P_MASS] * P[P_G] / nw  # Assumption 2
-    stride = int(S[S_STRIDE])
-    x, y, phi = x0[X0_X], x0[X0_Y], x0[X0_PHI]
-    vx, vy, r = x0[X0_VX], x0[X0_VY], x0[X0_R]
-    X = np.empty(3)  # the pose for the policy (POSE_*)
-    delta = x0[X0_DELTA:X0_DELTA + nw].copy()
-    om_w = np.empty(nw)
-    om_s = np.empty(nw)
-    for k in range(Np):
-        X[POSE_X] = x
-        X[POSE_Y] = y
-        X[POSE_PHI] = phi
-        commands_from_policy(X, delta, ref[k], z, block[k] * stride, nw, P, S, wx, wy, dt,
-                             om_w, om_s)
-        if k == 0:
-            for j in range(nw):
-                cmds[CMD_W, j] = om_w[j]
-                cmds[CMD_S, j] = om_s[j]
-        pt = 0.0
-        for j in range(nw):
-            pt += wear_power_steer(k_t, FN, om_s[j])  # eq. (15)
-        vref = math.sqrt(ref[k, REF_VX] ** 2 + ref[k, REF_VY] ** 2)
-        x, y, phi, vx, vy, r, ps, pa = _model_step(model, x, y, phi, vx, vy, r, delta, om_w,
-                                                   om_s, vref, P, wx, wy, dt, FN)
-        for j in range(nw):
-            delta[j] += dt * om_s[j]  # eq. (19)
-        poses[k, POSE_X] = x
-        poses[k, POSE_Y] = y
-        poses[k, POSE_PHI] = phi
-        wear[k, WEAR_S] = ps
-        wear[k, WEAR_ALPHA] = pa
-        wear[k, WEAR_T] = pt
-
-
-@njit(cache=True, error_model="numpy")
-def rollout_batch(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
-    """Predict every candidate row of ``Z``; writes ``poses``, ``wear`` (B, N_p, 3) and the
-    first commands ``cmds`` (B, 2, 2n). Serial: predictable on a shared 2-core machine."""
-    for b in range(Z.shape[0]):
-        _simulate(model, x0, ref, Z[b], block, P, S, wx, wy, poses[b], wear[b], cmds[b])
-
-
-@njit(cache=True, parallel=True)
-def rollout_batch_parallel(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
-    """As :func:`rollout_batch`, candidates spread over numba's threads (prange). Faster
-    on an idle machine (docs/PERFORMANCE.md); with other busy processes on the cores its
-    tail latency is worse (docs/CONTROLLER.md, "Threads"). Used by
-    :meth:`controller.models.PredictionModel.rollout` with ``threads > 1``; the MPC's own
-    threaded path is :func:`controller.sa_kernel.evaluate_parallel`."""
-    for b in prange(Z.shape[0]):
-        _simulate(model, x0, ref, Z[b], block, P, S, wx, wy, poses[b], wear[b], cmds[b])
+@njit(cache=True, inline="always", error_model="numpy")
+def _clip(v, lo, hi):
+    """``v`` clipped to [lo, hi] (lo first: NaN stays NaN)."""
+    return hi if v > hi else (lo if v < lo else v)
 
 
 # ---- the cost: one function per term ---------------------------------------------------
+@njit(cache=True, inline="always", error_model="numpy")
+def tracking_term(ex, ey, ephi, qx, qy, qphi):
+    """One step's ``(Y_k - Yt_k)^T Q (Y_k - Yt_k)`` (eq. 22-24) from the pose errors."""
+    return qx * ex * ex + qy * ey * ey + qphi * ephi * ephi
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def wear_term(J, ps, pa, pt, ls, la, lt, les, lea, let):
+    """``J`` plus one step's wear term, the powers [W] taken in kW: ``P^T L P`` (eq. 22,
+    25; weights ``L_*`` [1/kW^2]: the paper's TWO) and ``lambda^T P`` (weights ``LE_*``
+    [1/kW]; over the horizon, times the step, the predicted wear work that W_tw measures:
+    TWO-energy)."""
+    p0 = ps * KW
+    p1 = pa * KW
+    p2 = pt * KW
+    J += ls * p0 * p0 + la * p1 * p1 + lt * p2 * p2
+    J += les * p0 + lea * p1 + let * p2
+    return J
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def tracking_cost(poses, ref, Q):
     """``sum_k (Y_k - Yt_k)^T Q (Y_k - Yt_k)`` (eq. 22-24, W_Y = E (x) Q) over the
     predicted poses, against the reference rows 1..N_p; heading error wrapped."""
     J = 0.0
     for k in range(poses.shape[0]):
-        ex = poses[k, POSE_X] - ref[k + 1, REF_X]
-        ey = poses[k, POSE_Y] - ref[k + 1, REF_Y]
-        ep = _wrap(poses[k, POSE_PHI] - ref[k + 1, REF_PHI])
-        J += Q[Q_X] * ex * ex + Q[Q_Y] * ey * ey + Q[Q_PHI] * ep * ep
+        J += tracking_term(poses[k, POSE_X] - ref[k + 1, REF_X],
+                           poses[k, POSE_Y] - ref[k + 1, REF_Y],
+                           _wrap(poses[k, POSE_PHI] - ref[k + 1, REF_PHI]),
+                           Q[Q_X], Q[Q_Y], Q[Q_PHI])
     return J
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def wear_cost(wear, L):
-    """The wear term, the powers in kW: ``sum_k P_k^T L P_k`` (eq. 22, 25, W_P = E (x) L;
-    weights ``L[L_S], L[L_ALPHA], L[L_T]`` [1/kW^2]: the paper's TWO) plus the wear-energy
-    term ``sum_k lambda^T P_k`` (weights ``L[LE_S], L[LE_ALPHA], L[LE_T]`` [1/kW]; over the
-    horizon, times the step, it is the predicted wear work that W_tw measures: TWO-energy).
-    """
+    """The wear term over the horizon (:func:`wear_term` per step; weights
+    ``L[L_S], L[L_ALPHA], L[L_T]`` and ``L[LE_S], L[LE_ALPHA], L[LE_T]``)."""
     J = 0.0
     for k in range(wear.shape[0]):
-        p0 = wear[k, WEAR_S] * KW
-        p1 = wear[k, WEAR_ALPHA] * KW
-        p2 = wear[k, WEAR_T] * KW
-        J += L[L_S] * p0 * p0 + L[L_ALPHA] * p1 * p1 + L[L_T] * p2 * p2
-        J += L[LE_S] * p0 + L[LE_ALPHA] * p1 + L[LE_T] * p2
+        J = wear_term(J, wear[k, WEAR_S], wear[k, WEAR_ALPHA], wear[k, WEAR_T], L[L_S],
+                      L[L_ALPHA], L[L_T], L[LE_S], L[LE_ALPHA], L[LE_T])
     return J
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
+def smoothing_row(Z, row, zprev, R, stride, nsplit):
+    """:func:`smoothing_cost` of the decision vector ``Z[row]``."""
+    J = 0.0
+    for blk in range(Z.shape[1] // stride):
+        for j in range(stride):
+            prev = zprev[j] if blk == 0 else Z[row, (blk - 1) * stride + j]
+            dz = Z[row, blk * stride + j] - prev
+            J += (R[R_DW] if j < nsplit else R[R_DD]) * dz * dz
+    return J
+
+
+@njit(cache=True, error_model="numpy")
+def ridge_row(Z, row, R, stride, nsplit):
+    """:func:`ridge_cost` of the decision vector ``Z[row]``."""
+    J = 0.0
+    for blk in range(Z.shape[1] // stride):
+        for j in range(stride):
+            zi = Z[row, blk * stride + j]
+            J += (R[R_OW] if j < nsplit else R[R_OD]) * zi * zi
+    return J
+
+
+@njit(cache=True, error_model="numpy")
 def smoothing_cost(z, zprev, R, stride, nsplit):
     """Changes of the decision variables between consecutive blocks (``stride`` variables
     each) and from the previous solution's first block ``zprev``: R_dw on the first
     ``nsplit`` of a block (wheel speeds [1/(rad/s)^2]; all three twist offsets), R_dd on
     the rest (steering targets [1/rad^2]; raw steering rates)."""
-    J = 0.0
-    for blk in range(z.shape[0] // stride):
-        for j in range(stride):
-            prev = zprev[j] if blk == 0 else z[(blk - 1) * stride + j]
-            dz = z[blk * stride + j] - prev
-            J += (R[R_DW] if j < nsplit else R[R_DD]) * dz * dz
-    return J
+    return smoothing_row(z.reshape(1, z.shape[0]), 0, zprev, R, stride, nsplit)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def ridge_cost(z, R, stride, nsplit):
     """A ridge on the decision variables themselves: R_ow on the first ``nsplit`` of a
     block, R_od on the rest (as :func:`smoothing_cost`; raw commands get none)."""
-    J = 0.0
-    for blk in range(z.shape[0] // stride):
-        for j in range(stride):
-            zi = z[blk * stride + j]
-            J += (R[R_OW] if j < nsplit else R[R_OD]) * zi * zi
-    return J
+    return ridge_row(z.reshape(1, z.shape[0]), 0, R, stride, nsplit)
 
 
 @njit(cache=True, error_model="numpy")
@@ -551,3 +250,649 @@ def batch_cost(poses, wear, ref, Z, zprev, Q, L, R, stride, nsplit, costs):
     """:func:`candidate_cost` of every row of ``Z`` into ``costs`` (B,)."""
     for b in range(Z.shape[0]):
         costs[b] = candidate_cost(poses[b], wear[b], ref, Z[b], zprev, Q, L, R, stride, nsplit)
+
+
+# ---- the tile workspace: rows of LANES doubles --------------------------------------------
+(W_X, W_Y, W_PHI, W_VX, W_VY, W_R,           # state
+ W_UBD, W_VBD, W_RD, W_ACO,                  # the policy's desired twist, cornering angle
+ W_UB, W_VB,                                 # body velocity at the step's start
+ W_A00, W_A01, W_A02, W_A10, W_A11, W_A12, W_A20, W_A21, W_A22,  # tire force Jacobian sum
+ W_F0, W_F1, W_F2,                           # generalised force sum
+ W_PS, W_PA, W_PT,                           # wear powers of the step
+ W_DEL, W_ZW, W_ZD, W_T0, W_T1, W_T2,        # the current wheel's angle and variables
+ W_OMW, W_OMS,                               # the current wheel's commands
+ W_JT, W_JW, W_J,                            # cost sums
+ N_FIXED_ROWS) = range(39)
+
+
+@njit(cache=True)
+def workspace_size(nw, dim):
+    """Doubles of one tile's workspace: fixed rows, one per wheel angle, one per decision
+    variable, each ``LANES`` wide."""
+    return (N_FIXED_ROWS + nw + dim) * LANES
+
+
+class Prediction(NamedTuple):
+    """The prediction's kernels built over one set of primitives (:func:`make_prediction`)."""
+
+    name: str
+    commands_from_policy: object
+    tile: object
+    rollout_batch: object
+    rollout_batch_parallel: object
+    evaluate_serial: object
+    evaluate_parallel: object
+
+
+# ---- the policy, per candidate (scalars in, scalars out) ----------------------------
+def policy_head(x, y, phi, c, s, rx, ry, rphi, rvx, rvy, rr, k_pos, v_fb_max, k_phi,
+                r_fb_max, k_alpha, twist, t0, t1, t2):
+    """The policy's desired body twist in B and cornering angle at pose ``(x, y, phi)``
+    (``c, s = cos phi, sin phi``) against the reference row ``r*``: ``(u, v, r,
+    alpha_corner)``; with ``twist`` the decision offsets ``(t0, t1, t2)`` are added."""
+    cx = k_pos * (rx - x)
+    cy = k_pos * (ry - y)
+    cn = math.sqrt(cx * cx + cy * cy)
+    g = v_fb_max / cn if cn > v_fb_max else 1.0
+    vdx = rvx + cx * g
+    vdy = rvy + cy * g
+    rd = rr + _clip(k_phi * _wrap(rphi - phi), -r_fb_max, r_fb_max)
+    ub = c * vdx + s * vdy
+    vb = -s * vdx + c * vdy
+    if twist:
+        ub += t0
+        vb += t1
+        rd += t2
+        vdx = c * ub - s * vb
+        vdy = s * ub + c * vb
+    return ub, vb, rd, k_alpha * math.sqrt(vdx * vdx + vdy * vdy) * rd
+
+
+def policy_wheel(ub, vb, rd, acorner, delta, zw, zd, xw, yw, r_w, dmin, dmax, cmin, smin,
+                 cmax, smax, w_max, ws_min, ws_max, kservo, dt):
+    """One wheel's ``(omega_w, omega_s)`` of the feed-forward policy plus the offsets
+    ``zw`` [rad/s], ``zd`` [rad] (0 for the twist parametrisation); ``cmin, smin, cmax,
+    smax`` are cos and sin of the steering stops."""
+    wvx = ub - rd * yw
+    wvy = vb + rd * xw
+    dff = atan2(wvy, wvx) + acorner
+    hi_ = dff > dmax
+    lo_ = dff < dmin
+    # at a stop: the speed projected on the stop's direction, >= 0
+    inv_rw = 1.0 / r_w  # (loop-invariant: a multiplication in the lanes' loop)
+    wclip = (wvx * (cmax if hi_ else cmin) + wvy * (smax if hi_ else smin)) * inv_rw
+    wff = (wclip if wclip > 0.0 else 0.0) if (hi_ or lo_) else math.sqrt(wvx * wvx + wvy * wvy) * inv_rw
+    dff = dmax if hi_ else (dmin if lo_ else dff)
+    w = _clip(wff + zw, 0.0, w_max)
+    tgt = _clip(dff + zd, dmin, dmax)
+    ws = kservo * (tgt - delta)
+    inv_dt = 1.0 / dt
+    lo = (dmin - delta) * inv_dt
+    hi = (dmax - delta) * inv_dt
+    lo = lo if lo > ws_min else ws_min
+    hi = hi if hi < ws_max else ws_max
+    held = lo > hi  # numerically at a stop: hold
+    return w, (0.0 if held else _clip(ws, lo, hi))
+
+
+def policy_raw(delta, zw, zs, dmin, dmax, w_max, ws_min, ws_max, dt):
+    """One wheel's commands of the raw parametrisation: the decision itself clipped to
+    eq. (27)'s bounds and so that delta stays inside its stops after ``dt``."""
+    inv_dt = 1.0 / dt
+    lo = (dmin - delta) * inv_dt
+    hi = (dmax - delta) * inv_dt
+    lo = lo if lo > ws_min else ws_min
+    hi = hi if hi < ws_max else ws_max
+    held = lo > hi
+    return _clip(zw, 0.0, w_max), (0.0 if held else _clip(zs, lo, hi))
+
+
+def commands_from_policy(x, delta, refk, z, base, nw, P, S, wx, wy, dt, om_w, om_s):
+    """Wheel-speed and steering-rate commands of the policy at one state (eq. 27 bounds).
+
+    The decision parametrisation ``S[S_POLICY]`` says what a block's variables
+    ``z[base:base + stride]`` are: ``POLICY_OFFSETS`` (ours, default), per-wheel offsets
+    of wheel speed and steering target from the feed-forward below (2n + 2n);
+    ``POLICY_TWIST``, offsets ``(du, dv, dr)`` [m/s, m/s, rad/s] of the desired body
+    twist in B, every wheel then following the feed-forward's kinematics of that twist,
+    so all wheels are steered about one instantaneous centre (the paper's Kinematic
+    baseline); ``POLICY_RAW``, the commands themselves, ``omega_w`` (2n) and ``omega_s``
+    (2n), the paper's decision vector U of eq. 27 (clipped to its bounds and to the
+    steering stops).
+
+    Kinematic feed-forward with a saturated pose feedback: desired velocity in G
+    ``v_ref + K_pos (p_ref - p)`` (correction limited to ``v_fb_max``), desired yaw rate
+    ``r_ref + K_phi wrap(phi_ref - phi)`` (limited to ``r_fb_max``); each wheel's
+    desired velocity ``v + r x p_w`` gives its feed-forward angle (atan2, clipped to
+    the steering limits) and speed (projected on that angle, >= 0). A dynamic model
+    adds the steady cornering slip angle ``k_alpha v r`` (the centripetal force m v r
+    shared equally by the 2n wheels over the model's cornering stiffness; 0 for the
+    kinematic model). The decision offsets ``z[base:]`` are added; the steering rate is
+    a first-order servo toward the target angle with the exact discrete gain
+    ``(1 - exp(-K dt)) / dt``, then clipped to the rate limits and so that delta stays
+    inside its limits after ``dt``. ``x = (x, y, phi)`` (``POSE_*``).
+    """
+    r_w = P[P_WHEEL_RADIUS]
+    policy = int(S[S_POLICY])
+    dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
+    w_max, ws_min, ws_max = P[P_OMEGA_W_MAX], P[P_OMEGA_S_MIN], P[P_OMEGA_S_MAX]
+    if policy == POLICY_RAW:
+        for k in range(nw):
+            om_w[k], om_s[k] = policy_raw(delta[k], z[base + k], z[base + nw + k], dmin,
+                                          dmax, w_max, ws_min, ws_max, dt)
+        return
+    twist = policy == POLICY_TWIST
+    phi = x[POSE_PHI]
+    c = cos(phi)
+    s = sin(phi)
+    t0 = z[base] if twist else 0.0
+    t1 = z[base + 1] if twist else 0.0
+    t2 = z[base + 2] if twist else 0.0
+    ub, vb, rd, acorner = policy_head(
+        x[POSE_X], x[POSE_Y], phi, c, s, refk[REF_X], refk[REF_Y], refk[REF_PHI],
+        refk[REF_VX], refk[REF_VY], refk[REF_R], S[S_K_POS], S[S_V_FB_MAX], S[S_K_PHI],
+        S[S_R_FB_MAX], S[S_K_ALPHA], twist, t0, t1, t2)
+    kservo = (1.0 - math.exp(-S[S_K_SERVO] * dt)) / dt
+    cmin, smin, cmax, smax = math.cos(dmin), math.sin(dmin), math.cos(dmax), math.sin(dmax)
+    for k in range(nw):
+        zw = 0.0 if twist else z[base + k]
+        zd = 0.0 if twist else z[base + nw + k]
+        om_w[k], om_s[k] = policy_wheel(ub, vb, rd, acorner, delta[k], zw, zd, wx[k], wy[k],
+                                        r_w, dmin, dmax, cmin, smin, cmax, smax, w_max,
+                                        ws_min, ws_max, kservo, dt)
+
+
+# ---- one wheel of one step of the dynamic models -------------------------------------------
+def tire_forces(dugoff, vwx, vwy, omw, FN, r_w, v_eps, lonB, lonC, lonD, lonE, latB,
+                latC, latD, latE, C_s, C_a, mu):
+    """Tire forces (eq. 9-12) of one wheel and their Jacobian K with respect to the
+    wheel velocity: ``(Fx, Fy, dFx/dvwx, dFx/dvwy, dFy/dvwx, dFy/dvwy)``; Magic
+    Formula, or Dugoff's forces (DH baseline, the Jacobian by central differences in
+    (s, alpha))."""
+    sl = slip_ratio(omw, r_w, vwx, v_eps)  # eq. (10)
+    al = slip_angle(vwx, vwy, v_eps)  # eq. (9)
+    ds_dx, da_dx, da_dy = slip_jacobian(omw, r_w, vwx, vwy, v_eps)
+    if dugoff:
+        Fx, Fy = dugoff_forces(sl, al, FN, C_s, C_a, mu)
+        hs = 1e-6 + 1e-6 * abs(sl)
+        ha = 1e-7 + 1e-6 * abs(al)
+        fxp, fyp = dugoff_forces(sl + hs, al, FN, C_s, C_a, mu)
+        fxm, fym = dugoff_forces(sl - hs, al, FN, C_s, C_a, mu)
+        dFx_ds = (fxp - fxm) / (2 * hs)
+        dFy_ds = (fyp - fym) / (2 * hs)
+        fxp, fyp = dugoff_forces(sl, al + ha, FN, C_s, C_a, mu)
+        fxm, fym = dugoff_forces(sl, al - ha, FN, C_s, C_a, mu)
+        dFx_da = (fxp - fxm) / (2 * ha)
+        dFy_da = (fyp - fym) / (2 * ha)
+        return (Fx, Fy, dFx_ds * ds_dx + dFx_da * da_dx, dFx_da * da_dy,
+                dFy_ds * ds_dx + dFy_da * da_dx, dFy_da * da_dy)
+    # eq. (11); LON_E0 (bound per wheel loop): the tire's longitudinal E is 0, so the
+    # compiler drops the inner arctan (the vector code would compute it and discard it)
+    Fx, dFx_ds = magic_formula_and_slope(sl, lonB, lonC, lonD, 0.0 if LON_E0 else lonE)
+    Fy, dFy_da = magic_formula_and_slope(al, latB, latC, latD, latE)  # eq. (12)
+    return Fx, Fy, dFx_ds * ds_dx, 0.0, dFy_da * da_dx, dFy_da * da_dy
+
+
+def wheel_terms(dugoff, tct, ub, vb, r, delta, om_w, om_s, xw, yw, dt, FN, r_w, v_eps,
+                lonB, lonC, lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu):
+    """One wheel's share of the rigid-body step (eq. 4-14): its wear powers and the
+    force and Jacobian terms ``(P_s, P_alpha, F_Bx, F_By, M11, M12, M21, M22)`` with
+    ``M = R K R^T`` in B, at the step's mid steering angle (the wheel turns during the
+    step; using the start angle delays the steering by dt / 2)."""
+    dm = delta + 0.5 * dt * om_s
+    cd = cos(dm)
+    sd = sin(dm)
+    vwx, vwy = wheel_velocity(ub, vb, r, xw, yw, dm)  # eq. (6)-(8)
+    Fx, Fy, k11, k12, k21, k22 = tire_forces(dugoff, vwx, vwy, om_w, FN, r_w, v_eps, lonB,
+                                             lonC, lonD, lonE, latB, latC, latD, latE,
+                                             C_s, C_a, mu)
+    ps = wear_power_slip(Fx, om_w, r_w, vwx)  # eq. (13)
+    pa = wear_power_angle(Fy, vwy)  # eq. (14)
+    if tct:  # lateral dynamics only
+        Fx = 0.0
+        k11 = 0.0
+        k12 = 0.0
+    fbx, fby = wheel_to_body(Fx, Fy, dm)  # eq. (4)
+    b11 = cd * k11 - sd * k21
+    b12 = cd * k12 - sd * k22
+    b21 = sd * k11 + cd * k21
+    b22 = sd * k12 + cd * k22
+    return (ps, pa, fbx, fby, b11 * cd - b12 * sd, b11 * sd + b12 * cd,
+            b21 * cd - b22 * sd, b21 * sd + b22 * cd)
+
+
+def rigid_body_update(tct, x, y, phi, vx, vy, r, ub, vb, a00, a01, a02, a10, a11, a12,
+                      a20, a21, a22, f0, f1, f2, m, Iz, dt):
+    """The linearly implicit trapezoidal step (the module's DEVIATION) from the sums of
+    the wheels' terms: ``A = sum Lw^T M Lw``, ``F = sum Lw^T R F_W``; returns the new
+    ``(x, y, phi, vx, vy, r)``."""
+    # (I - THETA dt M^-1 A) du = dt M^-1 F + transport terms of the body-frame eq. (17):
+    # u' = F/m + (r vb, -r ub), r' = M_z / I_vz; the transport terms enter the Jacobian
+    hm = THETA * dt / m
+    hi = THETA * dt / Iz
+    a00 = 1.0 - hm * a00
+    a01 = -hm * a01 - THETA * dt * r
+    a02 = -hm * a02 - THETA * dt * vb
+    a10 = -hm * a10 + THETA * dt * r
+    a11 = 1.0 - hm * a11
+    a12 = -hm * a12 + THETA * dt * ub
+    a20 = -hi * a20
+    a21 = -hi * a21
+    a22 = 1.0 - hi * a22
+    f0 = dt / m * f0 + dt * r * vb
+    f1 = dt / m * f1 - dt * r * ub
+    f2 = dt / Iz * f2
+    if tct:  # the longitudinal row is not modelled: no longitudinal acceleration
+        a00 = 1.0
+        a01 = 0.0
+        a02 = 0.0
+        f0 = 0.0
+    du0, du1, du2 = _solve3(a00, a01, a02, a10, a11, a12, a20, a21, a22, f0, f1, f2)
+    r1 = r + du2
+    # DEVIATION(eq. 21): trapezoidal heading and position updates (mean of old and new
+    # velocity); eq. (21)'s old velocity alone misplaces a vehicle turning at speed by
+    # ~v r dt / 2 per step (41 cm over 1 s at 35 km/h with dt = 0.1 s)
+    phi1 = phi + 0.5 * dt * (r + r1)
+    c1 = cos(phi1)
+    s1 = sin(phi1)
+    vx1 = c1 * (ub + du0) - s1 * (vb + du1)  # back to G (eq. 20)
+    vy1 = s1 * (ub + du0) + c1 * (vb + du1)
+    return x + 0.5 * dt * (vx + vx1), y + 0.5 * dt * (vy + vy1), phi1, vx1, vy1, r1
+
+
+def kinematic_update(x, y, phi, nw, sx, sy, sxx, syy, sw1, sw2, sw3, dt):
+    """Kinematic baseline (Zhang et al. 2016): the body twist is the least-squares rigid
+    motion of the commanded wheel velocities (sums ``sw*`` of ``omega_w r_w (cos delta,
+    sin delta)``, their moments about the centre); wheels roll without slip (no slip
+    wear). Returns the new pose and velocity (forward Euler)."""
+    ub, vb, r = _solve3(nw, 0.0, -sy, 0.0, nw, sx, -sy, sx, sxx + syy, sw1, sw2, sw3)
+    c = cos(phi)
+    s = sin(phi)
+    vx = c * ub - s * vb
+    vy = s * ub + c * vb
+    return x + dt * vx, y + dt * vy, phi + dt * r, vx, vy, r
+
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _accumulate(w, i, yw, xw, dt, om_w, om_s, pt, ps, pa, t0, t1, t2, m11, m12, m21, m22):
+    """Lane ``i``: one wheel's results (:func:`wheel_lane`) added to the step's sums in
+    ``w``, its commands stored, its angle advanced (eq. 19)."""
+    w[W_PT * L + i] += pt
+    w[W_PS * L + i] += ps
+    w[W_PA * L + i] += pa
+    w[W_F0 * L + i] += t0
+    w[W_F1 * L + i] += t1
+    w[W_F2 * L + i] += t2
+    # the Jacobian sum Lw^T M Lw, Lw = [[1, 0, -y], [0, 1, x]]
+    w[W_A00 * L + i] += m11
+    w[W_A01 * L + i] += m12
+    w[W_A02 * L + i] += -m11 * yw + m12 * xw
+    w[W_A10 * L + i] += m21
+    w[W_A11 * L + i] += m22
+    w[W_A12 * L + i] += -m21 * yw + m22 * xw
+    w[W_A20 * L + i] += -yw * m11 + xw * m21
+    w[W_A21 * L + i] += -yw * m12 + xw * m22
+    w[W_A22 * L + i] += (-yw * (-m11 * yw + m12 * xw) + xw * (-m21 * yw + m22 * xw))
+    w[W_OMW * L + i] = om_w
+    w[W_OMS * L + i] = om_s
+    w[W_DEL * L + i] = w[W_DEL * L + i] + dt * om_s  # eq. (19)
+
+
+# ---- one wheel of one step, across the lanes: the vectorised loops --------------------
+def wheel_lane(raw, tct, delta, zw, zd, ubd, vbd, rd, aco, ub, vb, r, xw, yw, dt, FN, k_t, r_w,
+               v_eps, lon, lat, dug, lim, kservo):
+    """One candidate's wheel in one step: the policy's commands (raw or feed-forward), the
+    steering wear (eq. 15) and the wheel's terms of the model's step (``KINEMATIC``,
+    ``DUGOFF``: bound per wheel loop): ``(omega_w, omega_s, P_t, P_s, P_alpha, t0, t1, t2,
+    M11, M12, M21, M22)``; ``t`` is the generalised force of eq. (4)-(5) for the rigid
+    body, the wheel's velocity and its moment for the kinematic model. ``lon``, ``lat``:
+    the Magic Formula's (B, C, D, E); ``dug``: Dugoff's (C_s, C_alpha, mu); ``lim``: the
+    steering stops, their cos and sin and the rate limits (as :func:`policy_wheel`)."""
+    lonB, lonC, lonD, lonE = lon
+    latB, latC, latD, latE = lat
+    C_s, C_a, mu = dug
+    dmin, dmax, cmin, smin, cmax, smax, w_max, ws_min, ws_max = lim
+    rw_, rs_ = policy_raw(delta, zw, zd, dmin, dmax, w_max, ws_min, ws_max, dt)
+    fw_, fs_ = policy_wheel(ubd, vbd, rd, aco, delta, zw, zd, xw, yw, r_w, dmin, dmax, cmin,
+                            smin, cmax, smax, w_max, ws_min, ws_max, kservo, dt)
+    om_w = rw_ if raw else fw_
+    om_s = rs_ if raw else fs_
+    pt = wear_power_steer(k_t, FN, om_s)  # eq. (15)
+    if KINEMATIC:
+        vwx = om_w * r_w * cos(delta)
+        vwy = om_w * r_w * sin(delta)
+        return om_w, om_s, pt, 0.0, 0.0, vwx, vwy, xw * vwy - yw * vwx, 0.0, 0.0, 0.0, 0.0
+    ps, pa, fbx, fby, m11, m12, m21, m22 = wheel_terms(
+        DUGOFF, tct, ub, vb, r, delta, om_w, om_s, xw, yw, dt, FN, r_w, v_eps, lonB, lonC,
+        lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu)
+    return om_w, om_s, pt, ps, pa, fbx, fby, xw * fby - yw * fbx, m11, m12, m21, m22  # eq. (5)
+
+
+def wheel_loop(w, raw, tct, xw, yw, dt, FN, k_t, r_w, v_eps, lonB, lonC, lonD, lonE,
+               latB, latC, latD, latE, C_s, C_a, mu, dmin, dmax, cmin, smin, cmax,
+               smax, w_max, ws_min, ws_max, kservo):
+    """The loop over the lanes of one wheel and one step (:func:`wheel_lane`, bound per
+    model by :func:`make_prediction`): the commands, the wear powers and the wheel's terms
+    added to the step's sums, the angle advanced (eq. 19). Reads and writes the fixed rows
+    of ``w`` only. Each iteration does two lanes, ``b`` and ``b + LANES/2``: two
+    independent chains of dependent operations in one loop body (one lane's chain is
+    hundreds of cycles long; interleaved, the core keeps twice as many in flight)."""
+    lon = (lonB, lonC, lonD, lonE)
+    lat = (latB, latC, latD, latE)
+    dug = (C_s, C_a, mu)
+    lim = (dmin, dmax, cmin, smin, cmax, smax, w_max, ws_min, ws_max)
+    for b in range(H):
+        i = b + H
+        (w0, s0, pt0, ps0, pa0, f00, f10, f20, m110, m120, m210, m220) = wheel_lane(
+            raw, tct, w[W_DEL * L + b], w[W_ZW * L + b], w[W_ZD * L + b], w[W_UBD * L + b],
+            w[W_VBD * L + b], w[W_RD * L + b], w[W_ACO * L + b], w[W_UB * L + b],
+            w[W_VB * L + b], w[W_R * L + b], xw, yw, dt, FN, k_t, r_w, v_eps, lon, lat, dug, lim,
+            kservo)
+        (w1, s1, pt1, ps1, pa1, f01, f11, f21, m111, m121, m211, m221) = wheel_lane(
+            raw, tct, w[W_DEL * L + i], w[W_ZW * L + i], w[W_ZD * L + i], w[W_UBD * L + i],
+            w[W_VBD * L + i], w[W_RD * L + i], w[W_ACO * L + i], w[W_UB * L + i],
+            w[W_VB * L + i], w[W_R * L + i], xw, yw, dt, FN, k_t, r_w, v_eps, lon, lat, dug, lim,
+            kservo)
+        _accumulate(w, b, yw, xw, dt, w0, s0, pt0, ps0, pa0, f00, f10, f20, m110, m120, m210,
+                    m220)
+        _accumulate(w, i, yw, xw, dt, w1, s1, pt1, ps1, pa1, f01, f11, f21, m111, m121, m211,
+                    m221)
+
+
+# ---- the tile: LANES candidates in structure-of-arrays form --------------------------
+def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit, w,
+         out, poses, wear, cmds):
+    """Predict and cost candidates ``Z[b0 : b0 + nb]`` (``nb <= LANES``; spare lanes
+    repeat the last one) in the workspace ``w`` (:func:`workspace_size`); the costs
+    end in row ``W_J``. With ``out``, also writes their ``poses``, ``wear`` and
+    first commands ``cmds`` (rows b0 ..). The lane loops touch ``w`` only."""
+    nw = wx.shape[0]
+    D = Z.shape[1]
+    Np = block.shape[0]
+    dt = S[S_DT]
+    stride = int(S[S_STRIDE])
+    policy = int(S[S_POLICY])
+    raw = policy == POLICY_RAW
+    twist = policy == POLICY_TWIST
+    kin = model == MODEL_KINEMATIC
+    dug = model == MODEL_DUGOFF
+    tct = model == MODEL_TCT
+    m, Iz, r_w, v_eps = P[P_MASS], P[P_YAW_INERTIA], P[P_WHEEL_RADIUS], P[P_V_EPS]
+    k_t = P[P_K_T]
+    FN = m * P[P_G] / nw  # Assumption 2
+    lonB, lonC, lonD, lonE = P[P_LON_B], P[P_LON_C], P[P_LON_MU] * FN, P[P_LON_E]
+    lon_e0 = lonE == 0.0
+    latB, latC, latD, latE = P[P_LAT_B], P[P_LAT_C], P[P_LAT_MU] * FN, P[P_LAT_E]
+    C_s, C_a, mu = P[P_DUGOFF_C_S], P[P_DUGOFF_C_ALPHA], P[P_DUGOFF_MU]
+    dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
+    cmin, smin, cmax, smax = math.cos(dmin), math.sin(dmin), math.cos(dmax), math.sin(dmax)
+    w_max, ws_min, ws_max = P[P_OMEGA_W_MAX], P[P_OMEGA_S_MIN], P[P_OMEGA_S_MAX]
+    k_pos, v_fb_max, k_phi = S[S_K_POS], S[S_V_FB_MAX], S[S_K_PHI]
+    r_fb_max, k_alpha = S[S_R_FB_MAX], S[S_K_ALPHA]
+    kservo = (1.0 - math.exp(-S[S_K_SERVO] * dt)) / dt
+    qx, qy, qphi = Q[Q_X], Q[Q_Y], Q[Q_PHI]
+    ls, la, lt, les, lea, let = Lw[L_S], Lw[L_ALPHA], Lw[L_T], Lw[LE_S], Lw[LE_ALPHA], Lw[LE_T]
+    sx = 0.0
+    sy = 0.0
+    sxx = 0.0
+    syy = 0.0
+    for j in range(nw):
+        sx += wx[j]
+        sy += wy[j]
+        sxx += wx[j] * wx[j]
+        syy += wy[j] * wy[j]
+    wdel = N_FIXED_ROWS  # first wheel-angle row
+    wz = N_FIXED_ROWS + nw  # first decision row
+    last = nb - 1
+    for d in range(D):
+        for b in range(L):
+            w[(wz + d) * L + b] = Z[b0 + (b if b < last else last), d]
+    x_, y_, phi_ = x0[X0_X], x0[X0_Y], x0[X0_PHI]
+    vx_, vy_, r_ = x0[X0_VX], x0[X0_VY], x0[X0_R]
+    for b in range(L):
+        w[W_X * L + b] = x_
+        w[W_Y * L + b] = y_
+        w[W_PHI * L + b] = phi_
+        w[W_VX * L + b] = vx_
+        w[W_VY * L + b] = vy_
+        w[W_R * L + b] = r_
+        w[W_JT * L + b] = 0.0
+        w[W_JW * L + b] = 0.0
+    for j in range(nw):
+        dj = x0[X0_DELTA + j]
+        for b in range(L):
+            w[(wdel + j) * L + b] = dj
+    for k in range(Np):
+        rx, ry, rphi = ref[k, REF_X], ref[k, REF_Y], ref[k, REF_PHI]
+        rvx, rvy, rr = ref[k, REF_VX], ref[k, REF_VY], ref[k, REF_R]
+        vref = math.sqrt(rvx * rvx + rvy * rvy)
+        base = block[k] * stride
+        tw = (wz + base) * L  # the twist offsets (du, dv, dr)
+        if twist:
+            for b in range(L):
+                w[W_T0 * L + b] = w[tw + b]
+                w[W_T1 * L + b] = w[tw + L + b]
+                w[W_T2 * L + b] = w[tw + 2 * L + b]
+        else:
+            for b in range(L):
+                w[W_T0 * L + b] = 0.0
+                w[W_T1 * L + b] = 0.0
+                w[W_T2 * L + b] = 0.0
+        for b in range(L):  # vectorised: the policy's head, the body velocity
+            phi = w[W_PHI * L + b]
+            c = cos(phi)
+            s = sin(phi)
+            ubd, vbd, rd, aco = policy_head(
+                w[W_X * L + b], w[W_Y * L + b], phi, c, s, rx, ry, rphi, rvx, rvy, rr,
+                k_pos, v_fb_max, k_phi, r_fb_max, k_alpha, twist, w[W_T0 * L + b],
+                w[W_T1 * L + b], w[W_T2 * L + b])
+            w[W_UBD * L + b] = ubd
+            w[W_VBD * L + b] = vbd
+            w[W_RD * L + b] = rd
+            w[W_ACO * L + b] = aco
+            vx = w[W_VX * L + b]
+            vy = w[W_VY * L + b]
+            w[W_UB * L + b] = vref if tct else c * vx + s * vy
+            w[W_VB * L + b] = -s * vx + c * vy
+            w[W_A00 * L + b] = 0.0
+            w[W_A01 * L + b] = 0.0
+            w[W_A02 * L + b] = 0.0
+            w[W_A10 * L + b] = 0.0
+            w[W_A11 * L + b] = 0.0
+            w[W_A12 * L + b] = 0.0
+            w[W_A20 * L + b] = 0.0
+            w[W_A21 * L + b] = 0.0
+            w[W_A22 * L + b] = 0.0
+            w[W_F0 * L + b] = 0.0
+            w[W_F1 * L + b] = 0.0
+            w[W_F2 * L + b] = 0.0
+            w[W_PS * L + b] = 0.0
+            w[W_PA * L + b] = 0.0
+            w[W_PT * L + b] = 0.0
+        for j in range(nw):
+            jw = (wz + base + j) * L  # the wheel's variables (offsets / raw)
+            jd = (wz + base + nw + j) * L
+            if twist:
+                for b in range(L):
+                    w[W_DEL * L + b] = w[(wdel + j) * L + b]
+                    w[W_ZW * L + b] = 0.0
+                    w[W_ZD * L + b] = 0.0
+            else:
+                for b in range(L):  # the wheel's rows into the fixed rows
+                    w[W_DEL * L + b] = w[(wdel + j) * L + b]
+                    w[W_ZW * L + b] = w[jw + b]
+                    w[W_ZD * L + b] = w[jd + b]
+            if kin:
+                wheel_loop_kin(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB, lonC,
+                               lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu, dmin, dmax,
+                               cmin, smin, cmax, smax, w_max, ws_min, ws_max, kservo)
+            elif dug:
+                wheel_loop_dugoff(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB,
+                                  lonC, lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu, dmin,
+                                  dmax, cmin, smin, cmax, smax, w_max, ws_min, ws_max, kservo)
+            elif lon_e0:
+                wheel_loop_rigid_e0(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB,
+                                    lonC, lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu,
+                                    dmin, dmax, cmin, smin, cmax, smax, w_max, ws_min, ws_max,
+                                    kservo)
+            else:
+                wheel_loop_rigid(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB,
+                                 lonC, lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu, dmin,
+                                 dmax, cmin, smin, cmax, smax, w_max, ws_min, ws_max, kservo)
+            for b in range(L):
+                w[(wdel + j) * L + b] = w[W_DEL * L + b]
+            if out and k == 0:
+                for b in range(nb):
+                    cmds[b0 + b, CMD_W, j] = w[W_OMW * L + b]
+                    cmds[b0 + b, CMD_S, j] = w[W_OMS * L + b]
+        rx1, ry1, rphi1 = ref[k + 1, REF_X], ref[k + 1, REF_Y], ref[k + 1, REF_PHI]
+        if kin:
+            for b in range(L):  # vectorised: the kinematic body
+                x, y, phi, vx, vy, r = kinematic_update(
+                    w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], nw, sx, sy, sxx, syy,
+                    w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b], dt)
+                w[W_X * L + b] = x
+                w[W_Y * L + b] = y
+                w[W_PHI * L + b] = phi
+                w[W_VX * L + b] = vx
+                w[W_VY * L + b] = vy
+                w[W_R * L + b] = r
+                w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx,
+                                                 qy, qphi)
+                w[W_JW * L + b] = wear_term(w[W_JW * L + b], 0.0, 0.0, w[W_PT * L + b],
+                                            ls, la, lt, les, lea, let)
+        else:
+            for b in range(L):  # vectorised: the rigid body's step and the cost
+                x, y, phi, vx, vy, r = rigid_body_update(
+                    tct, w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], w[W_VX * L + b],
+                    w[W_VY * L + b], w[W_R * L + b], w[W_UB * L + b], w[W_VB * L + b],
+                    w[W_A00 * L + b], w[W_A01 * L + b], w[W_A02 * L + b], w[W_A10 * L + b],
+                    w[W_A11 * L + b], w[W_A12 * L + b], w[W_A20 * L + b], w[W_A21 * L + b],
+                    w[W_A22 * L + b], w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b],
+                    m, Iz, dt)
+                w[W_X * L + b] = x
+                w[W_Y * L + b] = y
+                w[W_PHI * L + b] = phi
+                w[W_VX * L + b] = vx
+                w[W_VY * L + b] = vy
+                w[W_R * L + b] = r
+                w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx,
+                                                 qy, qphi)
+                w[W_JW * L + b] = wear_term(w[W_JW * L + b], w[W_PS * L + b],
+                                            w[W_PA * L + b], w[W_PT * L + b], ls, la, lt,
+                                            les, lea, let)
+        if out:
+            for b in range(nb):
+                poses[b0 + b, k, POSE_X] = w[W_X * L + b]
+                poses[b0 + b, k, POSE_Y] = w[W_Y * L + b]
+                poses[b0 + b, k, POSE_PHI] = w[W_PHI * L + b]
+                wear[b0 + b, k, WEAR_S] = 0.0 if kin else w[W_PS * L + b]
+                wear[b0 + b, k, WEAR_ALPHA] = 0.0 if kin else w[W_PA * L + b]
+                wear[b0 + b, k, WEAR_T] = w[W_PT * L + b]
+    for b in range(nb):
+        w[W_J * L + b] = ((w[W_JT * L + b] + w[W_JW * L + b]) / Np
+                          + smoothing_row(Z, b0 + b, zprev, R, stride, nsplit)
+                          + ridge_row(Z, b0 + b, R, stride, nsplit))
+
+
+def rollout_batch(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
+    """Predict every candidate row of ``Z``; writes ``poses``, ``wear`` (B, N_p, 3) and
+    the first commands ``cmds`` (B, 2, 2n). Serial: predictable on a shared 2-core
+    machine."""
+    B = Z.shape[0]
+    w = np.empty(workspace_size(wx.shape[0], Z.shape[1]))
+    zp = np.zeros(Z.shape[1])
+    no_q, no_l, no_r = np.zeros(3), np.zeros(N_L), np.zeros(4)
+    for t in range((B + L - 1) // L):
+        b0 = t * L
+        tile(model, x0, ref, Z, b0, min(L, B - b0), block, P, S, wx, wy, no_q, no_l, no_r,
+             zp, 0, w, True, poses, wear, cmds)
+
+
+def rollout_batch_parallel(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
+    """As :func:`rollout_batch`, the tiles spread over numba's threads (prange); the
+    results are those of the serial kernel."""
+    B = Z.shape[0]
+    n = (B + L - 1) // L
+    size = workspace_size(wx.shape[0], Z.shape[1])
+    ws = np.empty((n, size))
+    zp = np.zeros(Z.shape[1])
+    no_q, no_l, no_r = np.zeros(3), np.zeros(N_L), np.zeros(4)
+    for t in prange(n):
+        b0 = t * L
+        tile(model, x0, ref, Z, b0, min(L, B - b0), block, P, S, wx, wy, no_q, no_l, no_r,
+             zp, 0, ws[t], True, poses, wear, cmds)
+
+
+def evaluate(model, x0, ref, Z, block, P, S, wx, wy, Q, Lw, R, nsplit, zprev, ws, J):
+    """The cost (:func:`candidate_cost`) of every row of ``Z`` into ``J``, rollout and
+    cost fused per tile; ``ws`` (tiles, :func:`workspace_size`) the tiles' workspaces."""
+    B = Z.shape[0]
+    n = (B + L - 1) // L
+    none = np.empty((0, 0, 0))
+    for t in prange(n):
+        b0 = t * L
+        nb = min(L, B - b0)
+        w = ws[t]
+        tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit, w,
+             False, none, none, none)
+        for b in range(nb):
+            J[b0 + b] = w[W_J * L + b]
+
+
+KINEMATIC = DUGOFF = LON_E0 = False  # bound per wheel loop by make_prediction
+wheel_loop_kin = wheel_loop_rigid = wheel_loop_rigid_e0 = wheel_loop_dugoff = None
+
+_KERNELS = ("policy_head", "policy_wheel", "policy_raw", "tire_forces", "wheel_terms",
+            "rigid_body_update", "kinematic_update")
+_RAW_NAMES = _KERNELS + ("wheel_lane", "commands_from_policy", "wheel_loop", "tile", "rollout_batch",
+                         "rollout_batch_parallel", "evaluate")
+
+
+def make_prediction(prims: _approx.Primitives, fastmath) -> Prediction:
+    """The policy, the four models' step and the tiled batch kernels, compiled over the
+    transcendental functions ``prims`` (:data:`controller.approx.EXACT` or ``FAST``) with
+    numba's ``fastmath`` flags ``fastmath``: the functions above, each bound to that set
+    (:func:`plant.tire.bind_globals`; every kernel's name carries ``prims.name``: numba's
+    on-disk cache is keyed by it)."""
+    sfx = "_" + prims.name
+    T = _tire.make_tire(prims.atan, prims.sin, prims.cos, prims.tan, fastmath=fastmath,
+                        suffix=sfx)
+    g = dict(globals())
+    g.update(T._asdict())
+    g.update(atan2=prims.atan2, sin=prims.sin, cos=prims.cos)
+    inline = njit(cache=True, inline="always", fastmath=fastmath, error_model="numpy")
+
+    def kernel(name, bound_name=None, gl=None, **kw):
+        fn = _tire.bind_globals(_RAW[name], g if gl is None else gl, (bound_name or name) + sfx)
+        return njit(cache=True, fastmath=fastmath, error_model="numpy", **kw)(fn)
+
+    for name in _KERNELS:
+        g[name] = inline(_tire.bind_globals(_RAW[name], g, name + sfx))
+    g["commands_from_policy"] = kernel("commands_from_policy")
+    for kind, kin, dug, e0 in (("kin", True, False, False), ("rigid", False, False, False),
+                               ("rigid_e0", False, False, True), ("dugoff", False, True, False)):
+        gl = dict(g, KINEMATIC=kin, DUGOFF=dug, LON_E0=e0)
+        for name in ("tire_forces", "wheel_terms", "wheel_lane"):  # they read the flags
+            gl[name] = inline(_tire.bind_globals(_RAW[name], gl, f"{name}_{kind}{sfx}"))
+        g["wheel_loop_" + kind] = kernel("wheel_loop", "wheel_loop_" + kind, gl)
+    g["tile"] = kernel("tile")
+    return Prediction(prims.name, g["commands_from_policy"], g["tile"],
+                      kernel("rollout_batch"),
+                      kernel("rollout_batch_parallel", parallel=True),
+                      kernel("evaluate", "evaluate_serial"),
+                      kernel("evaluate", "evaluate_parallel", parallel=True))
+
+
+_RAW = {name: globals()[name] for name in _RAW_NAMES}
+
+EXACT = make_prediction(_approx.EXACT, _EXACT_FLAGS)
+"""The prediction with the math library's transcendentals: the reference of the mirrors."""
+FAST = make_prediction(_approx.FAST, _FAST_FLAGS)
+"""The prediction the controller runs: SIMD lanes, :mod:`controller.approx`'s functions."""
+
+commands_from_policy = EXACT.commands_from_policy  # the command sent: the math library's
+rollout_batch = FAST.rollout_batch
+rollout_batch_parallel = FAST.rollout_batch_parallel
+rollout_batch_exact = EXACT.rollout_batch

@@ -5,9 +5,9 @@ The algorithm (docs/CONTROLLER.md, "Simulated annealing", says what each choice 
 * **Chains**: Metropolis chains; chain 0 starts at the warm start, chain 1 at zero offsets
   (the pure feed-forward), the rest at the warm start plus a Gaussian spread.
 * **One batch per iteration**: each iteration proposes one move per chain, predicts and
-  costs all of them (:func:`controller.rollout._simulate` +
-  :func:`controller.rollout.candidate_cost`, fused per chain), then applies the Metropolis
-  test to each.
+  costs all of them (the prediction's ``evaluate``: :mod:`controller.rollout`'s tiles of
+  ``LANES`` chains, rollout and cost fused, SIMD across the chains of a tile), then applies
+  the Metropolis test to each.
 * **Proposals**: Gaussian steps with a per-coordinate scale ``sigma``, times a per-chain
   factor, shrinking geometrically to ``sigma_final`` of their start over the budget, and
   clipped to the box. The per-chain factors start on a geometric ladder from ``ladder``
@@ -22,36 +22,42 @@ The algorithm (docs/CONTROLLER.md, "Simulated annealing", says what each choice 
   ``CHUNK`` iterations, sized from the time per iteration measured so far, the clock read
   between chunks, and the cooling follows the elapsed fraction of the deadline.
 * **Seeding**: every random number of a solve is drawn up front from the
-  ``numpy.random.Generator`` passed in.
+  ``numpy.random.Generator`` passed in: the acceptance uniforms, and an offset into a pool
+  of standard normals drawn once per annealer (:func:`draw_noise`), whose window are the
+  proposals' normals.
 
 ``tests/annealer_reference.py`` is the same algorithm written plainly for any batch cost
 function; ``tests/test_controller.py`` checks that this kernel returns what it returns on
 the MPC's cost for the same seed (the same random draws).
 
 Two variants: serial (default; predictable when other processes share the cores) and
-``parallel`` (the chains of an iteration spread over numba's threads with ``prange``).
+``parallel`` (the tiles of an iteration spread over numba's threads with ``prange``). A
+chain's cost does not depend on which tile, lane or thread evaluates it, so both give
+identical results for any thread count (``tests/test_rollout_simd.py``); threads help only
+when there is more than one tile, i.e. more than ``LANES`` chains.
 """
 
 from __future__ import annotations
 
 import math
 import time
+import types
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 import plant.tire as _tire
 from plant import layout as lay
 
+from . import approx as _approx
 from . import rollout as _ro
-from .rollout import _simulate, candidate_cost
 
 CHUNK = 16  # iterations per kernel call under a deadline (the clock is read between calls)
 SCALE_MIN, SCALE_MAX = 1e-4, 10.0  # bounds of the adaptive per-chain step factors
 
 # stale-cache guard (plant.layout): the layout and the kernels compiled into these
-_STAMP = lay.kernel_stamp(_ro.__file__, _tire.__file__)
+_STAMP = lay.kernel_stamp(_ro.__file__, _tire.__file__, _approx.__file__)
 
 
 @njit(cache=True)
@@ -60,6 +66,32 @@ def _layout_stamp():
 
 
 lay.drop_stale_cache(_layout_stamp, _STAMP, __file__)
+
+
+POOL = 1 << 18  # standard normals drawn once per annealer (2 MiB)
+
+
+def noise_pool(seed: int) -> np.ndarray:
+    """The annealer's pool of standard normals, drawn once (``seed``)."""
+    return np.random.default_rng(seed).standard_normal(POOL)
+
+
+def draw_noise(rng: np.random.Generator, pool: np.ndarray | None, iterations: int, chains: int,
+               dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """The random numbers of one solve: ``(noise, unif)``, the proposals' standard normals
+    (iterations + 1, chains, dim) and the acceptance tests' uniforms (iterations, chains).
+    The normals are a window of ``pool`` at an offset drawn from ``rng`` (drawing ten
+    thousands of fresh normals cost 0.1-0.3 ms per solve, a quarter of a 2-axle solve);
+    without a pool, or when the window would not fit in it, fresh draws. Either way a
+    solve takes a fixed number of draws from ``rng``, so a solve cut short by a deadline
+    does not shift the next solve's numbers."""
+    n = (iterations + 1) * chains * dim
+    if pool is not None and n <= pool.shape[0]:
+        off = int(rng.integers(0, pool.shape[0] - n + 1))
+        noise = pool[off:off + n].reshape(iterations + 1, chains, dim)
+    else:
+        noise = rng.standard_normal((iterations + 1, chains, dim))
+    return noise, rng.random((iterations, chains))
 
 
 @dataclass
@@ -78,88 +110,87 @@ def ladder_factors(chains: int, ladder: float) -> np.ndarray:
     return np.geomspace(ladder, 1.0, chains) if chains > 1 else np.ones(1)
 
 
-def _make_evaluate(parallel: bool):
-    def evaluate(model, x0, ref, Z, block, P, S, wx, wy, Q, L, R, stride, nsplit, zprev, poses,
-                 wear, cmds, J):
-        for b in prange(Z.shape[0]):
-            _simulate(model, x0, ref, Z[b], block, P, S, wx, wy, poses[b], wear[b], cmds[b])
-            J[b] = candidate_cost(poses[b], wear[b], ref, Z[b], zprev, Q, L, R, stride, nsplit)
-
-    # distinct names: numba's on-disk cache is keyed by the function's qualified name
-    evaluate.__name__ = evaluate.__qualname__ = f"evaluate_{'parallel' if parallel else 'serial'}"
-    return njit(cache=True, parallel=parallel, error_model="numpy")(evaluate)
-
-
-evaluate_serial = _make_evaluate(False)
-evaluate_parallel = _make_evaluate(True)
+def _iterate(model, x0, ref, block, P, S, wx, wy, Q, L, R, nsplit, zprev, X, J, Xp, Jp, best_x,
+             best, scale, noise, unif, it0, fracs, sigma, lower, upper, log_sf, t_start, log_tr,
+             restart_every, n_restart, iterations, up, down, ws):
+    """Iterations ``it0 .. it0 + len(fracs) - 1`` of the annealing (module docstring;
+    ``fracs``: the schedule's progress fraction of each). ``best`` = [best_J, accepted
+    count] is updated in place, as are X, J, best_x and the per-chain step factors
+    ``scale``. ``evaluate`` is a global bound by :func:`_make_iterate`."""
+    C, D = X.shape
+    for i in range(fracs.shape[0]):
+        it = it0 + i
+        frac = fracs[i]
+        sf = math.exp(log_sf * frac)
+        for c in range(C):
+            for d in range(D):
+                v = X[c, d] + sigma[d] * sf * scale[c] * noise[it + 1, c, d]
+                Xp[c, d] = min(max(v, lower[d]), upper[d])
+        evaluate(model, x0, ref, Xp, block, P, S, wx, wy, Q, L, R, nsplit, zprev, ws, Jp)  # noqa: F821
+        temp = max(best[0], 1e-12) * t_start * math.exp(log_tr * frac)
+        for c in range(C):
+            dJ = Jp[c] - J[c]
+            if dJ <= 0.0 or unif[it, c] < math.exp(-max(dJ, 0.0) / temp):
+                best[1] += 1.0
+                for d in range(D):
+                    X[c, d] = Xp[c, d]
+                J[c] = Jp[c]
+                scale[c] = min(max(scale[c] * up, SCALE_MIN), SCALE_MAX)
+            else:
+                scale[c] = min(max(scale[c] * down, SCALE_MIN), SCALE_MAX)
+        ib = 0
+        for c in range(1, C):
+            if J[c] < J[ib]:
+                ib = c
+        if J[ib] < best[0]:
+            best[0] = J[ib]
+            for d in range(D):
+                best_x[d] = X[ib, d]
+        if restart_every > 0 and (it + 1) % restart_every == 0 and it + 1 < iterations:
+            order = np.argsort(J, kind="mergesort")
+            for q in range(C - n_restart, C):
+                w = order[q]
+                for d in range(D):
+                    X[w, d] = best_x[d]
+                J[w] = best[0]
 
 
 def _make_iterate(evaluate, name: str):
-    def iterate(model, x0, ref, block, P, S, wx, wy, Q, L, R, stride, nsplit, zprev, X, J, Xp, Jp,
-                best_x, best, scale, noise, unif, it0, fracs, sigma, lower, upper, log_sf,
-                t_start, log_tr, restart_every, n_restart, iterations, up, down, poses, wear,
-                cmds):
-        """Iterations ``it0 .. it0 + len(fracs) - 1`` of the annealing (module docstring;
-        ``fracs``: the schedule's progress fraction of each). ``best`` = [best_J,
-        accepted count] is updated in place, as are X, J, best_x and the per-chain step
-        factors ``scale``."""
-        C, D = X.shape
-        for i in range(fracs.shape[0]):
-            it = it0 + i
-            frac = fracs[i]
-            sf = math.exp(log_sf * frac)
-            for c in range(C):
-                for d in range(D):
-                    v = X[c, d] + sigma[d] * sf * scale[c] * noise[it + 1, c, d]
-                    Xp[c, d] = min(max(v, lower[d]), upper[d])
-            evaluate(model, x0, ref, Xp, block, P, S, wx, wy, Q, L, R, stride, nsplit, zprev,
-                     poses, wear, cmds, Jp)
-            temp = max(best[0], 1e-12) * t_start * math.exp(log_tr * frac)
-            for c in range(C):
-                dJ = Jp[c] - J[c]
-                if dJ <= 0.0 or unif[it, c] < math.exp(-max(dJ, 0.0) / temp):
-                    best[1] += 1.0
-                    for d in range(D):
-                        X[c, d] = Xp[c, d]
-                    J[c] = Jp[c]
-                    scale[c] = min(max(scale[c] * up, SCALE_MIN), SCALE_MAX)
-                else:
-                    scale[c] = min(max(scale[c] * down, SCALE_MIN), SCALE_MAX)
-            ib = 0
-            for c in range(1, C):
-                if J[c] < J[ib]:
-                    ib = c
-            if J[ib] < best[0]:
-                best[0] = J[ib]
-                for d in range(D):
-                    best_x[d] = X[ib, d]
-            if restart_every > 0 and (it + 1) % restart_every == 0 and it + 1 < iterations:
-                order = np.argsort(J, kind="mergesort")
-                for q in range(C - n_restart, C):
-                    w = order[q]
-                    for d in range(D):
-                        X[w, d] = best_x[d]
-                    J[w] = best[0]
+    """:func:`_iterate` compiled with ``evaluate`` as its global ``evaluate``.
 
-    iterate.__name__ = iterate.__qualname__ = name
-    return njit(cache=True, error_model="numpy")(iterate)
+    Not a closure: numba keys a closure's cache entry by a pickle of the captured
+    dispatcher, which differs in every process, so a closure over ``evaluate`` missed the
+    cache and compiled again in every run (several seconds of every ``msagv run``'s
+    start, and a new cache file each time). A function whose ``evaluate`` is a global is
+    cached like any other; its own name keeps the two variants' cache files apart."""
+    g = dict(globals(), evaluate=evaluate)
+    f = types.FunctionType(_iterate.__code__, g, name, _iterate.__defaults__)
+    f.__qualname__ = name
+    f.__doc__ = _iterate.__doc__
+    f.__module__ = __name__
+    return njit(cache=True, error_model="numpy")(f)
 
 
-iterate_serial = _make_iterate(evaluate_serial, "iterate_serial")
-iterate_parallel = _make_iterate(evaluate_parallel, "iterate_parallel")
+ITERATE = {(pred.name, parallel): _make_iterate(
+    pred.evaluate_parallel if parallel else pred.evaluate_serial,
+    f"iterate_{'parallel' if parallel else 'serial'}_{pred.name}")
+    for pred in (_ro.FAST, _ro.EXACT) for parallel in (False, True)}
 
 
 class CompiledAnnealer:
     """Simulated annealing of one MPC horizon problem, with preallocated buffers.
 
     Parameters as the reference annealer's (``tests/annealer_reference.py``); ``model`` is a
-    :class:`controller.models.PredictionModel`, ``Q, L, R`` the cost weights.
+    :class:`controller.models.PredictionModel`, ``Q, L, R`` the cost weights; ``exact``:
+    predict with the math library's functions (:data:`controller.rollout.EXACT`) instead
+    of the SIMD prediction.
     """
 
     def __init__(self, model, Q, L, R, lower, upper, sigma, *, chains: int, iterations: int,
                  sigma_final: float, t_start: float, t_end: float, parallel: bool = False,
                  restart_every: int = 10, init_spread: float = 0.5, ladder: float = 1.0,
-                 adapt_up: float = 1.0, adapt_down: float = 1.0):
+                 adapt_up: float = 1.0, adapt_down: float = 1.0, exact: bool = False,
+                 pool_seed: int = 0):
         self.model = model
         self.Q, self.L, self.R = (np.ascontiguousarray(a, dtype=np.float64) for a in (Q, L, R))
         self.lower = np.ascontiguousarray(lower, dtype=np.float64)
@@ -176,8 +207,9 @@ class CompiledAnnealer:
         self.init_spread = float(init_spread)
         self.ladder0 = ladder_factors(self.chains, ladder)
         self.up, self.down = float(adapt_up), float(adapt_down)
-        self._evaluate = evaluate_parallel if parallel else evaluate_serial
-        self._iterate = iterate_parallel if parallel else iterate_serial
+        pred = _ro.EXACT if exact else _ro.FAST
+        self._evaluate = pred.evaluate_parallel if parallel else pred.evaluate_serial
+        self._iterate = ITERATE[(pred.name, bool(parallel))]
         D = model.dim
         C = self.chains
         self.X = np.empty((C, D))
@@ -186,8 +218,9 @@ class CompiledAnnealer:
         self.Jp = np.empty(C)
         self.best_x = np.empty(D)
         self.best = np.empty(2)
-        buf = model.allocate(C)
-        self.poses, self.wear, self.cmds = buf.poses, buf.wear, buf.first_commands
+        tiles = (C + _ro.LANES - 1) // _ro.LANES
+        self.ws = np.empty((tiles, _ro.workspace_size(model.n_wheels, D)))
+        self.pool = noise_pool(pool_seed)
         denom = max(self.iterations - 1, 1)
         self._fixed_fracs = np.minimum(np.arange(self.iterations) / denom, 1.0)
 
@@ -201,8 +234,7 @@ class CompiledAnnealer:
         t0 = time.perf_counter()
         m = self.model
         C, D, I = self.chains, m.dim, self.iterations
-        noise = rng.standard_normal((I + 1, C, D))
-        unif = rng.random((I, C))
+        noise, unif = draw_noise(rng, self.pool, I, C, D)
         x0 = np.ascontiguousarray(x0, dtype=np.float64)
         ref = np.ascontiguousarray(ref, dtype=np.float64)
         zprev = np.ascontiguousarray(zprev, dtype=np.float64)
@@ -215,15 +247,14 @@ class CompiledAnnealer:
             X[1] = np.clip(0.0 if origin is None else origin, self.lower, self.upper)
         np.clip(X, self.lower, self.upper, out=X)
         args = (m.model_id, x0, ref, m.block, m.P, m.S, m.wx, m.wy, self.Q, self.L, self.R,
-                m.stride, m.nsplit, zprev)
-        self._evaluate(*args[:3], X, *args[3:], self.poses, self.wear, self.cmds, self.J)
+                m.nsplit, zprev)
+        self._evaluate(*args[:3], X, *args[3:], self.ws, self.J)
         ib = int(np.argmin(self.J))
         self.best_x[:] = X[ib]
         self.best[0] = self.J[ib]
         self.best[1] = 0.0
         tail = (self.sigma, self.lower, self.upper, self.log_sf, self.t_start, self.log_tr,
-                self.restart_every, self.n_restart, I, self.up, self.down, self.poses,
-                self.wear, self.cmds)
+                self.restart_every, self.n_restart, I, self.up, self.down, self.ws)
         state = (X, self.J, self.Xp, self.Jp, self.best_x, self.best, scale, noise, unif)
         if deadline_s is None:
             self._iterate(*args, *state, 0, self._fixed_fracs, *tail)

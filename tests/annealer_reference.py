@@ -23,7 +23,8 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
            iterations: int = 30, deadline_s: float | None = None, sigma_final: float = 0.1,
            t_start: float = 1e-2, t_end: float = 1e-4, restart_every: int = 10,
            init_spread: float = 0.5, include_origin: bool = True, ladder: float = 1.0,
-           adapt_up: float = 1.0, adapt_down: float = 1.0) -> AnnealResult:
+           adapt_up: float = 1.0, adapt_down: float = 1.0,
+           pool: np.ndarray | None = None) -> AnnealResult:
     """Minimise ``cost`` over the box [lower, upper] by simulated annealing.
 
     Parameters
@@ -36,6 +37,8 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
     deadline_s : optional wall-clock budget in seconds; the loop stops at whichever of the
         two budgets comes first.
     ladder, adapt_up, adapt_down : the per-chain step factors (module docstring).
+    pool : optional pool of standard normals the proposals' normals are a window of
+        (as the compiled annealer's: ``controller.sa_kernel.draw_noise``); None: fresh.
     """
     x0 = np.clip(np.asarray(x0, dtype=float), lower, upper)
     D = x0.size
@@ -46,7 +49,12 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
     t0 = time.perf_counter()
     # all random numbers of a solve drawn at once: same seed -> same sequence, whatever
     # the deadline cuts off
-    noise = rng.standard_normal((iterations + 1, chains, D))
+    n = (iterations + 1) * chains * D
+    if pool is not None and n <= pool.shape[0]:
+        off = int(rng.integers(0, pool.shape[0] - n + 1))
+        noise = pool[off:off + n].reshape(iterations + 1, chains, D)
+    else:
+        noise = rng.standard_normal((iterations + 1, chains, D))
     unif = rng.random((iterations, chains))
     scale = ladder_factors(chains, ladder)
     X = x0 + (init_spread * sigma)[None, :] * scale[:, None] * noise[0]

@@ -1,5 +1,5 @@
 """The C reference rollout (controller/mirrors/rollout_ref.c) predicts exactly what the numba kernel
-does: poses, wear powers and first commands of model 0 (Magic Formula) on random states,
+on the math library (controller.rollout.EXACT, the reference of the mirrors) does: poses, wear powers and first commands of model 0 (Magic Formula) on random states,
 references and decision vectors, for 1, 2 and 3 axles.
 
 The strict build (no -ffast-math, no FMA contraction) follows the numba kernel's
@@ -88,7 +88,7 @@ def _both(c, model, x0, ref, Z):
         o = (np.full((B, Np, 3), np.nan), np.full((B, Np, 3), np.nan), np.full((B, 2, nw), np.nan))
         args = (x0, ref, Z, model.block, model.P, model.S, model.wx, model.wy, *o)
         if run == "numba":
-            _ro.rollout_batch(_ro.MODEL_MF, *args)
+            _ro.rollout_batch_exact(_ro.MODEL_MF, *args)  # the math library's kernels
         else:
             c(*args)
         outs.append(o)
