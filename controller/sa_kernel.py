@@ -4,10 +4,12 @@ The algorithm (docs/CONTROLLER.md, "Simulated annealing", says what each choice 
 
 * **Chains**: Metropolis chains; chain 0 starts at the warm start, chain 1 at zero offsets
   (the pure feed-forward), the rest at the warm start plus a Gaussian spread.
-* **One batch per iteration**: each iteration proposes one move per chain, predicts and
+* **One batch per iteration**: each iteration proposes ``proposals`` moves per chain (the
+  MPC fills its tile: ``LANES // chains`` each, at least one), predicts and
   costs all of them (the prediction's ``evaluate``: :mod:`controller.rollout`'s tiles of
   ``LANES`` chains, rollout and cost fused, SIMD across the chains of a tile), then applies
-  the Metropolis test to each.
+  the Metropolis test to each chain's best proposal (with more than one proposal a chain
+  takes the best of several steps of the same scale, as a (1+K) evolution strategy).
 * **Proposals**: Gaussian steps with a per-coordinate scale ``sigma``, times a per-chain
   factor, shrinking geometrically to ``sigma_final`` of their start over the budget, and
   clipped to the box. The per-chain factors start on a geometric ladder from ``ladder``
@@ -118,23 +120,30 @@ def _iterate(model, x0, ref, block, P, S, wx, wy, Q, L, R, nsplit, zprev, X, J, 
     count] is updated in place, as are X, J, best_x and the per-chain step factors
     ``scale``. ``evaluate`` is a global bound by :func:`_make_iterate`."""
     C, D = X.shape
+    K = Xp.shape[0] // C  # proposals per chain
     for i in range(fracs.shape[0]):
         it = it0 + i
         frac = fracs[i]
         sf = math.exp(log_sf * frac)
         for c in range(C):
-            for d in range(D):
-                v = X[c, d] + sigma[d] * sf * scale[c] * noise[it + 1, c, d]
-                Xp[c, d] = min(max(v, lower[d]), upper[d])
+            for q in range(K):
+                p = c * K + q
+                for d in range(D):
+                    v = X[c, d] + sigma[d] * sf * scale[c] * noise[it + 1, p, d]
+                    Xp[p, d] = min(max(v, lower[d]), upper[d])
         evaluate(model, x0, ref, Xp, block, P, S, wx, wy, Q, L, R, nsplit, zprev, ws, Jp)  # noqa: F821
         temp = max(best[0], 1e-12) * t_start * math.exp(log_tr * frac)
         for c in range(C):
-            dJ = Jp[c] - J[c]
+            pb = c * K  # the chain's best proposal (the first of equals)
+            for q in range(1, K):
+                if Jp[c * K + q] < Jp[pb]:
+                    pb = c * K + q
+            dJ = Jp[pb] - J[c]
             if dJ <= 0.0 or unif[it, c] < math.exp(-max(dJ, 0.0) / temp):
                 best[1] += 1.0
                 for d in range(D):
-                    X[c, d] = Xp[c, d]
-                J[c] = Jp[c]
+                    X[c, d] = Xp[pb, d]
+                J[c] = Jp[pb]
                 scale[c] = min(max(scale[c] * up, SCALE_MIN), SCALE_MAX)
             else:
                 scale[c] = min(max(scale[c] * down, SCALE_MIN), SCALE_MAX)
@@ -190,7 +199,7 @@ class CompiledAnnealer:
                  sigma_final: float, t_start: float, t_end: float, parallel: bool = False,
                  restart_every: int = 10, init_spread: float = 0.5, ladder: float = 1.0,
                  adapt_up: float = 1.0, adapt_down: float = 1.0, exact: bool = False,
-                 pool_seed: int = 0):
+                 pool_seed: int = 0, proposals: int = 1):
         self.model = model
         self.Q, self.L, self.R = (np.ascontiguousarray(a, dtype=np.float64) for a in (Q, L, R))
         self.lower = np.ascontiguousarray(lower, dtype=np.float64)
@@ -212,13 +221,16 @@ class CompiledAnnealer:
         self._iterate = ITERATE[(pred.name, bool(parallel))]
         D = model.dim
         C = self.chains
+        self.proposals = K = int(proposals)
+        if K < 1:
+            raise ValueError("anneal: proposals must be >= 1")
         self.X = np.empty((C, D))
-        self.Xp = np.empty((C, D))
+        self.Xp = np.empty((C * K, D))
         self.J = np.empty(C)
-        self.Jp = np.empty(C)
+        self.Jp = np.empty(C * K)
         self.best_x = np.empty(D)
         self.best = np.empty(2)
-        tiles = (C + _ro.LANES - 1) // _ro.LANES
+        tiles = (C * K + _ro.LANES - 1) // _ro.LANES
         self.ws = np.empty((tiles, _ro.workspace_size(model.n_wheels, D)))
         self.pool = noise_pool(pool_seed)
         denom = max(self.iterations - 1, 1)
@@ -226,22 +238,27 @@ class CompiledAnnealer:
 
     def solve(self, x0: np.ndarray, ref: np.ndarray, zprev: np.ndarray, warm: np.ndarray,
               rng: np.random.Generator, deadline_s: float | None = None,
-              origin: np.ndarray | None = None) -> AnnealResult:
+              origin: np.ndarray | None = None,
+              scale0: np.ndarray | None = None) -> AnnealResult:
         """Minimise the horizon cost from ``warm`` (clipped to the box); ``deadline_s``
         optional wall-clock budget; ``origin``: chain 1's start (default the zero vector:
-        the pure feed-forward of the offset parametrisations). Draws exactly the random
-        numbers the reference annealer (``tests/annealer_reference.py``) draws."""
+        the pure feed-forward of the offset parametrisations); ``scale0``: the chains'
+        initial step factors (default the ladder; the MPC passes the previous solve's final
+        factors, :attr:`scale`). Draws exactly the random numbers the reference annealer
+        (``tests/annealer_reference.py``) draws."""
         t0 = time.perf_counter()
         m = self.model
         C, D, I = self.chains, m.dim, self.iterations
-        noise, unif = draw_noise(rng, self.pool, I, C, D)
+        K = self.proposals
+        noise, unif = draw_noise(rng, self.pool, I, C * K, D)
         x0 = np.ascontiguousarray(x0, dtype=np.float64)
         ref = np.ascontiguousarray(ref, dtype=np.float64)
         zprev = np.ascontiguousarray(zprev, dtype=np.float64)
         w = np.clip(np.asarray(warm, dtype=float), self.lower, self.upper)
         X = self.X
-        scale = self.ladder0.copy()
-        X[:] = w + (self.init_spread * self.sigma)[None, :] * scale[:, None] * noise[0]
+        scale = (self.ladder0.copy() if scale0 is None
+                 else np.clip(np.asarray(scale0, dtype=float), SCALE_MIN, SCALE_MAX))
+        X[:] = w + (self.init_spread * self.sigma)[None, :] * scale[:, None] * noise[0, :C]
         X[0] = w
         if C > 1:
             X[1] = np.clip(0.0 if origin is None else origin, self.lower, self.upper)
@@ -278,5 +295,6 @@ class CompiledAnnealer:
                 fr = its / denom if done == 0 else np.maximum(its / denom, el / deadline_s + per * (its - done))
                 self._iterate(*args, *state, done, np.minimum(fr, 1.0), *tail)
                 done += n
-        return AnnealResult(self.best_x.copy(), float(self.best[0]), done, C * (done + 1),
+        self.scale = scale  # the chains' step factors at the end (MPC: the next solve's start)
+        return AnnealResult(self.best_x.copy(), float(self.best[0]), done, C + C * K * done,
                             float(self.best[1]) / max(done * C, 1))

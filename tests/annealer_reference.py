@@ -24,7 +24,7 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
            t_start: float = 1e-2, t_end: float = 1e-4, restart_every: int = 10,
            init_spread: float = 0.5, include_origin: bool = True, ladder: float = 1.0,
            adapt_up: float = 1.0, adapt_down: float = 1.0,
-           pool: np.ndarray | None = None) -> AnnealResult:
+           pool: np.ndarray | None = None, proposals: int = 1) -> AnnealResult:
     """Minimise ``cost`` over the box [lower, upper] by simulated annealing.
 
     Parameters
@@ -37,6 +37,8 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
     deadline_s : optional wall-clock budget in seconds; the loop stops at whichever of the
         two budgets comes first.
     ladder, adapt_up, adapt_down : the per-chain step factors (module docstring).
+    proposals : moves proposed per chain and iteration; the chain's Metropolis test takes
+        the best of them.
     pool : optional pool of standard normals the proposals' normals are a window of
         (as the compiled annealer's: ``controller.sa_kernel.draw_noise``); None: fresh.
     """
@@ -49,15 +51,16 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
     t0 = time.perf_counter()
     # all random numbers of a solve drawn at once: same seed -> same sequence, whatever
     # the deadline cuts off
-    n = (iterations + 1) * chains * D
+    K = int(proposals)
+    n = (iterations + 1) * chains * K * D
     if pool is not None and n <= pool.shape[0]:
         off = int(rng.integers(0, pool.shape[0] - n + 1))
-        noise = pool[off:off + n].reshape(iterations + 1, chains, D)
+        noise = pool[off:off + n].reshape(iterations + 1, chains * K, D)
     else:
-        noise = rng.standard_normal((iterations + 1, chains, D))
+        noise = rng.standard_normal((iterations + 1, chains * K, D))
     unif = rng.random((iterations, chains))
     scale = ladder_factors(chains, ladder)
-    X = x0 + (init_spread * sigma)[None, :] * scale[:, None] * noise[0]
+    X = x0 + (init_spread * sigma)[None, :] * scale[:, None] * noise[0, :chains]
     X[0] = x0
     if include_origin and chains > 1:
         X[1] = np.clip(0.0, lower, upper)
@@ -82,10 +85,12 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
             frac = it / denom
         frac = min(frac, 1.0)
         step = sigma * math.exp(log_sf * frac)
-        Xp = X + step[None, :] * scale[:, None] * noise[it + 1]
+        Xp = np.repeat(X, K, axis=0) + step[None, :] * np.repeat(scale, K)[:, None] * noise[it + 1]
         np.clip(Xp, lower, upper, out=Xp)
         Jp = np.asarray(cost(Xp), dtype=float)
-        evals += chains
+        evals += chains * K
+        pick = np.arange(chains) * K + np.argmin(Jp.reshape(chains, K), axis=1)
+        Xp, Jp = Xp[pick], Jp[pick]
         temp = max(best_J, 1e-12) * t_start * math.exp(log_tr * frac)
         dJ = Jp - J
         ok = (dJ <= 0) | (unif[it] < np.exp(-np.maximum(dJ, 0.0) / temp))
