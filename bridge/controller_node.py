@@ -491,6 +491,7 @@ class ControllerNode:
                 "references": s.references, "ends": s.ends, "rejected": self.rej.summary(),
                 "exit_reason": self.exit_reason,
                 "solver": getattr(self.mpc, "solver_name", "sa"),
+                "budget": self.mpc.budget() if hasattr(self.mpc, "budget") else None,
                 "settings": dataclasses.asdict(self.mpc.settings)}
 
 

@@ -7,6 +7,7 @@ wheel-speed and steering-rate commands inside the bounds of eq. (27).
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -24,6 +25,13 @@ from .models import MPCSettings, make_model
 from .reference import Reference
 
 T_CONTROL = 0.01  # s, the paper's control period
+CARRY_SCALES = True  # each solve starts its chains' step factors where the last one ended
+BUDGET_SOLVES = 20  # timed warm-up solves (MPC.warmup)
+BUDGET_SECONDS = 0.5  # ... for at most this long
+BUDGET_CHECK = 100  # during a run, check the solve p99 every this many solves
+BUDGET_WINDOW = 500  # ... over the last this many
+
+_log = logging.getLogger("msagv.controller")
 
 
 class ControllerError(ValueError):
@@ -77,7 +85,11 @@ class MPC:
                                     self.sigma, chains=s.chains, iterations=s.iterations,
                                     sigma_final=s.sigma_final, t_start=s.t_start,
                                     t_end=s.t_end, parallel=s.threads > 1, ladder=s.ladder,
-                                    adapt_up=s.adapt_up, adapt_down=s.adapt_down)
+                                    adapt_up=s.adapt_up, adapt_down=s.adapt_down,
+                                    pool_seed=s.seed,
+                                    proposals=max(1, _ro.LANES // s.chains))
+        self.warmup_solve_ms: list[float] = []
+        self.budget_warnings: list[str] = []
         self.reset()
 
     # ---- state -------------------------------------------------------------------------
@@ -86,7 +98,9 @@ class MPC:
         self.rng = np.random.default_rng(self.settings.seed)
         self.z = np.zeros(self.model.dim)
         self._fresh = True  # no solution yet: the warm start is the plain feed-forward
+        self._scale = None  # the annealer's step factors: its ladder until a first solve
         self.solve_times_ms: list[float] = []
+        self._run_warned = False
 
     def set_reference(self, reference: Reference) -> None:
         if not isinstance(reference, Reference):
@@ -135,6 +149,7 @@ class MPC:
         om_w, om_s = self.commands_for(x0, R[0], self.z)
         ms = (time.perf_counter() - t0) * 1000.0
         self.solve_times_ms.append(ms)
+        self._check_budget()
         cmd = Command(om_w, om_s, ms, cost, iterations)
         if self.on_solve is not None:
             self.on_solve(state, z_prev, cmd)
@@ -148,7 +163,9 @@ class MPC:
             numba.set_num_threads(min(s.threads, numba.config.NUMBA_NUM_THREADS))
         deadline = None if s.deadline_ms is None else s.deadline_ms / 1000.0 - (time.perf_counter() - t0)
         origin = None if self.model.policy != "raw" else self.model.origin(x0, R[0], self.period)
-        res = self._sa.solve(x0, R, zprev, warm, self.rng, deadline, origin=origin)
+        res = self._sa.solve(x0, R, zprev, warm, self.rng, deadline, origin=origin,
+                             scale0=self._scale if CARRY_SCALES else None)
+        self._scale = self._sa.scale.copy()
         return res.x, res.cost, res.iterations
 
     def commands_for(self, x0: np.ndarray, ref0: np.ndarray, z: np.ndarray):
@@ -178,8 +195,11 @@ class MPC:
         return out.reshape(-1)
 
     def warmup(self, state: Mapping | None = None) -> float:
-        """Compile the kernels (first call) with a throw-away solve; returns its seconds.
-        The warm start and random stream are reset afterwards."""
+        """Compile the kernels (first call) with a throw-away solve, then time up to
+        :data:`BUDGET_SOLVES` solves from the same state (at most :data:`BUDGET_SECONDS`):
+        if their p99 exceeds the control period the controller warns (:meth:`budget`).
+        Returns the seconds it took. The warm start and random stream are reset
+        afterwards; ``on_solve`` does not see these solves."""
         t0 = time.perf_counter()
         ref = self.reference
         if ref is None:
@@ -189,9 +209,59 @@ class MPC:
             "t": 0.0, **{k: v for k, v in ref.initial_state(self.vehicle).items()
                          if not k.startswith("delta")},
             "delta": [0.0] * self.nw}
-        self.step(st, ref)
+        observer, self.on_solve = self.on_solve, None
+        try:
+            self.step(st, ref)
+            times = []
+            t_end = time.perf_counter() + BUDGET_SECONDS
+            t = float(st.get("t", 0.0))
+            for i in range(BUDGET_SOLVES):
+                times.append(self.step(dict(st, t=t + (i + 1) * self.period), ref).solve_ms)
+                if time.perf_counter() > t_end:
+                    break
+        finally:
+            self.on_solve = observer
         self.reset()
+        self.warmup_solve_ms = times
+        p99 = float(np.percentile(times, 99))
+        if p99 > 1000.0 * self.period:
+            self._budget_warning(
+                f"warm-up: solve p99 {p99:.2f} ms over {len(times)} solves exceeds the control "
+                f"period of {1000.0 * self.period:g} ms: this controller cannot keep its period "
+                f"on this machine (fewer iterations or chains, a shorter horizon, or "
+                f"--deadline-ms)")
         return time.perf_counter() - t0
+
+    # ---- the budget ----------------------------------------------------------------------
+    def _budget_warning(self, msg: str) -> None:
+        self.budget_warnings.append(msg)
+        _log.warning("%s", msg)
+
+    def _check_budget(self) -> None:
+        """During a run, every BUDGET_CHECK solves: warn (once) when the p99 of the last
+        BUDGET_WINDOW solves exceeds the control period."""
+        n = len(self.solve_times_ms)
+        if n % BUDGET_CHECK or self._run_warned:
+            return
+        p99 = float(np.percentile(self.solve_times_ms[-BUDGET_WINDOW:], 99))
+        if p99 > 1000.0 * self.period:
+            self._run_warned = True
+            self._budget_warning(
+                f"solve p99 {p99:.2f} ms over the last {min(n, BUDGET_WINDOW)} solves exceeds "
+                f"the control period of {1000.0 * self.period:g} ms")
+
+    def budget(self) -> dict:
+        """The controller's time budget as measured: the control period, the solve-time
+        percentiles of the warm-up solves and of the run so far [ms], whether either p99
+        exceeds the period, and the warnings given."""
+        from .metrics import percentiles
+
+        period = 1000.0 * self.period
+        warm = percentiles(self.warmup_solve_ms) if self.warmup_solve_ms else None
+        run = percentiles(self.solve_times_ms) if self.solve_times_ms else None
+        over = any(p is not None and p["p99"] > period for p in (warm, run))
+        return {"period_ms": period, "warmup_solve_ms": warm, "run_solve_ms": run,
+                "over_period": bool(over), "warnings": list(self.budget_warnings)}
 
 
 class FeedForward(MPC):

@@ -119,7 +119,8 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     info = scenario_info(scenario, vehicle, ref, settings, built.duration)
     late = solve_time_warnings(log.solve_ms, scenario.period)
     warn(prog, late)
-    warnings = list(built.warnings) + late
+    budget = built.controller.budget() if hasattr(built.controller, "budget") else None
+    warnings = list(built.warnings) + (budget["warnings"] if budget else []) + late
     if interrupted:
         done = len(log.t) * scenario.period
         warnings.append(f"interrupted after {done:.2f} s of {built.duration:g} s: the metrics "
@@ -128,6 +129,8 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     m = log.metrics()
     wear = log.wheel_wear()  # per wheel and per axle
     doc = result(prog.split(" ", 1)[1], info, m, warnings, completed=not interrupted, wear=wear)
+    if budget is not None:
+        doc["budget"] = budget  # the controller's time budget (controller.mpc.MPC.budget)
     if a.log:
         log.to_csv(a.log)
     if a.plot:
