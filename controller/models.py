@@ -49,8 +49,10 @@ class MPCSettings:
         saturated pose feedback.
       offset_w_max [rad/s], offset_d_max [rad]: box of the decision offsets.
     Annealer:
-      chains, iterations: fixed budget (deterministic). deadline_ms: optional wall-clock
-        budget per solve (anytime). seed: the random generator's seed.
+      chains, iterations: fixed budget (deterministic); each chain proposes
+        max(1, LANES // chains) moves per iteration (controller.rollout.LANES = 8: one
+        SIMD tile) and takes the best. deadline_ms: optional wall-clock budget per solve
+        (anytime). seed: the random generator's seed.
       sigma_w [rad/s], sigma_d [rad]: initial proposal scales; sigma_final: their final
         fraction; t_start, t_end: relative temperatures; ladder: the smallest initial
         per-chain step factor (chains start on a geometric ladder from it to 1);
@@ -87,7 +89,7 @@ class MPCSettings:
     r_fb_max: float = 0.3
     offset_w_max: float = 3.0
     offset_d_max: float = 0.3
-    chains: int = 8
+    chains: int = 2
     iterations: int = 40
     deadline_ms: float | None = None
     seed: int = 0
