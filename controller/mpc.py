@@ -26,6 +26,7 @@ from .reference import Reference
 
 T_CONTROL = 0.01  # s, the paper's control period
 CARRY_SCALES = True  # each solve starts its chains' step factors where the last one ended
+RESTART_EVERY = 5  # the worst quarter of the chains restarts from the best every 5 iterations
 BUDGET_SOLVES = 20  # timed warm-up solves (MPC.warmup)
 BUDGET_SECONDS = 0.5  # ... for at most this long
 BUDGET_CHECK = 100  # during a run, check the solve p99 every this many solves
@@ -87,7 +88,8 @@ class MPC:
                                     t_end=s.t_end, parallel=s.threads > 1, ladder=s.ladder,
                                     adapt_up=s.adapt_up, adapt_down=s.adapt_down,
                                     pool_seed=s.seed,
-                                    proposals=max(1, _ro.LANES // s.chains))
+                                    proposals=max(1, _ro.LANES // s.chains),
+                                    restart_every=RESTART_EVERY)
         self.warmup_solve_ms: list[float] = []
         self.budget_warnings: list[str] = []
         self.reset()

@@ -244,7 +244,8 @@ def test_compiled_annealer_equals_the_generic_one_on_the_mpc_cost(threads):
     want = anneal(cost, warm, mpc.lower, mpc.upper, mpc.sigma, np.random.default_rng(5),
                   chains=s.chains, iterations=s.iterations, sigma_final=s.sigma_final,
                   t_start=s.t_start, t_end=s.t_end, ladder=s.ladder, adapt_up=s.adapt_up,
-                  adapt_down=s.adapt_down, pool=mpc._sa.pool, proposals=mpc._sa.proposals)
+                  adapt_down=s.adapt_down, pool=mpc._sa.pool, proposals=mpc._sa.proposals,
+                  restart_every=mpc._sa.restart_every)
     assert got.cost == pytest.approx(want.cost, rel=1e-12)
     assert np.allclose(got.x, want.x, rtol=0, atol=1e-12)
     assert got.iterations == want.iterations == 25
