@@ -48,7 +48,7 @@ def run_once(n_axles: int, seconds: float, settings=None) -> dict:
     return {"solve_ms": list(log.solve_ms), "e_bar": log.metrics()["e_bar"]}
 
 
-def bench_controller(axles=(2, 4, 6), seconds: float = 5.0, repeats: int = 3,
+def bench_controller(axles=(2, 4, 6, 8), seconds: float = 5.0, repeats: int = 3,
                      settings=None) -> dict:
     """Solve-time percentiles per axle count (see the module docstring)."""
     from controller import MPCSettings
@@ -88,7 +88,7 @@ def bench_controller(axles=(2, 4, 6), seconds: float = 5.0, repeats: int = 3,
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.controller_bench",
                                  description=__doc__.splitlines()[0])
-    ap.add_argument("--axles", default="2,4,6", help="comma-separated axle counts")
+    ap.add_argument("--axles", default="2,4,6,8", help="comma-separated axle counts")
     ap.add_argument("--seconds", type=float, default=5.0, help="vehicle seconds per run")
     ap.add_argument("--repeats", type=int, default=3)
     a = ap.parse_args(argv)

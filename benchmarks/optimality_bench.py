@@ -40,14 +40,15 @@ def _scenario(case: str, speed: float, settings=None, **kw):
                     settings={} if settings is None else asdict(settings), **kw)
 
 
-def sample_states(n_states: int, settings=None, seconds: float = 6.0) -> list[dict]:
-    """``n_states`` samples ``{case, speed, k, state, z}`` spread evenly over the runs."""
+def sample_states(n_states: int, settings=None, seconds: float = 6.0, vehicle=None) -> list[dict]:
+    """``n_states`` samples ``{case, speed, k, state, z}`` spread evenly over the runs
+    (``vehicle``: the paper's by default)."""
     from controller.loop import closed_loop
 
     per_run = int(np.ceil(n_states / len(RUNS)))
     out = []
     for case, speed in RUNS:
-        b = _scenario(case, speed, settings).build()
+        b = _scenario(case, speed, settings, **({} if vehicle is None else {"vehicle": vehicle})).build()
         dur = min(seconds, b.reference.duration)
         n = int(round(dur / T))
         pick = set(np.linspace(5, n - 1, per_run).astype(int).tolist())
@@ -67,25 +68,45 @@ def sample_states(n_states: int, settings=None, seconds: float = 6.0) -> list[di
     return out[:n_states]
 
 
-def _solvers(settings, solver: str = "sa", options=None) -> dict:
-    """One controller per run of :data:`RUNS` on the paper vehicle; ``options``: IPOPT's."""
+def _solvers(settings, solver: str = "sa", options=None, vehicle=None) -> dict:
+    """One controller per run of :data:`RUNS` on ``vehicle`` (the paper's by default);
+    ``options``: IPOPT's."""
     out = {}
     for c, sp in RUNS:
-        sc = _scenario(c, sp, settings, solver=solver)
+        sc = _scenario(c, sp, settings, solver=solver,
+                       **({} if vehicle is None else {"vehicle": vehicle}))
         out[(c, sp)] = sc.make_controller(sc.resolve_vehicle(), sc.reference()[0],
                                           options=options)
     return out
 
 
-def bench_optimality(n_states: int = 200, settings=None) -> dict:
+def bench_optimality(n_states: int = 200, settings=None, axles=(2,),
+                     states_other: int | None = None) -> dict:
+    """The annealer against IPOPT per axle count (2: the paper's vehicle, others its
+    ``plant.n_axle_vehicle`` relatives): ``n_states`` states for the first axle count,
+    ``states_other`` (default the same) for the others (IPOPT to convergence on 8 axles
+    takes seconds per state). The first axle count's figures are also at the top level."""
+    out = None
+    for i, n in enumerate(axles):
+        r = _bench_optimality_axles(n, n_states if i == 0 or states_other is None
+                                    else states_other, settings)
+        if out is None:
+            out = dict(r, axles={})
+        out["axles"][str(n)] = r
+    return out
+
+
+def _bench_optimality_axles(n_axles: int, n_states: int, settings=None) -> dict:
     from controller import MPCSettings
     from controller.ipopt import REFERENCE_OPTIONS
+    from plant import default_vehicle, n_axle_vehicle
 
     s = settings or MPCSettings()
     t0 = time.perf_counter()
-    samples = sample_states(n_states, s)
-    sa = _solvers(s)
-    ip = _solvers(s, solver="ipopt", options=REFERENCE_OPTIONS)
+    vehicle = default_vehicle() if n_axles == 2 else n_axle_vehicle(n_axles)
+    samples = sample_states(n_states, s, vehicle=vehicle)
+    sa = _solvers(s, vehicle=vehicle)
+    ip = _solvers(s, solver="ipopt", options=REFERENCE_OPTIONS, vehicle=vehicle)
     for m in sa.values():
         m.warmup()
     rows = []
@@ -94,6 +115,7 @@ def bench_optimality(n_states: int = 200, settings=None) -> dict:
         m = sa[key]
         m.rng = np.random.default_rng(1000 + i)
         m.z = smp["z"].copy()
+        m._scale = None  # the chains' step factors from the ladder (not another state's)
         c_sa = m.step(smp["state"])
         q = ip[key]
         q.z = smp["z"].copy()
@@ -116,7 +138,7 @@ def bench_optimality(n_states: int = 200, settings=None) -> dict:
             per_run[f"{c} {sp:g} km/h"] = {"ratio_p50": float(np.median(rr)),
                                             "ratio_p90": float(np.percentile(rr, 90)),
                                             "n": int(rr.size)}
-    return {"states": len(rows), "ratio_p50": float(np.median(r)),
+    return {"axles_n": n_axles, "states": len(rows), "ratio_p50": float(np.median(r)),
             "ratio_p90": float(np.percentile(r, 90)), "ratio_max": float(r.max()),
             "ratio_min": float(r.min()), "sa_better": int(np.sum(r < 1.0 - 1e-9)),
             "ipopt_ms": {"p50": float(np.median(ipms)), "p99": float(np.percentile(ipms, 99)),
@@ -196,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.optimality_bench",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("--states", type=int, default=200)
+    ap.add_argument("--axles", default="2", help="comma-separated axle counts")
+    ap.add_argument("--states-other", type=int, default=None,
+                    help="states for the axle counts after the first (default: --states)")
     ap.add_argument("--rows", action="store_true", help="include every sample's costs")
     ap.add_argument("--ablation", action="store_true",
                     help="compare the annealer variants of docs/CONTROLLER.md instead "
@@ -208,9 +233,12 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['ratio_p90']:.3f} | {r['ratio_max']:.3f} |")
         print(json.dumps(res, indent=2))
         return 0
-    res = bench_optimality(a.states)
+    res = bench_optimality(a.states, axles=tuple(int(x) for x in a.axles.split(",") if x.strip()),
+                           states_other=a.states_other)
     if not a.rows:
         res.pop("rows")
+        for r in res["axles"].values():
+            r.pop("rows", None)
     print(json.dumps(res, indent=2))
     return 0
 

@@ -5,9 +5,12 @@ Formula tires, linearly implicit trapezoidal step) on one batch of candidate dec
 vectors, as the annealer makes once per iteration: ``batch`` = the default
 :class:`controller.MPCSettings` chain count, its ``N_p`` and ``dt``. Implementations:
 
-* ``numba_serial``: :func:`controller.rollout.rollout_batch` (the controller's default);
-* ``numba_parallel``: :func:`controller.rollout.rollout_batch_parallel`, numba threads =
-  the cores available to this process;
+* ``numba_simd``: :data:`controller.rollout.FAST`'s ``rollout_batch``, the controller's
+  prediction (tiles of ``LANES`` candidates in structure-of-arrays form, SIMD across them,
+  the vectorisable transcendentals of :mod:`controller.approx`), one thread;
+* ``numba_simd_parallel``: the same, its tiles over numba's threads (the cores available);
+* ``numba_serial``: :data:`controller.rollout.EXACT`'s ``rollout_batch``, the same kernels
+  on the math library's functions (scalar calls: no SIMD), one thread;
 * ``c_fast``: ``controller/mirrors/rollout_ref.c`` (the same prediction, operation for
   operation; its indices from a header generated from :mod:`plant.layout`),
   ``gcc -O3 -march=native -ffast-math`` (numba compiles these kernels with fastmath and
@@ -259,7 +262,7 @@ def _outputs(rows: int, Np: int, nw: int):
     return (np.empty((rows, Np, 3)), np.empty((rows, Np, 3)), np.empty((rows, 2, nw)))
 
 
-def bench_rollout(axles=(2, 4, 6), batch: int | None = None, repeats: int = 2000,
+def bench_rollout(axles=(2, 4, 6, 8), batch: int | None = None, repeats: int = 2000,
                   warmup: int = 200, rounds: int = 5, seed: int = 0) -> dict:
     """Time one batch-rollout call for each axle count and implementation.
 
@@ -341,8 +344,9 @@ def bench_rollout(axles=(2, 4, 6), batch: int | None = None, repeats: int = 2000
             return [partial(c.fn, Z.shape[0], nw, Np, x0, ref, Z, D, cblock, P, S, wx, wy,
                             *outs) for Z in Zlist]
 
-        makers = {"numba_serial": partial(numba_thunks, _ro.rollout_batch),
-                  "numba_parallel": partial(numba_thunks, _ro.rollout_batch_parallel)}
+        makers = {"numba_serial": partial(numba_thunks, _ro.EXACT.rollout_batch),
+                  "numba_simd": partial(numba_thunks, _ro.FAST.rollout_batch),
+                  "numba_simd_parallel": partial(numba_thunks, _ro.FAST.rollout_batch_parallel)}
         for name, c in c_impls.items():
             if c is not None:
                 makers[name] = partial(c_thunks, c)
@@ -391,7 +395,7 @@ def bench_rollout(axles=(2, 4, 6), batch: int | None = None, repeats: int = 2000
 
         wheel_steps = batch * Np * nw
         impls: dict[str, dict | None] = {}
-        for name in ("numba_serial", "numba_parallel", *c_impls):
+        for name in ("numba_simd", "numba_simd_parallel", "numba_serial", *c_impls):
             if name not in makers:
                 impls[name] = None
                 continue
@@ -421,9 +425,9 @@ def bench_rollout(axles=(2, 4, 6), batch: int | None = None, repeats: int = 2000
                     "compute_p50": cb / ca if ca and cb else None}
 
         ratios = {f"{a}/{b}": ratio(a, b) for a, b in (
-            ("c_fast", "numba_serial"), ("c_strict", "numba_serial"),
-            ("c_fast", "numba_parallel"), ("c_strict", "numba_parallel"),
-            ("numba_parallel", "numba_serial"), ("c_fast", "c_strict"))}
+            ("numba_simd", "c_strict"), ("numba_simd", "c_fast"), ("numba_simd", "numba_serial"),
+            ("numba_simd_parallel", "numba_simd"), ("c_fast", "numba_serial"),
+            ("c_strict", "numba_serial"), ("c_fast", "c_strict"))}
         out["axles"][str(n)] = {"n_wheels": nw, "dim": D, "wheel_steps_per_call": wheel_steps,
                                 "impls": impls, "ratios": ratios, "agreement": agreement}
     try:
@@ -435,7 +439,7 @@ def bench_rollout(axles=(2, 4, 6), batch: int | None = None, repeats: int = 2000
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="rollout_bench", description=__doc__.splitlines()[0])
-    ap.add_argument("--axles", default="2,4,6", help="comma-separated axle counts")
+    ap.add_argument("--axles", default="2,4,6,8", help="comma-separated axle counts")
     ap.add_argument("--repeats", type=int, default=2000, help="timed calls per implementation")
     ap.add_argument("--batch", type=int, default=None, help="candidates per call "
                     "(default: MPCSettings().chains)")

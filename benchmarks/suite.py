@@ -4,13 +4,15 @@ Sections (each is also its own module, runnable with ``python -m benchmarks.<nam
 
 * ``plant``: real-time factor of the stepping plant (Dormand-Prince, rtol 1e-8, T = 0.01 s)
   for 2 / 4 / 6 axles (:mod:`benchmarks.plant_bench`);
-* ``rollout``: predicted wheel-steps per second of the batch rollout, numba serial and
-  parallel against a single-thread C implementation of the same equations
+* ``rollout``: predicted wheel-steps per second of the batch rollout, the SIMD prediction
+  (one thread and all cores) and the same kernels on the math library, against a
+  single-thread C implementation of the same equations, per axle count (2 / 4 / 6 / 8)
   (:mod:`benchmarks.rollout_bench`);
-* ``controller``: SA-MPC solve time p50 / p99 / max in the closed loop, 2 / 4 / 6 axles
+* ``controller``: SA-MPC solve time p50 / p99 / max in the closed loop, 2 / 4 / 6 / 8 axles
   (:mod:`benchmarks.controller_bench`);
 * ``optimality``: the annealer's cost over IPOPT's converged cost on states sampled from
-  closed-loop runs of Cases 1 and 2 (:mod:`benchmarks.optimality_bench`; needs CasADi);
+  closed-loop runs of Cases 1 and 2, 2 / 4 / 6 / 8 axles (200 states for 2, 40 for the
+  others) (:mod:`benchmarks.optimality_bench`; needs CasADi);
 * ``transport``: Zenoh state-to-command round trip without a solve, at 100 Hz, between
   two processes (:mod:`benchmarks.transport_bench`);
 * ``fmu``: the plant FMU stepped by fmpy against the native plant, per step
@@ -57,7 +59,8 @@ def run_section(name: str, quick: bool) -> dict:
     if name == "controller":
         from .controller_bench import bench_controller
 
-        r = bench_controller(seconds=0.5 if quick else 5.0, repeats=1 if quick else 3)
+        r = bench_controller(axles=(2, 4, 6, 8), seconds=0.5 if quick else 5.0,
+                             repeats=1 if quick else 3)
         return {n: {"solve_ms": a["solve_ms"], "detail": a} for n, a in r["axles"].items()} | \
             {"settings": r["settings"]}
     if name == "optimality":
@@ -67,8 +70,11 @@ def run_section(name: str, quick: bool) -> dict:
             return {"skipped": "CasADi is not installed (pip install 'msagv[ipopt]')"}
         from .optimality_bench import bench_optimality
 
-        r = bench_optimality(8 if quick else 200)
+        r = bench_optimality(8 if quick else 200, axles=(2, 4, 6, 8),
+                             states_other=4 if quick else 40)
         r.pop("rows", None)
+        for a in r["axles"].values():
+            a.pop("rows", None)
         return r
     if name == "transport":
         from .transport_bench import bench_transport
@@ -92,9 +98,10 @@ def _summary(name: str, r: dict) -> str:
                  f"max {a['solve_ms']['max']:.2f} ms" for n, a in r.items() if n.isdigit()]
         return f"{name:<11} solve " + "; ".join(parts)
     if name == "optimality":
-        return (f"{name:<11} annealer / IPOPT cost p50 {r['ratio_p50']:.4f} p90 "
-                f"{r['ratio_p90']:.4f} over {r['states']} states; IPOPT p50 "
-                f"{r['ipopt_ms']['p50']:.1f} ms")
+        return f"{name:<11} annealer / IPOPT cost " + "; ".join(
+            f"{n} axles p50 {a['ratio_p50']:.4f} p90 {a['ratio_p90']:.4f} ({a['states']} states, "
+            f"annealer p99 {a['sa_ms']['p99']:.2f} ms, IPOPT p50 {a['ipopt_ms']['p50']:.0f} ms)"
+            for n, a in r.get("axles", {"2": r}).items())
     if name == "transport":
         return (f"{name:<11} round trip p50 {r['p50_ms']:.3f} p99 {r['p99_ms']:.3f} max "
                 f"{r['max_ms']:.3f} ms, lost {r['lost']} of {r['sent']}")
@@ -104,13 +111,13 @@ def _summary(name: str, r: dict) -> str:
     if name == "rollout":
         lines = []
         for n, a in r.get("axles", {}).items():
-            ns = a["impls"].get("numba_serial") or {}
-            c = a["impls"].get("c_fast")
+            ns = a["impls"].get("numba_simd") or {}
+            c = a["impls"].get("c_strict")
             thr = ns.get("wheel_steps_per_s")
-            txt = f"{n} axles numba {thr / 1e6:.2f} M wheel-steps/s" if thr else f"{n} axles"
+            txt = f"{n} axles SIMD {thr / 1e6:.1f} M wheel-steps/s" if thr else f"{n} axles"
             if c and thr:
-                txt += (f", C {c['wheel_steps_per_s'] / 1e6:.2f} M (C/numba "
-                        f"{c['wheel_steps_per_s'] / thr:.2f}x)")
+                txt += (f", C strict {c['wheel_steps_per_s'] / 1e6:.1f} M (SIMD/C "
+                        f"{thr / c['wheel_steps_per_s']:.2f}x)")
             lines.append(txt)
         return f"{name:<11} " + "; ".join(lines)
     return name
