@@ -3,11 +3,12 @@
 :class:`IpoptMPC` solves the *same* decision problem as :class:`controller.mpc.MPC`: the
 offsets vector ``z`` (``n_blocks * 4n`` entries, the same box bounds), pushed through the
 same policy (:func:`controller.rollout.commands_from_policy`) and the same MF prediction
-(:func:`controller.rollout._simulate`, model 0), with the same cost
+(:data:`controller.rollout.EXACT`'s kernels, model 0), with the same cost
 (:func:`controller.rollout.batch_cost`, eq. 22-26 plus the regularisation R). The rollout and
 cost are written again symbolically (CasADi SX), operation for operation, in the mirror
 :mod:`controller.mirrors.casadi_rollout`, so IPOPT gets exact first and second derivatives;
-``tests/test_ipopt.py`` checks that the mirror reproduces the numba rollout to 1e-9. This
+``tests/test_ipopt.py`` checks that the mirror reproduces the numba rollout (the math
+library's, ``EXACT``) to 1e-9. This
 module builds the NLP from the mirror and solves it (:class:`HorizonNLP`,
 :class:`IpoptMPC`).
 

@@ -1,4 +1,5 @@
-"""MIRRORS: second implementations of :mod:`controller.rollout` that must stay copies.
+"""MIRRORS: second implementations of :mod:`controller.rollout` that must stay copies (of
+its math-library build, :data:`controller.rollout.EXACT`).
 
 Everything else in the project has one implementation per equation; these two cannot:
 

@@ -3,9 +3,9 @@
 IPOPT needs exact first and second derivatives of the horizon problem, which numba's
 kernels cannot give, so the policy, the MF prediction (linearly implicit trapezoidal
 step) and the cost are written here again, operation for operation, with CasADi
-operations: :func:`symbolic_rollout` mirrors :func:`controller.rollout._simulate` with
-``model = MODEL_MF`` (:func:`_policy` mirrors ``commands_from_policy``, the tire block
-``_tire_mf`` with :mod:`plant.tire`'s slip, Magic Formula and wear functions), and
+operations: :func:`symbolic_rollout` mirrors the prediction of :data:`controller.rollout.EXACT`
+with ``model = MODEL_MF`` (:func:`_policy` mirrors ``commands_from_policy``, the tire block
+``tire_forces`` with :mod:`plant.tire`'s slip, Magic Formula and wear functions), and
 :func:`symbolic_cost` mirrors ``candidate_cost`` term by term. The indices are
 :mod:`plant.layout`'s. Pinned to the numba kernels by ``tests/test_ipopt.py`` (poses,
 wear powers and first commands to 1e-9 relative; the cost to 1e-9): a change to one side
@@ -179,7 +179,7 @@ def symbolic_rollout(x0, ref, z, block, P, S, wx, wy, eps=0.0):
             vby_w = vb + r * wx[j]  # eq. (7)
             vwx = cd * vbx_w + sd * vby_w  # eq. (8)
             vwy = -sd * vbx_w + cd * vby_w
-            # tire (controller.rollout._tire_mf)
+            # tire (controller.rollout.tire_forces, Magic Formula)
             d2 = vwx * vwx + v_eps * v_eps
             d = ca.sqrt(d2)
             slip = om_w[j] * r_w - vwx

@@ -3,10 +3,12 @@
  * (MODEL_MF: Magic Formula tires, linearly implicit trapezoidal velocity step).
  *
  * Written operation for operation after the numba kernels commands_from_policy,
- * _tire_mf (with plant/tire.py's slip_ratio, slip_angle, slip_jacobian,
- * magic_formula_and_slope and wear powers), _solve3, _rigid_body_step and _simulate
+ * tire_forces (with plant/tire.py's slip_ratio, slip_angle, slip_jacobian,
+ * magic_formula_and_slope and wear powers), _solve3, wheel_terms, rigid_body_update and tile
  * (model 0), with the same expression order, so that a build without -ffast-math
- * reproduces the numba result to rounding. Used by benchmarks/rollout_bench.py (the
+ * reproduces the numba result to rounding (the numba kernels multiply by the reciprocals
+ * of dt, r_w and the slip denominators where this divides: a few ulp apart, 1e-14 in the
+ * benchmark's agreement). Used by benchmarks/rollout_bench.py (the
  * throughput the hardware allows) and pinned by tests/test_rollout_ref.py (equivalence).
  *
  * The indices into P, S, x0, ref and the outputs are plant/layout.py's names, from the
@@ -144,7 +146,7 @@ static inline void rr_mf_and_slope(double xi, double B, double C, double D, doub
     *df = D * cos(ca) * C * darg / (1.0 + arg * arg);
 }
 
-/* controller.rollout._tire_mf (plant.tire's slip_ratio, slip_angle, slip_jacobian).
+/* controller.rollout.tire_forces, MF (plant.tire's slip_ratio, slip_angle, slip_jacobian).
  * out = (Fx, Fy, dFx/dvwx, dFx/dvwy, dFy/dvwx, dFy/dvwy, slip s, slip angle alpha). */
 static inline void rr_tire_wheel_mf(double vwx, double vwy, double omw, double FN,
                                     const double *P, double *out)
@@ -173,7 +175,7 @@ static inline void rr_tire_wheel_mf(double vwx, double vwy, double omw, double F
     out[7] = al;
 }
 
-/* controller.rollout._simulate with model == 0 (_rigid_body_step), for one candidate z (D,).
+/* controller.rollout's tile with model == 0 (wheel_terms, rigid_body_update), for one candidate z (D,).
  * delta, om_w, om_s: caller-provided work arrays of nw entries. */
 static inline void rr_simulate_mf(int nw, int Np, const double *x0, const double *ref,
                                   const double *z, const long *block, const double *P,
