@@ -160,7 +160,8 @@ ABLATION = (
     ("20 x 24, ladder + adaptation", 20, 24, 0.05, 1.5, 0.7, 10),
     ("8 x 60, ladder + adaptation", 8, 60, 0.05, 1.5, 0.7, 10),
     ("4 x 120, ladder + adaptation", 4, 120, 0.05, 1.5, 0.7, 10),
-    ("2 x 240, ladder + adaptation (default)", 2, 240, 0.05, 1.5, 0.7, 10),
+    ("2 x 240, ladder + adaptation (the default before the SIMD prediction)", 2, 240, 0.05, 1.5,
+     0.7, 10),
     ("2 x 240, ladder + adaptation, no restarts", 2, 240, 0.05, 1.5, 0.7, 0),
 )
 

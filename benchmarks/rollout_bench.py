@@ -344,9 +344,11 @@ def bench_rollout(axles=(2, 4, 6, 8), batch: int | None = None, repeats: int = 2
             return [partial(c.fn, Z.shape[0], nw, Np, x0, ref, Z, D, cblock, P, S, wx, wy,
                             *outs) for Z in Zlist]
 
-        makers = {"numba_serial": partial(numba_thunks, _ro.EXACT.rollout_batch),
-                  "numba_simd": partial(numba_thunks, _ro.FAST.rollout_batch),
-                  "numba_simd_parallel": partial(numba_thunks, _ro.FAST.rollout_batch_parallel)}
+        kind = _ro.step_kind(_ro.MODEL_MF, P)  # the compiled kernels, called directly
+        fast, exact = _ro.FAST.kernels[kind], _ro.EXACT.kernels[kind]
+        makers = {"numba_serial": partial(numba_thunks, exact["rollout_batch"]),
+                  "numba_simd": partial(numba_thunks, fast["rollout_batch"]),
+                  "numba_simd_parallel": partial(numba_thunks, fast["rollout_batch_parallel"])}
         for name, c in c_impls.items():
             if c is not None:
                 makers[name] = partial(c_thunks, c)

@@ -272,16 +272,50 @@ def workspace_size(nw, dim):
     return (N_FIXED_ROWS + nw + dim) * LANES
 
 
-class Prediction(NamedTuple):
-    """The prediction's kernels built over one set of primitives (:func:`make_prediction`)."""
+KINDS = ("kin", "rigid", "rigid_e0", "dugoff")  # the kernels' variants per kind of step
 
-    name: str
-    commands_from_policy: object
-    tile: object
-    rollout_batch: object
-    rollout_batch_parallel: object
-    evaluate_serial: object
-    evaluate_parallel: object
+
+def step_kind(model: int, P) -> str:
+    """The kind of step (:data:`KINDS`) the kernels of ``model`` use with parameters ``P``:
+    the kinematic step, the rigid body with Dugoff tires, or with Magic Formula tires
+    (``rigid_e0`` when the longitudinal curvature E is 0, which drops an arc tangent)."""
+    if model == MODEL_KINEMATIC:
+        return "kin"
+    if model == MODEL_DUGOFF:
+        return "dugoff"
+    return "rigid_e0" if P[P_LON_E] == 0.0 else "rigid"
+
+
+class Prediction:
+    """The prediction's kernels built over one set of primitives (:func:`make_prediction`),
+    one compiled variant per kind of step (:func:`step_kind`), each compiled on first use
+    (a variant holds one wheel loop: compiling all four for every use cost minutes).
+
+    ``rollout_batch(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds)`` (and
+    ``rollout_batch_parallel``) and ``evaluate_serial`` / ``evaluate_parallel`` (``(model,
+    x0, ref, Z, block, P, S, wx, wy, Q, L, R, nsplit, zprev, ws, J)``) pick the variant;
+    ``kernels[kind]`` holds each variant's compiled ``tile``, ``rollout_batch``,
+    ``rollout_batch_parallel``, ``evaluate_serial`` and ``evaluate_parallel``."""
+
+    def __init__(self, name: str, commands_from_policy, kernels: dict):
+        self.name = name
+        self.commands_from_policy = commands_from_policy
+        self.kernels = kernels
+
+    def _k(self, model, P, what):
+        return self.kernels[step_kind(model, P)][what]
+
+    def rollout_batch(self, model, x0, ref, Z, block, P, S, *rest):
+        return self._k(model, P, "rollout_batch")(model, x0, ref, Z, block, P, S, *rest)
+
+    def rollout_batch_parallel(self, model, x0, ref, Z, block, P, S, *rest):
+        return self._k(model, P, "rollout_batch_parallel")(model, x0, ref, Z, block, P, S, *rest)
+
+    def evaluate_serial(self, model, x0, ref, Z, block, P, *rest):
+        return self._k(model, P, "evaluate_serial")(model, x0, ref, Z, block, P, *rest)
+
+    def evaluate_parallel(self, model, x0, ref, Z, block, P, *rest):
+        return self._k(model, P, "evaluate_parallel")(model, x0, ref, Z, block, P, *rest)
 
 
 # ---- the policy, per candidate (scalars in, scalars out) ----------------------------
@@ -615,14 +649,12 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
     policy = int(S[S_POLICY])
     raw = policy == POLICY_RAW
     twist = policy == POLICY_TWIST
-    kin = model == MODEL_KINEMATIC
-    dug = model == MODEL_DUGOFF
+    kin = KINEMATIC  # the kind of step this tile is bound to (make_prediction)
     tct = model == MODEL_TCT
     m, Iz, r_w, v_eps = P[P_MASS], P[P_YAW_INERTIA], P[P_WHEEL_RADIUS], P[P_V_EPS]
     k_t = P[P_K_T]
     FN = m * P[P_G] / nw  # Assumption 2
     lonB, lonC, lonD, lonE = P[P_LON_B], P[P_LON_C], P[P_LON_MU] * FN, P[P_LON_E]
-    lon_e0 = lonE == 0.0
     latB, latC, latD, latE = P[P_LAT_B], P[P_LAT_C], P[P_LAT_MU] * FN, P[P_LAT_E]
     C_s, C_a, mu = P[P_DUGOFF_C_S], P[P_DUGOFF_C_ALPHA], P[P_DUGOFF_MU]
     dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
@@ -723,23 +755,9 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
                     w[W_DEL * L + b] = w[(wdel + j) * L + b]
                     w[W_ZW * L + b] = w[jw + b]
                     w[W_ZD * L + b] = w[jd + b]
-            if kin:
-                wheel_loop_kin(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB, lonC,
-                               lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu, dmin, dmax,
-                               cmin, smin, cmax, smax, w_max, ws_min, ws_max, kservo)
-            elif dug:
-                wheel_loop_dugoff(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB,
-                                  lonC, lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu, dmin,
-                                  dmax, cmin, smin, cmax, smax, w_max, ws_min, ws_max, kservo)
-            elif lon_e0:
-                wheel_loop_rigid_e0(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB,
-                                    lonC, lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu,
-                                    dmin, dmax, cmin, smin, cmax, smax, w_max, ws_min, ws_max,
-                                    kservo)
-            else:
-                wheel_loop_rigid(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB,
-                                 lonC, lonD, lonE, latB, latC, latD, latE, C_s, C_a, mu, dmin,
-                                 dmax, cmin, smin, cmax, smax, w_max, ws_min, ws_max, kservo)
+            wheel_loop(w, raw, tct, wx[j], wy[j], dt, FN, k_t, r_w, v_eps, lonB, lonC, lonD,  # noqa: F821
+                       lonE, latB, latC, latD, latE, C_s, C_a, mu, dmin, dmax, cmin, smin, cmax,
+                       smax, w_max, ws_min, ws_max, kservo)
             for b in range(L):
                 w[(wdel + j) * L + b] = w[W_DEL * L + b]
             if out and k == 0:
@@ -747,7 +765,7 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
                     cmds[b0 + b, CMD_W, j] = w[W_OMW * L + b]
                     cmds[b0 + b, CMD_S, j] = w[W_OMS * L + b]
         rx1, ry1, rphi1 = ref[k + 1, REF_X], ref[k + 1, REF_Y], ref[k + 1, REF_PHI]
-        if kin:
+        if KINEMATIC:
             for b in range(L):  # vectorised: the kinematic body
                 x, y, phi, vx, vy, r = kinematic_update(
                     w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], nw, sx, sy, sxx, syy,
@@ -841,8 +859,7 @@ def evaluate(model, x0, ref, Z, block, P, S, wx, wy, Q, Lw, R, nsplit, zprev, ws
             J[b0 + b] = w[W_J * L + b]
 
 
-KINEMATIC = DUGOFF = LON_E0 = False  # bound per wheel loop by make_prediction
-wheel_loop_kin = wheel_loop_rigid = wheel_loop_rigid_e0 = wheel_loop_dugoff = None
+KINEMATIC = DUGOFF = LON_E0 = False  # bound per kind of step by make_prediction
 
 _KERNELS = ("policy_head", "policy_wheel", "policy_raw", "tire_forces", "wheel_terms",
             "rigid_body_update", "kinematic_update")
@@ -870,19 +887,24 @@ def make_prediction(prims: _approx.Primitives, fastmath) -> Prediction:
 
     for name in _KERNELS:
         g[name] = inline(_tire.bind_globals(_RAW[name], g, name + sfx))
-    g["commands_from_policy"] = kernel("commands_from_policy")
-    for kind, kin, dug, e0 in (("kin", True, False, False), ("rigid", False, False, False),
-                               ("rigid_e0", False, False, True), ("dugoff", False, True, False)):
-        gl = dict(g, KINEMATIC=kin, DUGOFF=dug, LON_E0=e0)
+    cfp = kernel("commands_from_policy")
+    kernels = {}
+    for kind in KINDS:
+        # the globals of this kind's kernels: its flags, its wheel loop, its tile
+        gl = dict(g, KINEMATIC=kind == "kin", DUGOFF=kind == "dugoff", LON_E0=kind == "rigid_e0")
         for name in ("tire_forces", "wheel_terms", "wheel_lane"):  # they read the flags
             gl[name] = inline(_tire.bind_globals(_RAW[name], gl, f"{name}_{kind}{sfx}"))
-        g["wheel_loop_" + kind] = kernel("wheel_loop", "wheel_loop_" + kind, gl)
-    g["tile"] = kernel("tile")
-    return Prediction(prims.name, g["commands_from_policy"], g["tile"],
-                      kernel("rollout_batch"),
-                      kernel("rollout_batch_parallel", parallel=True),
-                      kernel("evaluate", "evaluate_serial"),
-                      kernel("evaluate", "evaluate_parallel", parallel=True))
+        gl["wheel_loop"] = kernel("wheel_loop", "wheel_loop_" + kind, gl)
+        gl["tile"] = kernel("tile", "tile_" + kind, gl)
+        kernels[kind] = {
+            "tile": gl["tile"],
+            "rollout_batch": kernel("rollout_batch", "rollout_batch_" + kind, gl),
+            "rollout_batch_parallel": kernel("rollout_batch_parallel",
+                                             "rollout_batch_parallel_" + kind, gl, parallel=True),
+            "evaluate_serial": kernel("evaluate", "evaluate_serial_" + kind, gl),
+            "evaluate_parallel": kernel("evaluate", "evaluate_parallel_" + kind, gl,
+                                        parallel=True)}
+    return Prediction(prims.name, cfp, kernels)
 
 
 _RAW = {name: globals()[name] for name in _RAW_NAMES}

@@ -180,10 +180,10 @@ def _make_iterate(evaluate, name: str):
     return njit(cache=True, error_model="numpy")(f)
 
 
-ITERATE = {(pred.name, parallel): _make_iterate(
-    pred.evaluate_parallel if parallel else pred.evaluate_serial,
-    f"iterate_{'parallel' if parallel else 'serial'}_{pred.name}")
-    for pred in (_ro.FAST, _ro.EXACT) for parallel in (False, True)}
+ITERATE = {(pred.name, kind, parallel): _make_iterate(
+    pred.kernels[kind]["evaluate_parallel" if parallel else "evaluate_serial"],
+    f"iterate_{'parallel' if parallel else 'serial'}_{kind}_{pred.name}")
+    for pred in (_ro.FAST, _ro.EXACT) for kind in _ro.KINDS for parallel in (False, True)}
 
 
 class CompiledAnnealer:
@@ -217,8 +217,9 @@ class CompiledAnnealer:
         self.ladder0 = ladder_factors(self.chains, ladder)
         self.up, self.down = float(adapt_up), float(adapt_down)
         pred = _ro.EXACT if exact else _ro.FAST
-        self._evaluate = pred.evaluate_parallel if parallel else pred.evaluate_serial
-        self._iterate = ITERATE[(pred.name, bool(parallel))]
+        kind = _ro.step_kind(model.model_id, model.P)
+        self._evaluate = pred.kernels[kind]["evaluate_parallel" if parallel else "evaluate_serial"]
+        self._iterate = ITERATE[(pred.name, kind, bool(parallel))]
         D = model.dim
         C = self.chains
         self.proposals = K = int(proposals)
