@@ -75,7 +75,6 @@ Mirrors of this module (the CasADi graph for IPOPT, the C reference) live in
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
