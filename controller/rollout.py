@@ -31,9 +31,11 @@ Models (``model`` argument), all sharing the policy:
 * ``MODEL_TCT`` (3): TCT baseline, lateral and yaw dynamics only, longitudinal speed held
   at the reference speed.
 
-The three dynamic models share one step (:func:`_wheel_lane`'s rigid-body branch and
-:func:`_rigid_body_update`), with the tire model chosen inside (MF or Dugoff); the
-kinematic model has its own (:func:`_kinematic_update`). Slips, Magic Formula and wear
+The three dynamic models share one step (:func:`wheel_lane`'s rigid-body branch,
+:func:`wheel_terms` and :func:`rigid_body_update`), with the tire model chosen inside
+(:func:`tire_forces`: MF or Dugoff); the kinematic model has its own
+(:func:`kinematic_update`). The kernels are compiled per kind of step
+(:func:`step_kind`), each on first use. Slips, Magic Formula and wear
 powers are :mod:`plant.tire`'s equations (:func:`plant.tire.make_tire`), inlined.
 
 SIMD layout
