@@ -120,7 +120,9 @@ class MPC:
             raise ControllerError("state: fields must be numbers (delta a list)") from None
         if delta.size != self.nw:
             raise ControllerError(f"state: delta must have {self.nw} entries, got {delta.size}")
-        x0 = np.r_[base, delta]
+        x0 = np.empty(6 + delta.size)  # (np.r_ cost ~15 us)
+        x0[:6] = base
+        x0[6:] = delta
         if not (math.isfinite(t) and np.all(np.isfinite(x0))):
             raise ControllerError("state: NaN or inf in the state")
         return t, x0
