@@ -124,9 +124,119 @@ def _solve3(A, b):
             (a * (e * b[2] - b[1] * h) - bb * (d * b[2] - b[1] * g) + b[0] * (d * h - e * g)) / det)
 
 
+def symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps=0.0):
+    """One step of the MF prediction (the loop body of :func:`symbolic_rollout`): from the
+    pose ``X`` (x, y, phi in :mod:`plant.layout`'s POSE order), the global-frame velocity
+    ``V`` (vx, vy, r) and the steering angles ``delta`` (lists of CasADi expressions), the
+    reference row ``refk`` (6) and the offsets ``z[base : base + 2n]`` of the step's block.
+    ``P``, ``S``, ``wx``, ``wy`` are plain numbers. Returns ``(X, V, delta, wear, cmds)``
+    after the step: the new pose, velocity and angles (lists), the step's wear powers
+    ``(P_s, P_alpha, P_t)`` [W] in WEAR order and its commands ``(om_w, om_s)``."""
+    nw = len(wx)
+    P = [float(p) for p in P]
+    S = [float(v) for v in S]
+    dt = S[S_DT]
+    m, Iz, r_w, k_t, v_eps = (P[i] for i in (P_MASS, P_YAW_INERTIA, P_WHEEL_RADIUS, P_K_T,
+                                             P_V_EPS))
+    FN = m * P[P_G] / nw  # Assumption 2
+    wx = [float(v) for v in wx]
+    wy = [float(v) for v in wy]
+    th = THETA
+    X = list(X)
+    om_w, om_s = _policy(X, delta, refk, z, base, nw, P, S, wx, wy, dt)
+    phi = X[POSE_PHI]
+    c = ca.cos(phi)
+    s = ca.sin(phi)
+    ub = c * V[0] + s * V[1]
+    vb = -s * V[0] + c * V[1]
+    r = V[2]
+    ps = 0.0
+    pa = 0.0
+    pt = 0.0
+    for j in range(nw):
+        pt += _sabs(k_t * FN * om_s[j], eps)  # eq. (15)
+    A = [[0.0] * 3 for _ in range(3)]
+    F = [0.0, 0.0, 0.0]
+    for j in range(nw):
+        dm = delta[j] + 0.5 * dt * om_s[j]
+        cd = ca.cos(dm)
+        sd = ca.sin(dm)
+        vbx_w = ub - r * wy[j]  # eq. (6)
+        vby_w = vb + r * wx[j]  # eq. (7)
+        vwx = cd * vbx_w + sd * vby_w  # eq. (8)
+        vwy = -sd * vbx_w + cd * vby_w
+        # tire (controller.rollout.tire_forces, Magic Formula)
+        d2 = vwx * vwx + v_eps * v_eps
+        d = ca.sqrt(d2)
+        slip = om_w[j] * r_w - vwx
+        sl = slip / d  # eq. (10), regularised
+        al = -ca.atan(vwy / d)  # eq. (9)
+        ds_dx = -1.0 / d - slip * vwx / (d2 * d)
+        q = d2 + vwy * vwy
+        da_dx = vwy * vwx / (d * q)
+        da_dy = -d / q
+        Fx, dFx_ds = _mf_and_slope(sl, P[P_LON_B], P[P_LON_C], P[P_LON_MU] * FN,
+                                   P[P_LON_E])  # eq. (11)
+        Fy, dFy_da = _mf_and_slope(al, P[P_LAT_B], P[P_LAT_C], P[P_LAT_MU] * FN,
+                                   P[P_LAT_E])  # eq. (12)
+        k11, k12 = dFx_ds * ds_dx, 0.0
+        k21, k22 = dFy_da * da_dx, dFy_da * da_dy
+        ps += _sabs(Fx * slip, eps)  # eq. (13)
+        pa += _sabs(Fy * vwy, eps)  # eq. (14)
+        fbx = cd * Fx - sd * Fy
+        fby = sd * Fx + cd * Fy
+        F[0] += fbx
+        F[1] += fby
+        F[2] += wx[j] * fby - wy[j] * fbx
+        a11 = cd * k11 - sd * k21
+        a12 = cd * k12 - sd * k22
+        a21 = sd * k11 + cd * k21
+        a22 = sd * k12 + cd * k22
+        m11 = a11 * cd - a12 * sd
+        m12 = a11 * sd + a12 * cd
+        m21 = a21 * cd - a22 * sd
+        m22 = a21 * sd + a22 * cd
+        yw, xw = wy[j], wx[j]
+        A[0][0] += m11
+        A[0][1] += m12
+        A[0][2] += -m11 * yw + m12 * xw
+        A[1][0] += m21
+        A[1][1] += m22
+        A[1][2] += -m21 * yw + m22 * xw
+        A[2][0] += -yw * m11 + xw * m21
+        A[2][1] += -yw * m12 + xw * m22
+        A[2][2] += (-yw * (-m11 * yw + m12 * xw) + xw * (-m21 * yw + m22 * xw))
+    for i in range(3):
+        inv = 1.0 / Iz if i == 2 else 1.0 / m
+        for jj in range(3):
+            A[i][jj] = -th * dt * inv * A[i][jj]
+        A[i][i] += 1.0
+        F[i] = dt * inv * F[i]
+    F[0] += dt * r * vb
+    F[1] -= dt * r * ub
+    A[0][1] -= th * dt * r
+    A[0][2] -= th * dt * vb
+    A[1][0] += th * dt * r
+    A[1][2] += th * dt * ub
+    du = _solve3(A, F)
+    v0x, v0y = V[0], V[1]
+    r1 = r + du[2]
+    X[POSE_PHI] = X[POSE_PHI] + 0.5 * dt * (r + r1)
+    c1 = ca.cos(X[POSE_PHI])
+    s1 = ca.sin(X[POSE_PHI])
+    V = [c1 * (ub + du[0]) - s1 * (vb + du[1]), s1 * (ub + du[0]) + c1 * (vb + du[1]), r1]
+    X[POSE_X] = X[POSE_X] + 0.5 * dt * (v0x + V[0])
+    X[POSE_Y] = X[POSE_Y] + 0.5 * dt * (v0y + V[1])
+    delta = [delta[j] + dt * om_s[j] for j in range(nw)]  # eq. (19)
+    wk = [None] * 3
+    wk[WEAR_S], wk[WEAR_ALPHA], wk[WEAR_T] = ps, pa, pt
+    return X, V, delta, tuple(wk), (om_w, om_s)
+
+
 def symbolic_rollout(x0, ref, z, block, P, S, wx, wy, eps=0.0):
     """The MF prediction of one candidate, symbolically (paper eq. 9-21 with the
-    DEVIATIONs of :mod:`controller.rollout`: linearly implicit trapezoidal body-frame step).
+    DEVIATIONs of :mod:`controller.rollout`: linearly implicit trapezoidal body-frame step),
+    :func:`symbolic_step` once per prediction step.
 
     ``x0`` (6 + 2n) and ``ref`` ((N_p + 1) x 6, indexable as ref[k, i]) and ``z`` are CasADi
     expressions; ``block``, ``P``, ``S``, ``wx``, ``wy`` plain numbers (they are baked into
@@ -138,15 +248,6 @@ def symbolic_rollout(x0, ref, z, block, P, S, wx, wy, eps=0.0):
         raise ImportError("symbolic_rollout needs CasADi (pip install 'msagv[ipopt]')")
     nw = len(wx)
     Np = len(block)
-    P = [float(p) for p in P]
-    S = [float(v) for v in S]
-    dt = S[S_DT]
-    m, Iz, r_w, k_t, v_eps = (P[i] for i in (P_MASS, P_YAW_INERTIA, P_WHEEL_RADIUS, P_K_T,
-                                             P_V_EPS))
-    FN = m * P[P_G] / nw  # Assumption 2
-    wx = [float(v) for v in wx]
-    wy = [float(v) for v in wy]
-    th = THETA
     X = [None] * 3
     X[POSE_X], X[POSE_Y], X[POSE_PHI] = x0[X0_X], x0[X0_Y], x0[X0_PHI]
     V = [x0[X0_VX], x0[X0_VY], x0[X0_R]]
@@ -155,99 +256,13 @@ def symbolic_rollout(x0, ref, z, block, P, S, wx, wy, eps=0.0):
     for k in range(Np):
         refk = [ref[k, i] for i in range(N_REF)]
         base = int(block[k]) * 2 * nw
-        om_w, om_s = _policy(X, delta, refk, z, base, nw, P, S, wx, wy, dt)
+        X, V, delta, wk, cmd = symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps)
         if k == 0:
-            cmds = (om_w, om_s)
-        phi = X[POSE_PHI]
-        c = ca.cos(phi)
-        s = ca.sin(phi)
-        ub = c * V[0] + s * V[1]
-        vb = -s * V[0] + c * V[1]
-        r = V[2]
-        ps = 0.0
-        pa = 0.0
-        pt = 0.0
-        for j in range(nw):
-            pt += _sabs(k_t * FN * om_s[j], eps)  # eq. (15)
-        A = [[0.0] * 3 for _ in range(3)]
-        F = [0.0, 0.0, 0.0]
-        for j in range(nw):
-            dm = delta[j] + 0.5 * dt * om_s[j]
-            cd = ca.cos(dm)
-            sd = ca.sin(dm)
-            vbx_w = ub - r * wy[j]  # eq. (6)
-            vby_w = vb + r * wx[j]  # eq. (7)
-            vwx = cd * vbx_w + sd * vby_w  # eq. (8)
-            vwy = -sd * vbx_w + cd * vby_w
-            # tire (controller.rollout.tire_forces, Magic Formula)
-            d2 = vwx * vwx + v_eps * v_eps
-            d = ca.sqrt(d2)
-            slip = om_w[j] * r_w - vwx
-            sl = slip / d  # eq. (10), regularised
-            al = -ca.atan(vwy / d)  # eq. (9)
-            ds_dx = -1.0 / d - slip * vwx / (d2 * d)
-            q = d2 + vwy * vwy
-            da_dx = vwy * vwx / (d * q)
-            da_dy = -d / q
-            Fx, dFx_ds = _mf_and_slope(sl, P[P_LON_B], P[P_LON_C], P[P_LON_MU] * FN,
-                                       P[P_LON_E])  # eq. (11)
-            Fy, dFy_da = _mf_and_slope(al, P[P_LAT_B], P[P_LAT_C], P[P_LAT_MU] * FN,
-                                       P[P_LAT_E])  # eq. (12)
-            k11, k12 = dFx_ds * ds_dx, 0.0
-            k21, k22 = dFy_da * da_dx, dFy_da * da_dy
-            ps += _sabs(Fx * slip, eps)  # eq. (13)
-            pa += _sabs(Fy * vwy, eps)  # eq. (14)
-            fbx = cd * Fx - sd * Fy
-            fby = sd * Fx + cd * Fy
-            F[0] += fbx
-            F[1] += fby
-            F[2] += wx[j] * fby - wy[j] * fbx
-            a11 = cd * k11 - sd * k21
-            a12 = cd * k12 - sd * k22
-            a21 = sd * k11 + cd * k21
-            a22 = sd * k12 + cd * k22
-            m11 = a11 * cd - a12 * sd
-            m12 = a11 * sd + a12 * cd
-            m21 = a21 * cd - a22 * sd
-            m22 = a21 * sd + a22 * cd
-            yw, xw = wy[j], wx[j]
-            A[0][0] += m11
-            A[0][1] += m12
-            A[0][2] += -m11 * yw + m12 * xw
-            A[1][0] += m21
-            A[1][1] += m22
-            A[1][2] += -m21 * yw + m22 * xw
-            A[2][0] += -yw * m11 + xw * m21
-            A[2][1] += -yw * m12 + xw * m22
-            A[2][2] += (-yw * (-m11 * yw + m12 * xw) + xw * (-m21 * yw + m22 * xw))
-        for i in range(3):
-            inv = 1.0 / Iz if i == 2 else 1.0 / m
-            for jj in range(3):
-                A[i][jj] = -th * dt * inv * A[i][jj]
-            A[i][i] += 1.0
-            F[i] = dt * inv * F[i]
-        F[0] += dt * r * vb
-        F[1] -= dt * r * ub
-        A[0][1] -= th * dt * r
-        A[0][2] -= th * dt * vb
-        A[1][0] += th * dt * r
-        A[1][2] += th * dt * ub
-        du = _solve3(A, F)
-        v0x, v0y = V[0], V[1]
-        r1 = r + du[2]
-        X[POSE_PHI] = X[POSE_PHI] + 0.5 * dt * (r + r1)
-        c1 = ca.cos(X[POSE_PHI])
-        s1 = ca.sin(X[POSE_PHI])
-        V = [c1 * (ub + du[0]) - s1 * (vb + du[1]), s1 * (ub + du[0]) + c1 * (vb + du[1]), r1]
-        X[POSE_X] = X[POSE_X] + 0.5 * dt * (v0x + V[0])
-        X[POSE_Y] = X[POSE_Y] + 0.5 * dt * (v0y + V[1])
-        delta = [delta[j] + dt * om_s[j] for j in range(nw)]  # eq. (19)
+            cmds = cmd
         pose = [None] * 3
         pose[POSE_X], pose[POSE_Y], pose[POSE_PHI] = X[POSE_X], X[POSE_Y], X[POSE_PHI]
-        wk = [None] * 3
-        wk[WEAR_S], wk[WEAR_ALPHA], wk[WEAR_T] = ps, pa, pt
         poses.append(tuple(pose))
-        wear.append(tuple(wk))
+        wear.append(wk)
     return poses, wear, cmds
 
 
