@@ -18,7 +18,7 @@ def run_title(info: dict, how: str | None = None) -> str:
     if v:
         parts.append(f"{v.get('name')} ({v.get('axles')} axles, {v.get('mass_kg', 0) / 1000:g} t)")
     if info.get("method"):
-        solver = ", IPOPT" if info.get("solver") == "ipopt" else ""
+        solver = {"ipopt": ", IPOPT", "acados": ", acados RTI"}.get(info.get("solver"), "")
         parts.append(f"{str(info['method']).upper()} ({info.get('model')}{solver})")
     if how:
         parts.append(how)

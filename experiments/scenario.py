@@ -24,7 +24,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
-SOLVERS = ("sa", "ipopt", "ff")  # the annealer, IPOPT, or no optimisation (the feed-forward)
+SOLVERS = ("sa", "ipopt", "acados", "ff")  # the annealer, IPOPT, acados SQP-RTI, or no
+# optimisation (the feed-forward)
 CASES = ("curve", "line", "lane", "turn", "random")  # paper Cases 1, 2; the study's paths
 AFTER_END = ("continue", "stop")  # past the reference's end: go on straight, or end the run
 PERIOD = 0.01  # s, the paper's control period T
@@ -78,7 +79,7 @@ class Scenario:
         heading and speed; 'continue' runs the whole ``duration`` (with a warning if it
         passes the end), 'stop' ends the run at the end.
     settings : :class:`controller.models.MPCSettings` fields that differ from the defaults.
-    solver : 'sa' (simulated annealing) or 'ipopt'.
+    solver : 'sa' (simulated annealing), 'ipopt', 'acados' (SQP-RTI) or 'ff'.
     fmu, fmu_map, fmu_params : an FMI 2.0 co-simulation FMU as the plant, its name mapping
         file and its parameters by our names.
     period : control period T [s].
@@ -225,11 +226,17 @@ class Scenario:
 
     def make_controller(self, vehicle, reference, period: float | None = None, *,
                         options=None, **override):
-        """The MPC for ``solver``: :class:`controller.mpc.MPC` (sa) or
-        :class:`controller.ipopt.IpoptMPC` (ipopt, with its ``options``), same interface;
-        ``override``: settings fields on top of the scenario's."""
+        """The MPC for ``solver``: :class:`controller.mpc.MPC` (sa),
+        :class:`controller.ipopt.IpoptMPC` (ipopt) or
+        :class:`controller.acados_rti.AcadosMPC` (acados), the last two with their
+        ``options``, same interface; ``override``: settings fields on top of the scenario's."""
         settings = self.mpc_settings(**override)
         T = self.period if period is None else period
+        if self.solver == "acados":
+            from controller.acados_rti import AcadosMPC, check_supported as acados_supported
+
+            acados_supported(settings)
+            return AcadosMPC(vehicle, settings, reference, period=T, options=options)
         if self.solver == "ipopt":
             from controller.ipopt import IpoptMPC, check_supported
 
@@ -247,6 +254,10 @@ class Scenario:
             from controller.ipopt import check_supported
 
             check_supported(self.mpc_settings())
+        elif self.solver == "acados":
+            from controller.acados_rti import check_supported as acados_supported
+
+            acados_supported(self.mpc_settings())
 
     def make_plant(self):
         """``(plant, vehicle, reference, initial)``: the plant at its initial state."""
@@ -330,7 +341,7 @@ class Scenario:
                  else f"{self.case or 'curve'}" + (f" at {self.speed} km/h" if self.speed else ""))
         s = self.settings
         return (f"{where}, {str(s.get('method', 'two')).upper()} ({s.get('model', 'mf')}"
-                f"{', ipopt' if self.solver == 'ipopt' else ''})")
+                f"{', ' + self.solver if self.solver in ('ipopt', 'acados') else ''})")
 
     # ---- as data -------------------------------------------------------------------------
     def to_dict(self) -> dict:

@@ -160,7 +160,10 @@ def add_mpc_args(ap: argparse.ArgumentParser) -> None:
                     help="horizon solver: sa (simulated annealing, default), ipopt (CasADi + "
                          "IPOPT, exact derivatives; --model mf only, needs msagv[ipopt]; the "
                          "annealer options are ignored, --deadline-ms is IPOPT's wall-time "
-                         "limit) or ff (no optimisation: the feed-forward policy alone)")
+                         "limit), acados (acados SQP-RTI: one Gauss-Newton iteration per "
+                         "period, compiled; --model mf only, needs comma-deps-acados installed "
+                         "apart, see docs/CONTROLLER.md) or ff (no optimisation: the "
+                         "feed-forward policy alone)")
 
 
 def add_fmu_args(ap: argparse.ArgumentParser, positional: bool) -> None:

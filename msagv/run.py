@@ -147,7 +147,8 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         print(json.dumps(doc))
     else:
         where = f"FMU {Path(a.fmu).name}" if fmu else f"{vehicle.name} {vehicle.mass:g} kg"
-        how = f"{settings.model}, ipopt" if scenario.solver == "ipopt" else settings.model
+        how = (f"{settings.model}, {scenario.solver}" if scenario.solver in ("ipopt", "acados")
+               else settings.model)
         speed = f" at {info['speed_kmh']} km/h" if info["speed_kmh"] is not None else ""
         print(format_table(m, f"{ref.name}{speed}, {settings.method.upper()} ({how}), {where}"
                               f"{' (interrupted)' if interrupted else ''}"))
