@@ -13,6 +13,10 @@ Sections (each is also its own module, runnable with ``python -m benchmarks.<nam
 * ``optimality``: the annealer's cost over IPOPT's converged cost on states sampled from
   closed-loop runs of Cases 1 and 2, 2 / 4 / 6 / 8 axles (200 states for 2, 40 for the
   others) (:mod:`benchmarks.optimality_bench`; needs CasADi);
+* ``nmpc``: acados SQP-RTI (the real-time gradient NMPC) beside the annealer on the same
+  sampled states (solve times, both answers by the exact cost) and in the closed loop on
+  Case 1 at 15 and 35 km/h (W_tw, tracking), 2 / 4 / 6 / 8 axles
+  (:mod:`benchmarks.nmpc_bench`; needs acados);
 * ``transport``: Zenoh state-to-command round trip without a solve, at 100 Hz, between
   two processes (:mod:`benchmarks.transport_bench`);
 * ``fmu``: the plant FMU stepped by fmpy against the native plant, per step
@@ -30,7 +34,7 @@ import platform
 import sys
 import time
 
-SECTIONS = ("plant", "rollout", "controller", "optimality", "transport", "fmu")
+SECTIONS = ("plant", "rollout", "controller", "optimality", "nmpc", "transport", "fmu")
 
 
 def _machine() -> dict:
@@ -76,6 +80,22 @@ def run_section(name: str, quick: bool) -> dict:
         for a in r["axles"].values():
             a.pop("rows", None)
         return r
+    if name == "nmpc":
+        from controller.mpc import ControllerError
+
+        try:
+            from controller.acados_rti import require_acados
+
+            require_acados()
+        except ControllerError as e:
+            return {"skipped": str(e)}
+        from .nmpc_bench import bench_nmpc
+
+        r = bench_nmpc(axles=(2,) if quick else (2, 4, 6, 8), n_states=4 if quick else 40,
+                       seconds=0.5 if quick else None)
+        for a in r["axles"].values():
+            a.pop("rows", None)
+        return r
     if name == "transport":
         from .transport_bench import bench_transport
 
@@ -102,6 +122,19 @@ def _summary(name: str, r: dict) -> str:
             f"{n} axles p50 {a['ratio_p50']:.4f} p90 {a['ratio_p90']:.4f} ({a['states']} states, "
             f"annealer p99 {a['sa_ms']['p99']:.2f} ms, IPOPT p50 {a['ipopt_ms']['p50']:.0f} ms)"
             for n, a in r.get("axles", {"2": r}).items())
+    if name == "nmpc":
+        parts = []
+        for n, a in r.get("axles", {}).items():
+            cl = a["closed_loop"]
+            loop = ", ".join(f"{k} W_tw {v['W_tw']:.0f} J e_lat {v['e_lat_rms_cm']:.2f} cm"
+                             for k, v in cl.items())
+            parts.append(f"{n} axles: solve p50/p99 acados {a['acados_ms']['p50']:.2f}/"
+                         f"{a['acados_ms']['p99']:.2f} ms, annealer {a['sa_ms']['p50']:.2f}/"
+                         f"{a['sa_ms']['p99']:.2f} ms; cost acados/annealer p50 "
+                         f"{a['ratio_acados_sa']['p50']:.4f} (acados lower at "
+                         f"{a['acados_lower']}, annealer at {a['sa_lower']} of {a['states']}); "
+                         f"{loop}")
+        return f"{name:<11} " + "\n            ".join(parts)
     if name == "transport":
         return (f"{name:<11} round trip p50 {r['p50_ms']:.3f} p99 {r['p99_ms']:.3f} max "
                 f"{r['max_ms']:.3f} ms, lost {r['lost']} of {r['sent']}")

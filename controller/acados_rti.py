@@ -202,6 +202,7 @@ class AcadosOptions:
     qp_iter_max: int = 50
     hpipm_mode: str = "SPEED_ABS"
     cond_N: int | None = None
+    compile_flags: str = "-O2"
 
     def __post_init__(self):
         if not (self.eps_w > 0 and math.isfinite(self.eps_w)):
@@ -355,6 +356,7 @@ class HorizonOCP:
         so.levenberg_marquardt = options.levenberg
         so.print_level = 0
         so.hpipm_mode = options.hpipm_mode
+        so.ext_fun_compile_flags = options.compile_flags
         if options.cond_N is not None:
             so.qp_solver_cond_N = options.cond_N
         # the state trajectory of a decision vector (the warm start as the linearisation

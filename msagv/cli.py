@@ -25,7 +25,7 @@ COMMANDS = {
     "view": "view FILE: a recording in Rerun's 3D viewer (vehicle, wheel wear, paths, errors)",
     "experiment": "the paper's Cases 1-3, the Pareto front and the ridge study",
     "fmu": "fmu build | fmu simulate",
-    "bench": "benchmarks (plant, rollout, controller, optimality, transport, fmu)",
+    "bench": "benchmarks (plant, rollout, controller, optimality, nmpc, transport, fmu)",
 }
 
 

@@ -28,4 +28,5 @@ def test_quick_plant_and_controller_json(capsys):
 def test_unknown_section_exits_2(capsys):
     assert main(["warp"]) == 2
     assert "unknown section" in capsys.readouterr().err
-    assert set(SECTIONS) == {"plant", "rollout", "controller", "optimality", "transport", "fmu"}
+    assert set(SECTIONS) == {"plant", "rollout", "controller", "optimality", "nmpc", "transport",
+                             "fmu"}
