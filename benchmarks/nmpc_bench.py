@@ -13,7 +13,8 @@ Two measurements per axle count (2: the paper's vehicle; 4, 6, 8: its
   machine. Both answers are scored by the exact cost (numba, true |.|): the ratio
   acados / annealer per state (< 1: acados found the lower cost), how many states each
   wins, and both solvers' solve-time percentiles (``MPC.step``'s wall time: everything a
-  control period pays, state to command).
+  control period pays, state to command). Also acados with 3 SQP iterations in place of
+  one, to tell how much of a gap is the single iteration's.
 * **The closed loop.** The in-process loop of ``msagv run`` on the whole Case 1 curve at 15
   and 35 km/h per solver: ``W_tw``, the lateral error ``e_lat_rms_cm``, ``e_bar`` and the
   solve-time percentiles; the two solvers run one after the other per speed.
@@ -47,9 +48,12 @@ def _pct(v) -> dict:
             "max": float(v.max())}
 
 
-def bench_states(n_axles: int, n_states: int, settings=None) -> dict:
-    """Both solvers on the same sampled states (see the module docstring)."""
+def bench_states(n_axles: int, n_states: int, settings=None, sqp: int = 3) -> dict:
+    """Both solvers on the same sampled states (see the module docstring); also acados with
+    ``sqp`` SQP iterations in place of one (0: not), which tells how much of the RTI's gap
+    to the annealer is the single iteration."""
     from controller import MPCSettings
+    from controller.acados_rti import AcadosOptions
 
     from .optimality_bench import RUNS, _solvers, sample_states
 
@@ -61,7 +65,9 @@ def bench_states(n_axles: int, n_states: int, settings=None) -> dict:
     ac = _solvers(s, solver="acados", vehicle=vehicle)
     setup_s = time.perf_counter() - t0
     built = any(m.ocp.built for m in ac.values())
-    for m in list(sa.values()) + list(ac.values()):
+    more = _solvers(s, solver="acados", vehicle=vehicle,
+                    options=AcadosOptions(iterations=sqp)) if sqp > 1 else {}
+    for m in list(sa.values()) + list(ac.values()) + list(more.values()):
         m.warmup()
     rows = []
     for i, smp in enumerate(samples):
@@ -82,9 +88,15 @@ def bench_states(n_axles: int, n_states: int, settings=None) -> dict:
             c_ac, c_sa = run_ac(), run_sa()
         else:
             c_sa, c_ac = run_sa(), run_ac()
-        rows.append({"case": key[0], "speed": key[1], "k": smp["k"], "J_sa": c_sa.cost,
-                     "J_acados": c_ac.cost, "sa_ms": c_sa.solve_ms, "acados_ms": c_ac.solve_ms,
-                     "acados_status": q.last_status})
+        row = {"case": key[0], "speed": key[1], "k": smp["k"], "J_sa": c_sa.cost,
+               "J_acados": c_ac.cost, "sa_ms": c_sa.solve_ms,
+               "acados_ms": c_ac.solve_ms, "acados_status": q.last_status}
+        if more:
+            w = more[key]
+            w.z = smp["z"].copy()
+            c = w.step(smp["state"])
+            row["J_sqp"], row["sqp_ms"] = c.cost, c.solve_ms
+        rows.append(row)
     r = np.array([x["J_acados"] / x["J_sa"] for x in rows])
     tol = 1e-9
     return {"axles_n": n_axles, "states": len(rows),
@@ -96,6 +108,13 @@ def bench_states(n_axles: int, n_states: int, settings=None) -> dict:
             "acados_lower": int(np.sum(r < 1 - tol)), "sa_lower": int(np.sum(r > 1 + tol)),
             "ties": int(np.sum(np.abs(r - 1) <= tol)),
             "acados_qp_failures": int(sum(x["acados_status"] not in (0, 2) for x in rows)),
+            "sqp": ({"iterations": sqp, "ms": _pct([x["sqp_ms"] for x in rows]),
+                     "ratio_sqp_sa_p50": float(np.median([x["J_sqp"] / x["J_sa"] for x in rows])),
+                     "ratio_sqp_sa_p90": float(np.percentile([x["J_sqp"] / x["J_sa"]
+                                                              for x in rows], 90)),
+                     "sqp_lower": int(sum(x["J_sqp"] < x["J_sa"] * (1 - tol) for x in rows)),
+                     "sa_lower": int(sum(x["J_sa"] < x["J_sqp"] * (1 - tol) for x in rows))}
+                    if more else None),
             "acados_built_here": built, "acados_setup_s": setup_s,
             "runs": [f"{c} {sp:g} km/h" for c, sp in RUNS], "rows": rows}
 

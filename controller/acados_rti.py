@@ -191,6 +191,12 @@ class AcadosOptions:
     qp_solver: acados' QP solver ('PARTIAL_CONDENSING_HPIPM', 'FULL_CONDENSING_HPIPM',
       'FULL_CONDENSING_QPOASES').
     qp_iter_max: the QP solver's iteration limit.
+    hpipm_mode: HPIPM's mode; 'SPEED_ABS' (default) took 3-4 interior-point iterations per
+      QP here, 'BALANCE' (acados' default) 4 and 1.3x the time at 2 axles.
+    cond_N: partial condensing's horizon (None: N_p, no condensing; 2 and 5 were 1.2-1.9x
+      slower at 8 axles, full condensing 3.5x: the u of every stage is 4n wide).
+    compile_flags: the C compiler's flags for the generated functions ('-O3 -march=native'
+      was no faster than '-O2').
     """
 
     eps_w: float = 1.0
