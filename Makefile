@@ -13,8 +13,8 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 # acados (--solver acados) for the tests and benchmarks, never for the demo. The registry's
-# comma-deps-acados vendors a casadi under the same import name as the ipopt extra's (and
-# built for Python 3.12 only), so it is not an extra: it goes into its own directory, where
+# comma-deps-acados vendors a slim casadi 3.6.7 (no IPOPT) under the same import name as the
+# ipopt extra's, so it is not installed as an extra: it goes into its own directory, where
 # controller/acados_rti.py finds it, and its casadi is never imported. Optional: without
 # it the acados tests skip.
 ACADOS := $(VENV)/acados

@@ -55,8 +55,8 @@ iterations); 1 is RTI.
 The dependency
 --------------
 acados comes from the registry's ``comma-deps-acados`` (acados' libraries, its
-``acados_template`` Python interface, its template renderer, and a slim CasADi under the
-same import name ``casadi`` as the ``ipopt`` extra's, built for Python 3.12 only). Installed
+``acados_template`` Python interface, its template renderer, and a slim CasADi 3.6.7
+without IPOPT under the same import name ``casadi`` as the ``ipopt`` extra's). Installed
 into the environment's site-packages it would replace the ``ipopt`` extra's CasADi, so it
 is installed apart (``make test`` does this):
 
