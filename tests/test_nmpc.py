@@ -5,6 +5,7 @@
 * keep-best: a solve never returns a higher exact cost than its warm start, at states of a
   closed loop and from deliberately poor warm starts;
 * the commands respect eq. (27)'s bounds; a short closed loop tracks;
+* over Zenoh (slow): the controller process in lockstep equals the in-process run;
 * ``msagv run --solver acados --json`` prints clean JSON even when the solver is built in
   that run (acados' build output must not reach stdout);
 * without acados, a clear error (in Python and on the command line, exit 2).
@@ -223,3 +224,21 @@ def test_acados_rejects_baseline_models(capsys):
                        "--model", "kinematic", "--json"])
     out = capsys.readouterr()
     assert rc == 2 and out.out == "" and "'mf' only" in out.err
+
+
+@needs_acados
+@pytest.mark.slow
+def test_controller_process_acados_lockstep_equals_in_process(capfd):
+    """``msagv controller --solver acados`` over Zenoh in lockstep gives the run of
+    ``msagv run --solver acados`` in-process (same commands, so the same metrics)."""
+    from msagv import run as run_cmd
+    from msagv.demo import run_demo
+
+    r = run_demo(duration=1.0, speed="15", run_mode="lockstep", deadline_ms=None,
+                 extra_controller=["--solver", "acados"])
+    assert r["controller"]["solver"] == "acados" and r["controller"]["answered"] == 100
+    assert run_cmd.main(["--case", "curve", "--speed", "15", "--duration", "1", "--solver",
+                         "acados", "--json"]) == 0
+    m = json.loads(capfd.readouterr().out)["metrics"]
+    for k in ("W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg"):
+        assert r["metrics"][k] == pytest.approx(m[k], rel=1e-12, abs=1e-15), k
