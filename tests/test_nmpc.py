@@ -19,6 +19,8 @@ from __future__ import annotations
 import functools
 import json
 import math
+import os
+import shutil
 import sys
 
 import numpy as np
@@ -34,6 +36,8 @@ VEH = default_vehicle()
 
 
 def _have_acados() -> bool:
+    if not (shutil.which("make") and shutil.which(os.environ.get("CC", "cc"))):
+        return False  # acados builds its solvers with make and a C compiler
     try:
         from controller.acados_rti import require_acados
 
