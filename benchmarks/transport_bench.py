@@ -63,7 +63,7 @@ def _echo(endpoint: str, vid: str) -> int:
             seq[0] += 1
 
         sub = s.declare_subscriber(k.state, on_state)
-        tok = s.liveliness().declare_token(k.alive_controller)
+        tok = s.liveliness().declare_token(k.controller_token(str(s.info.zid())))
         while not stop.wait(0.1):
             pass
         tok.undeclare()
@@ -114,7 +114,7 @@ def bench_transport(seconds: float = 5.0, period: float = T) -> dict:
             sub = s.declare_subscriber(k.cmd, on_cmd)
             pub = s.declare_publisher(k.state, express=True, priority=zenoh.Priority.REAL_TIME,
                                       congestion_control=zenoh.CongestionControl.BLOCK)
-            ctl = Presence(s, k.alive_controller)
+            ctl = Presence(s, k.controller_token())
             t_wait = time.monotonic()
             while not (ctl.present and pub.matching_status.matching):
                 if time.monotonic() - t_wait > 60 or child.poll() is not None:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -244,8 +245,9 @@ def floor_task(sc_dict: dict, digest: str) -> dict:
 
 
 def compute_floors(scenarios: list[StudyScenario], out: Path, jobs=None, scheduler=None,
-                   force: bool = False) -> dict[str, dict]:
-    """The floors of every distinct path (cached under ``OUT/floors/``)."""
+                   force: bool = False, progress: bool = True) -> dict[str, dict]:
+    """The floors of every distinct path (cached under ``OUT/floors/``); ``progress``: a bar
+    over the paths on stderr (the default design's floors take ~10 minutes on 2 cores)."""
     from dataclasses import asdict
 
     d = out / "floors"
@@ -262,16 +264,31 @@ def compute_floors(scenarios: list[StudyScenario], out: Path, jobs=None, schedul
                 continue
         todo.setdefault(k, asdict(sc))
 
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(todo), desc="wear floors", unit="path", file=sys.stderr,
+                   dynamic_ncols=True)
+
     def done(res):
         (d / f"{res['key']}.json").write_text(json.dumps(res, indent=1))
         have[res["key"]] = res
+        if bar is not None:
+            bar.update(1)
 
     if todo and (jobs == 1 and scheduler is None):
         for sc_d in todo.values():
             done(floor_task(sc_d, digest))
     elif todo:
-        dask_map(floor_task, [(v, digest) for v in todo.values()], done, jobs=jobs,
-                 scheduler=scheduler)
+        try:
+            dask_map(floor_task, [(v, digest) for v in todo.values()], done, jobs=jobs,
+                     scheduler=scheduler)
+        finally:
+            if bar is not None:
+                bar.close()
+    if bar is not None:
+        bar.close()
     return have
 
 
@@ -290,7 +307,7 @@ def run_study(out: str | Path | None = None, *, quick: bool = False, jobs: int |
     scenarios = design(quick, vehicle, trajectory)
     for sc in scenarios:  # a bad user file fails now, in one line, before any run
         sc.scenario().reference()
-    floors = compute_floors(scenarios, out, jobs, scheduler, force)
+    floors = compute_floors(scenarios, out, jobs, scheduler, force, progress)
     specs = run_specs(scenarios, quick)
     results, summ = run_all(specs, out, jobs=jobs, force=force, progress=progress,
                             desc="study", scheduler=scheduler)
