@@ -47,6 +47,19 @@ METHODS: dict[str, dict] = {
     "TWO": {"model": "mf", "method": "two"},
 }
 
+# Beside the paper's five, every case table carries the references the paper's question
+# needs (docs/RESULTS.md): no optimisation at all, the strongest wear-blind MPC we have,
+# and the wear-energy cost. name -> (settings, further Scenario fields).
+REFERENCES: dict[str, tuple[dict, dict]] = {
+    # the feed-forward policy alone (zero offsets, --solver ff)
+    "FF": ({"model": "mf", "method": "ntwo"}, {"solver": "ff"}),
+    # NTWO with 10x the default ridge on the wheel-speed offsets only (R_ow 0.05): the wheels
+    # near pure rolling, steering as free as NTWO's (the study sweeps R_ow 0.05-1)
+    "NTWO-wheel": ({"model": "mf", "method": "ntwo", "R": [0.05, 20.0, 0.05, 2.0]}, {}),
+    # the linear wear-energy cost at its default weights E = (0.1, 0.1, 0.1) [1/kW]
+    "TWO-energy": ({"model": "mf", "method": "two-energy"}, {}),
+}
+
 
 @dataclass
 class RunSpec:

@@ -33,7 +33,7 @@ import os
 import time
 from pathlib import Path
 
-from .runs import METHODS, RunSpec, run_all
+from .runs import METHODS, REFERENCES, RunSpec, run_all
 
 EXPERIMENTS = ("case1", "case2", "case3", "pareto", "ridge")
 CASE1_SPEEDS = (35.0, 25.0, 15.0, 5.0)  # km/h, the paper's row order
@@ -62,11 +62,22 @@ def _tonnes(m: float) -> str:
 
 
 def _methods(selected):
-    names = list(METHODS) if not selected else list(selected)
-    bad = [m for m in names if m not in METHODS]
+    """The rows of a case table: the paper's five in its order, then the references
+    (:data:`experiments.runs.REFERENCES`); ``selected``: a subset by name."""
+    known = list(METHODS) + list(REFERENCES)
+    names = known if not selected else list(selected)
+    bad = [m for m in names if m not in known]
     if bad:
-        raise ValueError(f"--methods: unknown method(s) {', '.join(bad)} (known: {', '.join(METHODS)})")
-    return [m for m in METHODS if m in names]  # the paper's order
+        raise ValueError(f"--methods: unknown method(s) {', '.join(bad)} (known: {', '.join(known)})")
+    return [m for m in known if m in names]
+
+
+def _spec(m: str, group: str, case: str, v: float, mass: float, duration, vehicle) -> RunSpec:
+    if m in METHODS:
+        return RunSpec(m, group, case, v, mass, dict(METHODS[m]), duration, vehicle)
+    settings, extra = REFERENCES[m]
+    return RunSpec(m, group, case, v, mass, dict(settings), duration, vehicle,
+                   {"reference": True}, dict(extra))
 
 
 def case_specs(experiment: str, *, speeds=None, masses_t=None, methods=None,
@@ -76,17 +87,17 @@ def case_specs(experiment: str, *, speeds=None, masses_t=None, methods=None,
     specs = []
     if experiment == "case1":
         for v in (speeds or CASE1_SPEEDS):
-            specs += [RunSpec(m, _kmh(v), "curve", float(v), 12000.0, dict(METHODS[m]), duration,
-                              vehicle) for m in ms]
+            specs += [_spec(m, _kmh(v), "curve", float(v), 12000.0, duration, vehicle)
+                      for m in ms]
     elif experiment == "case2":
         for v in (speeds or (CASE2_SPEED,)):
-            specs += [RunSpec(m, _kmh(v), "line", float(v), 12000.0, dict(METHODS[m]), duration,
-                              vehicle) for m in ms]
+            specs += [_spec(m, _kmh(v), "line", float(v), 12000.0, duration, vehicle)
+                      for m in ms]
     elif experiment == "case3":
         v = float((speeds or (CASE3_SPEED,))[0])
         for t in (masses_t or CASE3_MASSES_T):
-            specs += [RunSpec(m, _tonnes(t), "curve", v, 1000.0 * float(t), dict(METHODS[m]),
-                              duration, vehicle) for m in ms]
+            specs += [_spec(m, _tonnes(t), "curve", v, 1000.0 * float(t), duration, vehicle)
+                      for m in ms]
     else:
         raise ValueError(f"unknown experiment '{experiment}'")
     return specs
@@ -94,8 +105,9 @@ def case_specs(experiment: str, *, speeds=None, masses_t=None, methods=None,
 
 def pareto_specs(*, speeds=None, duration=None, vehicle=None, two_scales=TWO_SCALES,
                  smooth_scales=SMOOTH_SCALES, ridge_scales=RIDGE_SCALES,
-                 baselines=("Kinematic", "DH", "TCT")) -> list[RunSpec]:
-    """TWO with L scaled, NTWO with (R_dw, R_dd) and with (R_ow, R_od) scaled, baselines."""
+                 baselines=("Kinematic", "DH", "TCT", "FF", "NTWO-wheel")) -> list[RunSpec]:
+    """TWO with L scaled, NTWO with (R_dw, R_dd) and with (R_ow, R_od) scaled, baselines
+    and the wear-blind references (FF, NTWO-wheel) as points."""
     from controller.models import MPCSettings
 
     d = MPCSettings()
@@ -118,8 +130,9 @@ def pareto_specs(*, speeds=None, duration=None, vehicle=None, two_scales=TWO_SCA
                                  {"model": "mf", "method": "ntwo", "R": R}, duration, vehicle,
                                  {"family": "NTWO-ridge", "scale": s, "lever": "R_ow, R_od"}))
         for m in baselines:
-            specs.append(RunSpec(m, g, "curve", float(v), 12000.0, dict(METHODS[m]), duration,
-                                 vehicle, {"family": "baseline"}))
+            sp = _spec(m, g, "curve", float(v), 12000.0, duration, vehicle)
+            sp.tags = {"family": "baseline"}
+            specs.append(sp)
     return specs
 
 
@@ -362,7 +375,8 @@ def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None
         kw = {k: v for k, v in (("two_scales", two_scales), ("smooth_scales", smooth_scales),
                                 ("ridge_scales", ridge_scales)) if v is not None}
         if methods:
-            kw["baselines"] = [m for m in _methods(methods) if m in ("Kinematic", "DH", "TCT")]
+            kw["baselines"] = [m for m in _methods(methods)
+                               if m in ("Kinematic", "DH", "TCT", "FF", "NTWO-wheel")]
         specs = pareto_specs(speeds=speeds, duration=duration, vehicle=vehicle, **kw)
     elif name == "ridge":
         kw = {"levels": ridge_scales} if ridge_scales is not None else {}

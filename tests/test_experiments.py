@@ -11,6 +11,7 @@ import math
 
 import pytest
 
+from controller.models import MPCSettings
 from experiments import studies as ex
 from experiments.paper import PAPER_COLUMNS, paper_table
 from experiments.tables import (COLUMNS, check_targets, fmt, lower_front, table_rows, wear_at)
@@ -43,10 +44,11 @@ def test_reduced_case1_writes_table_logs_and_figures(case1_dir):
                  "omega_vs_speed.png"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     runs = out / "runs"
-    assert len(list(runs.glob("*.json"))) == 10  # 2 speeds x 5 methods
-    assert len(list(runs.glob("*.csv"))) == 10
+    # 2 speeds x (the paper's 5 methods + the 3 references FF, NTWO-wheel, TWO-energy)
+    assert len(list(runs.glob("*.json"))) == 16
+    assert len(list(runs.glob("*.csv"))) == 16
     assert not list(runs.glob("*.tmp*"))
-    assert summary["runs"]["executed"] == 10 and summary["runs"]["failed"] == 0
+    assert summary["runs"]["executed"] == 16 and summary["runs"]["failed"] == 0
     # a per-step log: 2 s at T = 0.01 s, the paper's columns
     log = next(runs.glob("*.csv"))
     with log.open() as f:
@@ -60,13 +62,14 @@ def test_table_has_the_papers_layout(case1_dir):
     out, _ = case1_dir
     md = (out / "table.md").read_text().splitlines()
     i = md.index(HEADER)
-    body = md[i + 2: i + 12]
-    assert [ln.split("|")[2].strip() for ln in body] == ["Kinematic", "DH", "TCT", "NTWO", "TWO"] * 2
+    body = md[i + 2: i + 18]
+    assert [ln.split("|")[2].strip() for ln in body] == ["Kinematic", "DH", "TCT", "NTWO", "TWO",
+                                                         "FF", "NTWO-wheel", "TWO-energy"] * 2
     assert [ln.split("|")[1].strip() for ln in body if ln.split("|")[1].strip()] == ["15 km/h", "35 km/h"]
     with (out / "table.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0])[:11] == ["group", "method", *COLUMNS]
-    assert len(rows) == 10
+    assert len(rows) == 16
     # the table's numbers are the run's metrics (eq. 31 and 32 hold in every row)
     for r in rows:
         v = {c: float(r[c]) for c in COLUMNS}
@@ -104,13 +107,13 @@ def test_resume_reuses_finished_runs_and_json_shape(case1_dir, capsys):
     rc, stdout, err = run_main(capsys, CASE1_ARGS + ["--out", str(out), "--jobs", "2", "--json"])
     assert rc == 0
     data = json.loads(stdout)
-    assert data["runs"]["executed"] == 0 and data["runs"]["reused"] == 10
-    assert "0 run now, 10 reused" in err
+    assert data["runs"]["executed"] == 0 and data["runs"]["reused"] == 16
+    assert "0 run now, 16 reused" in err
     assert {p.name: p.stat().st_mtime_ns for p in (out / "runs").iterdir()} == stamps
     # --json: the table as data
     assert data["experiment"] == "case1"
     assert data["columns"] == list(COLUMNS)
-    assert len(data["rows"]) == 10
+    assert len(data["rows"]) == 16
     for row in data["rows"]:
         assert set(row) >= {"group", "method", "metrics", "best", "second", "status"}
         assert set(row["metrics"]) == set(COLUMNS)
@@ -142,7 +145,8 @@ def test_reduced_case2_and_case3(tmp_path, capsys):
                                       "--jobs", "1", "--json", "--no-progress"])
     assert rc == 0
     d2 = json.loads(stdout)
-    assert [r["method"] for r in d2["rows"]] == ["Kinematic", "DH", "TCT", "NTWO", "TWO"]
+    assert [r["method"] for r in d2["rows"]] == ["Kinematic", "DH", "TCT", "NTWO", "TWO", "FF",
+                                                 "NTWO-wheel", "TWO-energy"]
     assert {r["group"] for r in d2["rows"]} == {"10 km/h"}
     names = {t["target"] for t in d2["targets"]}
     assert "Case 2: TWO W_tw <= 35 % of Kinematic's" in names
@@ -270,6 +274,10 @@ def test_targets_on_a_hand_made_case2_table():
     assert t == {"NTWO best e_bar in every row": True, "TWO best Omega in every row": True,
                  "Case 2: TWO W_tw <= 35 % of Kinematic's": True,
                  "Case 2: TWO W_tw below DH's and TCT's": True}
+    # a reference row (not one of the paper's five) does not change the paper's targets
+    more = table_rows([_res("10 km/h", "FF", W_tw=0.1, e_bar=0.1, Omega=0.1)])
+    t2 = {x["target"]: x["holds"] for x in check_targets("case2", rows + more)}
+    assert t2 == t
     rows[4]["metrics"]["W_tw"] = 3.6  # 36 % of Kinematic's
     t = {x["target"]: x["holds"] for x in check_targets("case2", rows)}
     assert t["Case 2: TWO W_tw <= 35 % of Kinematic's"] is False
@@ -314,7 +322,14 @@ def test_experiment_definitions_follow_the_paper():
     assert {s.group for s in c1} == {"35 km/h", "25 km/h", "15 km/h", "5 km/h"}
     assert all(s.mass_kg == 12000.0 and s.case == "curve" and s.duration is None for s in c1)
     c2 = ex.case_specs("case2")
-    assert all(s.case == "line" and s.speed_kmh == 10.0 for s in c2) and len(c2) == 5
+    assert all(s.case == "line" and s.speed_kmh == 10.0 for s in c2) and len(c2) == 8
+    # the references: no optimisation, NTWO with the wheel-speed ridge, the energy cost
+    ref = {s.label: s for s in c2[5:]}
+    assert ref["FF"].extra == {"solver": "ff"}
+    assert ref["NTWO-wheel"].settings["method"] == "ntwo"
+    assert ref["NTWO-wheel"].settings["R"][2] == pytest.approx(10 * MPCSettings().R[2])
+    assert ref["NTWO-wheel"].settings["R"][3] == MPCSettings().R[3]
+    assert ref["TWO-energy"].settings["method"] == "two-energy"
     c3 = ex.case_specs("case3")
     assert sorted({s.mass_kg for s in c3}) == [8000.0, 12000.0, 16000.0, 20000.0]
     assert all(s.speed_kmh == 30.0 for s in c3)
@@ -326,3 +341,6 @@ def test_experiment_definitions_follow_the_paper():
     assert {s.group for s in p} == {"15 km/h", "35 km/h"}
     fams = {s.tags["family"] for s in p}
     assert fams == {"TWO", "NTWO-smooth", "NTWO-ridge", "baseline"}
+    # the wear-blind references are on every front
+    assert {s.label for s in p if s.tags["family"] == "baseline"} == {
+        "Kinematic", "DH", "TCT", "FF", "NTWO-wheel"}
