@@ -61,6 +61,9 @@ def wear_at_accuracy(front, e):
     return float(np.interp(e, es, ws))
 
 
+FLOOR_MIN_J = 1.0  # J: a floor below this (a straight path) is reported but not divided by
+
+
 def _row(r: dict, floors: dict) -> dict:
     t = r["spec"]["tags"]
     m = r.get("metrics") or {}
@@ -74,7 +77,10 @@ def _row(r: dict, floors: dict) -> dict:
     row.update(fl)
     if m.get("W_tw") is not None and fl:
         row["W_above_floor"] = m["W_tw"] - fl["W_tw_floor"]
-        row["W_over_floor"] = m["W_tw"] / fl["W_tw_floor"] if fl["W_tw_floor"] > 0 else None
+        # a straight path's floor is zero (the recovery from an initial error is not part of
+        # it): there the ratio is undefined, not astronomically large
+        row["W_over_floor"] = (m["W_tw"] / fl["W_tw_floor"] if fl["W_tw_floor"] >= FLOOR_MIN_J
+                               else None)
     return row
 
 
@@ -255,17 +261,20 @@ def plot_fronts(fam: list[dict], rows: list[dict], path: Path) -> None:
         fig, axes = plt.subplots(nrow, ncol, figsize=(WIDTH * 1.35, 3.3 * nrow + 0.6),
                                  squeeze=False)
         for ax, cls in zip(axes.flat, classes):
+            # W over the floor; absolute W_tw where the class's paths have no floor (a line)
+            key = ("W_over_floor" if any(d["class"] == cls and d["W_over_floor"] is not None
+                                         for d in fam) else "W_tw")
             for family, (color, marker) in FAMILY_STYLE.items():
                 ds = [d for d in fam if d["class"] == cls and d["family"] == family
-                      and d["W_over_floor"] is not None]
+                      and d[key] is not None]
                 if not ds:
                     continue
                 xs, ys, xe, ye = [], [], [], []
                 for d in ds:
                     rs = [r for r in rows if r["class"] == cls and r["label"] == d["label"]
-                          and r["status"] == "ok" and r.get("W_over_floor") is not None]
+                          and r["status"] == "ok" and r.get(key) is not None]
                     ex = np.array([r["e_lat_rms_cm"] for r in rs])
-                    wy = np.array([r["W_over_floor"] for r in rs])
+                    wy = np.array([r[key] for r in rs])
                     xs.append(ex.mean())
                     ys.append(wy.mean())
                     if len(rs) > 1:
@@ -280,10 +289,13 @@ def plot_fronts(fam: list[dict], rows: list[dict], path: Path) -> None:
                 ax.errorbar(xs, ys, xerr=np.abs(xe.T - xs), yerr=np.abs(ye.T - ys),
                             fmt=marker + ("-" if len(xs) > 1 else ""), color=color, ms=5,
                             lw=1.0, elinewidth=0.7, capsize=2, label=family)
-            ax.axhline(1.0, color="k", lw=0.8, ls=":", label="floor (exact tracking)")
+            if key == "W_over_floor":
+                ax.axhline(1.0, color="k", lw=0.8, ls=":", label="floor (exact tracking)")
+                ax.set_ylabel("W_tw / wear floor [-]")
+            else:
+                ax.set_ylabel("W_tw [J] (straight path: no floor)")
             ax.set_xscale("log")
             ax.set_xlabel("lateral error, RMS [cm]")
-            ax.set_ylabel("W_tw / wear floor [-]")
             ax.set_title(cls)
             ax.grid(alpha=0.3, which="both")
         for ax in list(axes.flat)[len(classes):]:

@@ -62,6 +62,18 @@ def test_floor_is_zero_on_a_straight_line_and_rejects_an_empty_window():
     assert f.W_tw < 1e-6
     with pytest.raises(ValueError, match="window"):
         wear_floors(ref, VEH, 5.0, 5.0)
+    # the report divides by a floor only where there is one: a line's W / floor is n/a
+    from experiments.study_report import _row
+
+    tags = {"family": "NTWO", "lever": "none", "level": None, "aware": False,
+            "scenario": "case2", "class": "case2", "plant": "nominal", "seed": 0,
+            "path_key": "p"}
+    res = {"spec": {"tags": tags, "label": "NTWO"}, "status": "ok", "key": "k",
+           "metrics": {"W_tw": 2.0e5}}
+    row = _row(res, {"p": {"floors": {"W_tw_floor": f.W_tw}}})
+    assert row["W_over_floor"] is None and row["W_above_floor"] == pytest.approx(2.0e5)
+    row = _row(res, {"p": {"floors": {"W_tw_floor": 1.0e5}}})
+    assert row["W_over_floor"] == pytest.approx(2.0)
 
 
 @pytest.mark.parametrize("make", [lane_change, tight_turn,
