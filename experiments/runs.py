@@ -303,7 +303,9 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
                  scheduler=scheduler)
     if bar is not None:
         bar.close()
-    out = [results[k] for k in keys]
+    # a stored run is found by its content; its names (label, group, tags) are this call's,
+    # so a renamed scenario or two specs with the same content report under their own names
+    out = [dict(results[k], spec=s.to_dict()) for s, k in zip(specs, keys)]
     failed = sum(1 for k in set(keys) if results[k]["status"] != "ok")
     summary = {"runs": len(set(keys)), "reused": reused, "executed": len(order),
                "failed": failed, "wall_s": time.perf_counter() - t0}

@@ -40,12 +40,20 @@ from .runs import PERIOD, RunSpec, code_digest, dask_map, run_all
 # corners" (docs/RESULTS.md, "The study")
 _DEFAULT_L = (0.02, 0.01, 0.02)
 _DEFAULT_R = (0.05, 20.0, 0.005, 2.0)
+_DEFAULT_Q = (200.0, 200.0, 1000.0)
 FAMILIES = {
     "FF": ("none", (None,), lambda x: {"method": "ntwo"}, "ff", False),
     "NTWO": ("none", (None,), lambda x: {"method": "ntwo"}, "sa", False),
     "NTWO-wheel": ("R_ow", (0.05, 0.2, 1.0),
                    lambda x: {"method": "ntwo", "R": [_DEFAULT_R[0], _DEFAULT_R[1], x,
                                                       _DEFAULT_R[3]]}, "sa", False),
+    # the same wear-blind controller with an accuracy lever, as the wear-aware families
+    # have one: the tracking weights Q scaled down (towards the feed-forward, which the
+    # ridge and smoothing pull to), so the blind front may also trade accuracy for wear
+    "NTWO-wheel-Q": ("Q x", (0.3, 0.1, 0.03),
+                     lambda x: {"method": "ntwo", "Q": [x * v for v in _DEFAULT_Q],
+                                "R": [_DEFAULT_R[0], _DEFAULT_R[1], 0.05, _DEFAULT_R[3]]},
+                     "sa", False),
     "Kinematic": ("none", (None,), lambda x: {"model": "kinematic", "method": "ntwo",
                                               "policy": "twist"}, "sa", False),
     "DH": ("none", (None,), lambda x: {"model": "dugoff", "method": "ntwo"}, "sa", False),
@@ -66,7 +74,7 @@ RAW_FAMILIES = {
                                   "iterations": 160, "R": [0.05, 0.2, 0.0, 0.0]}, "sa", True),
 }
 WEAR_AWARE = {f for f, v in {**FAMILIES, **RAW_FAMILIES}.items() if v[4]}
-QUICK_LEVELS = {"NTWO-wheel": (0.2,), "TWO": (0.25,), "TWO-energy": (0.01, 0.1),
+QUICK_LEVELS = {"NTWO-wheel": (0.2,), "NTWO-wheel-Q": (0.1,), "TWO": (0.25,), "TWO-energy": (0.01, 0.1),
                 "TWO-energy-raw": (0.1,)}
 
 # robustness: the plant unlike the controller's model (the controller keeps the nominal)
@@ -100,7 +108,14 @@ class StudyScenario:
 
     @property
     def name(self) -> str:
-        parts = [self.cls if self.case != "random" else f"random-{self.path_seed}"]
+        if self.case == "random":
+            first = (f"random-{self.path_seed}" if self.cls == "random"
+                     else f"{self.cls} random-{self.path_seed}")
+        elif self.cls in ("case1", "case2", "lane", "turn", "user"):  # the class is the path
+            first = self.cls
+        else:  # a class over several paths (load, 4-axle, robust): name the path too
+            first = f"{self.cls} {self.case}"
+        parts = [first]
         if self.speed is not None:
             parts.append(f"{self.speed:g} km/h")
         if self.mass_kg is not None:

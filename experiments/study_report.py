@@ -39,6 +39,7 @@ BOOTSTRAP = 2000
 TOLERANCES_CM = (1.0, 5.0)  # matched accuracy: lateral RMS tolerances (never below NTWO's)
 CLASS_ORDER = ("case1", "case2", "lane", "turn", "random", "load", "4-axle", "robust", "user")
 FAMILY_STYLE = {"FF": ("0.4", "x"), "NTWO": ("C0", "o"), "NTWO-wheel": ("C9", "s"),
+                "NTWO-wheel-Q": ("C6", "d"),
                 "Kinematic": ("C7", "v"), "DH": ("C2", "D"), "TCT": ("C4", "P"),
                 "TWO": ("C3", "^"), "TWO-energy": ("C1", "*"), "NTWO-raw": ("C8", "<"),
                 "TWO-energy-raw": ("C5", ">")}

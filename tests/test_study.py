@@ -173,6 +173,19 @@ def test_reduced_study_end_to_end(tmp_path, monkeypatch):
     assert again["runs"]["executed"] == 0  # resumed: every run reused
 
 
+def test_design_names_every_scenario_once(tmp_path):
+    """Runs are grouped by scenario name for the matched comparison: two paths under one
+    name (the 4-axle curve and lane at 15 km/h once were) would be compared as one."""
+    from experiments import study
+
+    veh = tmp_path / "v.toml"
+    veh.write_text("")
+    for quick in (False, True):
+        names = [sc.name for sc in study.design(quick, str(veh), None)]
+        assert len(names) == len(set(names)), sorted(names)
+    assert len(study.design(False)) >= 50
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(3600)
 def test_quick_study_with_a_users_vehicle_and_path(tmp_path):
@@ -194,7 +207,8 @@ def test_quick_study_with_a_users_vehicle_and_path(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     doc = json.loads(r.stdout)
     fams = {row["family"] for row in doc["rows"]}
-    assert fams >= {"FF", "NTWO", "NTWO-wheel", "TWO", "TWO-energy", "Kinematic", "DH", "TCT"}
+    assert fams >= {"FF", "NTWO", "NTWO-wheel", "NTWO-wheel-Q", "TWO", "TWO-energy", "Kinematic",
+                    "DH", "TCT"}
     assert "user" in doc["summary"] and "ci95" in doc["summary"]["all nominal"]
     user = [row for row in doc["rows"] if row["class"] == "user"]
     assert user and all(row["W_tw_floor"] is not None and row["e_lat_rms_cm"] is not None
