@@ -366,11 +366,11 @@ def _clip_outliers(ax, pts: list, ratio: bool) -> None:
         return
     lo = min(float(np.min(ys)), base)
     ax.set_ylim(lo - 0.05 * (cap - lo), cap)
-    for x, y, c in pts:
-        if y > cap:
-            ax.plot([x], [cap], marker="^", color=c, ms=7, clip_on=False)
-            ax.annotate(f"{y:.3g}" + ("x" if ratio else " J"), (x, cap), xytext=(5, -10),
-                        textcoords="offset points", fontsize=7, color=c)
+    over = sorted((p for p in pts if p[1] > cap), key=lambda p: p[0])
+    for i, (x, y, c) in enumerate(over):  # labels stacked downwards: near points overlap
+        ax.plot([x], [cap], marker="^", color=c, ms=7, clip_on=False)
+        ax.annotate(f"{y:.3g}" + ("x" if ratio else " J"), (x, cap), xytext=(5, -10 - 9 * i),
+                    textcoords="offset points", fontsize=7, color=c)
 
 
 def plot_ratios(summary: dict, path: Path) -> None:
@@ -400,7 +400,7 @@ def plot_ratios(summary: dict, path: Path) -> None:
             ax.annotate(f"{s['gmean']:.3f}  (n = {s['n']})", (right, i), xytext=(6, -3),
                         textcoords="offset points", fontsize=8)
         ax.axvline(1.0, color="k", lw=0.8, ls=":")
-        ax.legend(loc="lower right", fontsize=8)
+        ax.legend(loc="center left", fontsize=8)
         ax.set_yticks(range(len(items)), [k for k, _ in items])
         ax.invert_yaxis()
         ax.set_xlabel("least wear at matched lateral RMS: wear-aware / wear-blind [-]")
