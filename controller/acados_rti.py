@@ -73,6 +73,7 @@ configuration under ``$MSAGV_ACADOS_CACHE``, else ``$XDG_CACHE_HOME/msagv/acados
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import fcntl
@@ -84,6 +85,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import weakref
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -248,6 +250,18 @@ def _stdout_to(log):
         os.close(saved)
 
 
+_LIVE: "weakref.WeakSet[HorizonOCP]" = weakref.WeakSet()
+
+
+@atexit.register
+def _free_solvers() -> None:
+    """Free every acados solver while the interpreter is still whole: left to the garbage
+    collector at teardown, acados' own ``AcadosOcpSolver.__del__`` finds ctypes half gone
+    and prints ``TypeError: item 1 in _argtypes_ has no from_param method``."""
+    for ocp in list(_LIVE):
+        ocp.solver = None
+
+
 class HorizonOCP:
     """The horizon problem of one MPC configuration as an acados OCP (see the module
     docstring), generated and compiled once per configuration (cached on disk), with
@@ -408,6 +422,7 @@ class HorizonOCP:
             if fresh:
                 (d / "ok").write_text("built\n")
         self.built = fresh
+        _LIVE.add(self)
         self.cache = d
         self._bind()
         for k in range(Np):
