@@ -63,7 +63,9 @@ def main(argv: list[str]) -> int:
                     help="case3: gross vehicle weights in kg (default 8000,12000,16000,20000)")
     ap.add_argument("--masses-t", metavar="T,...", help=argparse.SUPPRESS)  # deprecated
     ap.add_argument("--methods", metavar="NAME,...",
-                    help=f"subset of {','.join(studies.METHODS)} (pareto: of the baselines)")
+                    help=f"subset of the paper's {','.join(studies.METHODS)} and the references "
+                         f"{','.join(studies.REFERENCES)} (default: all; pareto: of the baselines "
+                         f"and references)")
     ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
     ap.add_argument("--force", action="store_true", help="redo runs even if finished")
     ap.add_argument("--two-scales", metavar="S,...", help="pareto: factors on TWO's L")
