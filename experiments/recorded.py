@@ -76,18 +76,25 @@ def log_from_run(run: RecordedRun, reference):
     return log, solve, used
 
 
-def evaluate(path: str | Path, run_index: int = -1):
-    """``(metrics, info, log, reference)`` of one run of a recording (default the last)."""
-    from controller.metrics import compute_metrics, percentiles
-
+def load_run(path: str | Path, run_index: int = -1):
+    """``(header, records, summary, runs, run)`` of a recording, ``run`` the one at
+    ``run_index`` (default the last); a recording without states or without that run is a
+    :class:`ReportError`."""
     header, records, summary = read_recording(path)
     runs = split_runs(header, records)
     if not runs:
         raise ReportError(f"{path}: no states recorded")
     try:
-        run = runs[run_index]
+        return header, records, summary, runs, runs[run_index]
     except IndexError:
         raise ReportError(f"{path}: --run {run_index}: the recording has {len(runs)} run(s)") from None
+
+
+def evaluate(path: str | Path, run_index: int = -1):
+    """``(metrics, info, log, reference)`` of one run of a recording (default the last)."""
+    from controller.metrics import compute_metrics, percentiles
+
+    header, records, summary, runs, run = load_run(path, run_index)
     reference = reference_from_message(header["reference"])
     log, solve, refs = log_from_run(run, reference)
     m = compute_metrics(np.asarray(log.pose), np.asarray(log.ref), log.W[0], log.W_final, solve)

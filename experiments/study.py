@@ -292,18 +292,16 @@ def compute_floors(scenarios: list[StudyScenario], out: Path, jobs=None, schedul
         if bar is not None:
             bar.update(1)
 
-    if todo and (jobs == 1 and scheduler is None):
-        for sc_d in todo.values():
-            done(floor_task(sc_d, digest))
-    elif todo:
-        try:
+    try:
+        if todo and (jobs == 1 and scheduler is None):
+            for sc_d in todo.values():
+                done(floor_task(sc_d, digest))
+        elif todo:
             dask_map(floor_task, [(v, digest) for v in todo.values()], done, jobs=jobs,
                      scheduler=scheduler)
-        finally:
-            if bar is not None:
-                bar.close()
-    if bar is not None:
-        bar.close()
+    finally:
+        if bar is not None:
+            bar.close()
     return have
 
 

@@ -358,20 +358,11 @@ def view_recording(path: str | Path, view_kwargs: dict, run_index: int = -1) -> 
     new :class:`RunView` (``view_kwargs``: its keyword arguments: save, serve, ports,
     stream). Returns the view and the number of states logged. The wheel colours use the
     run's peak wear power."""
-    from bridge.recording import read_recording, split_runs
     from plant.vehicle import vehicle_from_dict
 
-    from .recorded import ReportError, reference_from_message
+    from .recorded import load_run, reference_from_message
 
-    header, records, _ = read_recording(path)
-    runs = split_runs(header, records)
-    if not runs:
-        raise ReportError(f"{path}: no states recorded")
-    try:
-        run = runs[run_index]
-    except IndexError:
-        raise ReportError(f"{path}: --run {run_index}: the recording has {len(runs)} "
-                          f"run(s)") from None
+    header, _, _, _, run = load_run(path, run_index)
     vehicle = vehicle_from_dict(header["vehicle"])
     reference = reference_from_message(header["reference"])
     seqs = sorted(run.states)

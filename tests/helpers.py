@@ -177,3 +177,30 @@ def drop_toml_table(text: str, table: str) -> str:
         if not skipping:
             out.append(line)
     return "\n".join(out) + "\n"
+
+
+def assert_commands_within_bounds(mpc, vehicle) -> None:
+    """Six random states (one with two wheels at their steering stops) through
+    ``mpc.step``: every command inside eq. (27)'s bounds, the next steering angle inside
+    the stops, the solution inside its box, a finite cost. ``vehicle``: 2 axles."""
+    import math
+
+    import numpy as np
+
+    lim = vehicle.limits
+    rng = np.random.default_rng(5)
+    for i in range(6):
+        v = rng.uniform(0.0, 12.0)
+        delta = rng.uniform(lim.delta_min, lim.delta_max, vehicle.n_wheels)
+        if i == 0:
+            delta[:] = [lim.delta_max - 1e-4, lim.delta_min + 1e-4, 0.0, 0.5]
+        st = {"t": rng.uniform(0.0, 5.0), "x": rng.uniform(0, 40), "y": rng.normal(0, 2),
+              "phi": rng.normal(0.0, 0.5), "vx": v, "vy": 0.1 * v, "r": rng.normal(0, 0.3),
+              "delta": delta.tolist()}
+        cmd = mpc.step(st)
+        assert np.all(cmd.omega_w >= 0) and np.all(cmd.omega_w <= lim.omega_w_max)
+        assert np.all(cmd.omega_s >= lim.omega_s_min) and np.all(cmd.omega_s <= lim.omega_s_max)
+        nxt = delta + 0.01 * cmd.omega_s
+        assert np.all(nxt >= lim.delta_min - 1e-12) and np.all(nxt <= lim.delta_max + 1e-12)
+        assert np.all(mpc.z >= mpc.lower) and np.all(mpc.z <= mpc.upper)
+        assert math.isfinite(cmd.cost)

@@ -27,6 +27,7 @@ from controller.loop import closed_loop
 from controller.models import MPCSettings, make_model
 from controller.mpc import MPC, ControllerError
 from plant import Plant, default_vehicle, n_axle_vehicle
+from helpers import assert_commands_within_bounds
 
 try:
     import casadi  # noqa: F401
@@ -214,23 +215,7 @@ def test_ipopt_mpc_commands_within_bounds():
 
     ref, _ = make_case("curve", 25.0)
     mpc = IpoptMPC(VEH, MPCSettings(), ref, options=IpoptOptions(max_iter=30))
-    lim = VEH.limits
-    rng = np.random.default_rng(5)
-    for i in range(6):
-        v = rng.uniform(0.0, 12.0)
-        delta = rng.uniform(lim.delta_min, lim.delta_max, VEH.n_wheels)
-        if i == 0:
-            delta[:] = [lim.delta_max - 1e-4, lim.delta_min + 1e-4, 0.0, 0.5]
-        st = {"t": rng.uniform(0.0, 5.0), "x": rng.uniform(0, 40), "y": rng.normal(0, 2),
-              "phi": rng.normal(0.0, 0.5), "vx": v, "vy": 0.1 * v, "r": rng.normal(0, 0.3),
-              "delta": delta.tolist()}
-        cmd = mpc.step(st)
-        assert np.all(cmd.omega_w >= 0) and np.all(cmd.omega_w <= lim.omega_w_max)
-        assert np.all(cmd.omega_s >= lim.omega_s_min) and np.all(cmd.omega_s <= lim.omega_s_max)
-        nxt = delta + 0.01 * cmd.omega_s
-        assert np.all(nxt >= lim.delta_min - 1e-12) and np.all(nxt <= lim.delta_max + 1e-12)
-        assert np.all(mpc.z >= mpc.lower) and np.all(mpc.z <= mpc.upper)
-        assert math.isfinite(cmd.cost)
+    assert_commands_within_bounds(mpc, VEH)
 
 
 @needs_casadi
