@@ -11,7 +11,7 @@ spread of the per-repeat p50 and p99 over the repeats, the time per solve divide
 2-axle time (so "no worse than linear" reads as ratio <= n / 2), and the tracking error of
 the runs (a check that the timed controller is the working one).
 
-Run ``python -m benchmarks.controller_bench [--axles 2,4,6] [--seconds 5] [--repeats 3]``.
+Run ``python -m msagv.benchmarks.controller_bench [--axles 2,4,6] [--seconds 5] [--repeats 3]``.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ SPEED_KMH = 25.0
 
 
 def _vehicle(n: int):
-    from plant import default_vehicle, n_axle_vehicle
+    from msagv.plant import default_vehicle, n_axle_vehicle
 
     return default_vehicle() if n == 2 else n_axle_vehicle(n)
 
@@ -37,8 +37,8 @@ def run_once(n_axles: int, seconds: float, settings=None) -> dict:
     """One closed-loop run; returns its solve times [ms] and e_bar."""
     from dataclasses import asdict
 
-    from controller.loop import closed_loop
-    from experiments.scenario import Scenario
+    from msagv.controller.loop import closed_loop
+    from msagv.experiments.scenario import Scenario
 
     sc = Scenario(vehicle=_vehicle(n_axles), case="curve", speed=SPEED_KMH, duration=seconds,
                   settings={} if settings is None else asdict(settings), period=T)
@@ -51,8 +51,8 @@ def run_once(n_axles: int, seconds: float, settings=None) -> dict:
 def bench_controller(axles=(2, 4, 6, 8), seconds: float = 5.0, repeats: int = 3,
                      settings=None) -> dict:
     """Solve-time percentiles per axle count (see the module docstring)."""
-    from controller import MPCSettings
-    from controller.metrics import percentiles
+    from msagv.controller import MPCSettings
+    from msagv.controller.metrics import percentiles
 
     from .plant_bench import _spread
 
@@ -86,7 +86,7 @@ def bench_controller(axles=(2, 4, 6, 8), seconds: float = 5.0, repeats: int = 3,
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.controller_bench",
+    ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.controller_bench",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("--axles", default="2,4,6,8", help="comma-separated axle counts")
     ap.add_argument("--seconds", type=float, default=5.0, help="vehicle seconds per run")

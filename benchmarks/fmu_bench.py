@@ -10,7 +10,7 @@ T = 0.01 s with :func:`fmu_build.drive.varied_inputs`:
   ``state_message`` (what the closed loop and the bridge call).
 
 Each engine is warmed up (numba compilation excluded) and the step times of all repeats
-are pooled. ``python -m benchmarks.fmu_bench [--seconds S] [--repeats R] [--fmu F]``
+are pooled. ``python -m msagv.benchmarks.fmu_bench [--seconds S] [--repeats R] [--fmu F]``
 prints the result as JSON.
 """
 
@@ -36,7 +36,7 @@ def _stats(samples: list[float]) -> dict[str, float]:
 
 
 def _native(vehicle, U: np.ndarray, h: float) -> list[float]:
-    from plant.stepping import Plant
+    from msagv.plant.stepping import Plant
 
     p = Plant(vehicle)
     nw = vehicle.n_wheels
@@ -51,7 +51,7 @@ def _native(vehicle, U: np.ndarray, h: float) -> list[float]:
 
 
 def _fmpy(fmu_path: Path, U: np.ndarray, h: float) -> list[float]:
-    from fmu_build.drive import run_fmpy
+    from msagv.fmu_build.drive import run_fmpy
 
     timing: list[float] = []
     run_fmpy(fmu_path, U, h, timing=timing)
@@ -59,7 +59,7 @@ def _fmpy(fmu_path: Path, U: np.ndarray, h: float) -> list[float]:
 
 
 def _host(fmu_path: Path, U: np.ndarray, h: float) -> list[float]:
-    from fmu_build.host import FmuPlant
+    from msagv.fmu_build.host import FmuPlant
 
     clock, out = time.perf_counter, []
     with FmuPlant(fmu_path) as p:
@@ -77,9 +77,9 @@ def bench_fmu(seconds: float = 10.0, repeats: int = 3, fmu_path: str | Path | No
               h: float = 0.01) -> dict:
     """Per-step wall time (p50/p99/mean in microseconds) of the FMU under fmpy and the
     native plant, and their ratios (FMU / native, by p50 and by mean)."""
-    from fmu_build.build import build_fmu
-    from fmu_build.drive import varied_inputs
-    from plant.vehicle import default_vehicle
+    from msagv.fmu_build.build import build_fmu
+    from msagv.fmu_build.drive import varied_inputs
+    from msagv.plant.vehicle import default_vehicle
 
     vehicle = default_vehicle()
     tmp = None
@@ -109,7 +109,7 @@ def bench_fmu(seconds: float = 10.0, repeats: int = 3, fmu_path: str | Path | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.fmu_bench", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.fmu_bench", description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=10.0, help="simulated seconds per repeat")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--fmu", help="an FMU built by msagv fmu build (default: build one)")

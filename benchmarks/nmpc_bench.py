@@ -21,7 +21,7 @@ Two measurements per axle count (2: the paper's vehicle; 4, 6, 8: its
 
 acados builds its solver once per configuration (cached, see controller/acados_rti.py); the
 build time is reported when it happened here. Run
-``python -m benchmarks.nmpc_bench [--axles 2,4,6,8] [--states 40] [--speeds 15,35]``
+``python -m msagv.benchmarks.nmpc_bench [--axles 2,4,6,8] [--states 40] [--speeds 15,35]``
 (also ``msagv bench nmpc``).
 """
 
@@ -37,7 +37,7 @@ T = 0.01
 
 
 def _vehicle(n: int):
-    from plant import default_vehicle, n_axle_vehicle
+    from msagv.plant import default_vehicle, n_axle_vehicle
 
     return default_vehicle() if n == 2 else n_axle_vehicle(n)
 
@@ -52,8 +52,8 @@ def bench_states(n_axles: int, n_states: int, settings=None, sqp: int = 3) -> di
     """Both solvers on the same sampled states (see the module docstring); also acados with
     ``sqp`` SQP iterations in place of one (0: not), which tells how much of the RTI's gap
     to the annealer is the single iteration."""
-    from controller import MPCSettings
-    from controller.acados_rti import AcadosOptions
+    from msagv.controller import MPCSettings
+    from msagv.controller.acados_rti import AcadosOptions
 
     from .optimality_bench import RUNS, _solvers, sample_states
 
@@ -123,8 +123,8 @@ def bench_closed_loop(n_axles: int, speeds=(15.0, 35.0), seconds: float | None =
                       solvers=("sa", "acados")) -> dict:
     """The whole Case 1 curve (or ``seconds`` of it) per speed and solver: W_tw, tracking
     and solve times, as ``msagv run --json`` reports them."""
-    from controller.loop import closed_loop
-    from experiments.scenario import Scenario
+    from msagv.controller.loop import closed_loop
+    from msagv.experiments.scenario import Scenario
 
     out = {}
     for sp in speeds:
@@ -157,7 +157,7 @@ def bench_nmpc(axles=(2, 4, 6, 8), n_states: int = 40, speeds=(15.0, 35.0),
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.nmpc_bench",
+    ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.nmpc_bench",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("--axles", default="2,4,6,8", help="comma-separated axle counts")
     ap.add_argument("--states", type=int, default=40, help="sampled states per axle count")

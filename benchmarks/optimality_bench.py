@@ -15,7 +15,7 @@ ratio annealer / IPOPT is reported as percentiles (1 = the optimum found; IPOPT 
 method, so a ratio < 1 means the annealer found a better basin), with IPOPT's time per
 solve and its convergence status counts.
 
-Run ``python -m benchmarks.optimality_bench [--states 200]``; ``--ablation`` compares the
+Run ``python -m msagv.benchmarks.optimality_bench [--states 200]``; ``--ablation`` compares the
 annealer variants of docs/CONTROLLER.md on 40 states instead (:func:`bench_ablation`).
 """
 
@@ -34,7 +34,7 @@ RUNS = (("curve", 15.0), ("curve", 25.0), ("curve", 35.0), ("line", 10.0))
 def _scenario(case: str, speed: float, settings=None, **kw):
     from dataclasses import asdict
 
-    from experiments.scenario import Scenario
+    from msagv.experiments.scenario import Scenario
 
     return Scenario(case=case, speed=speed, period=T,
                     settings={} if settings is None else asdict(settings), **kw)
@@ -43,7 +43,7 @@ def _scenario(case: str, speed: float, settings=None, **kw):
 def sample_states(n_states: int, settings=None, seconds: float = 6.0, vehicle=None) -> list[dict]:
     """``n_states`` samples ``{case, speed, k, state, z}`` spread evenly over the runs
     (``vehicle``: the paper's by default)."""
-    from controller.loop import closed_loop
+    from msagv.controller.loop import closed_loop
 
     per_run = int(np.ceil(n_states / len(RUNS)))
     out = []
@@ -97,9 +97,9 @@ def bench_optimality(n_states: int = 200, settings=None, axles=(2,),
 
 
 def _bench_optimality_axles(n_axles: int, n_states: int, settings=None) -> dict:
-    from controller import MPCSettings
-    from controller.ipopt import REFERENCE_OPTIONS
-    from plant import default_vehicle, n_axle_vehicle
+    from msagv.controller import MPCSettings
+    from msagv.controller.ipopt import REFERENCE_OPTIONS
+    from msagv.plant import default_vehicle, n_axle_vehicle
 
     s = settings or MPCSettings()
     t0 = time.perf_counter()
@@ -175,9 +175,9 @@ def bench_ablation(n_states: int = 40, seeds=(1, 2), settings=None) -> dict:
     is already within ~0.1 % of the optimum, so every variant would look the same there;
     from a weaker solver's loop the warm starts leave work to do, which is what tells the
     variants apart."""
-    from controller import MPCSettings
-    from controller.ipopt import REFERENCE_OPTIONS
-    from controller.sa_kernel import CompiledAnnealer
+    from msagv.controller import MPCSettings
+    from msagv.controller.ipopt import REFERENCE_OPTIONS
+    from msagv.controller.sa_kernel import CompiledAnnealer
 
     s = settings or MPCSettings()
     t0 = time.perf_counter()
@@ -216,7 +216,7 @@ def bench_ablation(n_states: int = 40, seeds=(1, 2), settings=None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.optimality_bench",
+    ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.optimality_bench",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("--states", type=int, default=200)
     ap.add_argument("--axles", default="2", help="comma-separated axle counts")

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from plant import Plant, default_vehicle, n_axle_vehicle
+from msagv.plant import Plant, default_vehicle, n_axle_vehicle
 
 T = 0.01  # s, control period (DESIGN.md)
 RTOL = 1e-8

@@ -63,12 +63,12 @@ import numba
 import numpy as np
 from numpy.ctypeslib import ndpointer
 
-from controller import MPCSettings, make_case
-from controller import rollout as _ro
-from controller.mirrors import C_REFERENCE
-from controller.models import MagicFormulaModel
-from plant import default_vehicle, n_axle_vehicle
-from plant import layout as lay
+from msagv.controller import MPCSettings, make_case
+from msagv.controller import rollout as _ro
+from msagv.controller.mirrors import C_REFERENCE
+from msagv.controller.models import MagicFormulaModel
+from msagv.plant import default_vehicle, n_axle_vehicle
+from msagv.plant import layout as lay
 
 SOURCE = C_REFERENCE
 HEADER = "msagv_layout.h"  # generated next to the build from plant.layout.c_header()

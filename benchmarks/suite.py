@@ -81,10 +81,10 @@ def run_section(name: str, quick: bool) -> dict:
             a.pop("rows", None)
         return r
     if name == "nmpc":
-        from controller.mpc import ControllerError
+        from msagv.controller.mpc import ControllerError
 
         try:
-            from controller.acados_rti import require_acados
+            from msagv.controller.acados_rti import require_acados
 
             require_acados()
         except ControllerError as e:

@@ -2,7 +2,7 @@
 
 This process plays the plant: it listens on a free loopback port and publishes a ``state``
 message (docs/PROTOCOL.md, 2-axle vehicle, ~230 bytes) every 10 ms, timed on the wall clock
-as the realtime plant does. A child process (``python -m benchmarks.transport_bench
+as the realtime plant does. A child process (``python -m msagv.benchmarks.transport_bench
 --echo``) plays a controller without a solve: it validates each state with the bridge's
 own decoder and answers with a ``cmd`` (encoded by the bridge, ``solve_ms`` 0). The
 round trip is measured here from just before ``put`` to the command's arrival in the
@@ -40,8 +40,8 @@ def _echo(endpoint: str, vid: str) -> int:
     """The child: answer every valid state with a zero-solve command."""
     import zenoh
 
-    from bridge import messages as M
-    from bridge.session import Keys, SessionOptions, open_session
+    from msagv.bridge import messages as M
+    from msagv.bridge.session import Keys, SessionOptions, open_session
 
     k = Keys(vid)
     stop = threading.Event()
@@ -80,10 +80,10 @@ def bench_transport(seconds: float = 5.0, period: float = T) -> dict:
     """
     import zenoh
 
-    from bridge import messages as M
-    from bridge.process import free_port
-    from bridge.presence import Presence
-    from bridge.session import Keys, SessionOptions, open_session
+    from msagv.bridge import messages as M
+    from msagv.bridge.process import free_port
+    from msagv.bridge.presence import Presence
+    from msagv.bridge.session import Keys, SessionOptions, open_session
 
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
@@ -95,7 +95,7 @@ def bench_transport(seconds: float = 5.0, period: float = T) -> dict:
     lock = threading.Lock()
     cmd_bytes = [0]
     with open_session(SessionOptions(id=vid, listen=[ep]), "plant") as s:
-        child = subprocess.Popen([sys.executable, "-m", "benchmarks.transport_bench", "--echo",
+        child = subprocess.Popen([sys.executable, "-m", "msagv.benchmarks.transport_bench", "--echo",
                                   "--endpoint", ep, "--id", vid])
         try:
             def on_cmd(sample):

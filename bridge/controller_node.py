@@ -325,7 +325,7 @@ class ControllerNode:
         key = self.keys.reference
         try:
             m = M.decode_reference(payload)
-            from controller.reference import ReferenceError, from_samples
+            from msagv.controller.reference import ReferenceError, from_samples
 
             try:  # checked here, so a bad one is rejected on arrival
                 from_samples(m["t"], m["x"], m["y"], m["phi"])
@@ -466,7 +466,7 @@ class ControllerNode:
                     self._held = (st, rx_perf)
 
     def _set_reference(self, m: dict, t_now: float) -> None:
-        from controller.reference import from_samples
+        from msagv.controller.reference import from_samples
 
         t = np.asarray(m["t"], dtype=float)
         if m.get("relative"):
@@ -594,7 +594,7 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
             plant_zid = None
             if fetch:
                 p, plant_zid = fetch_params(session, keys, wait_s, stop)
-                from plant.vehicle import VehicleError, vehicle_from_dict
+                from msagv.plant.vehicle import VehicleError, vehicle_from_dict
 
                 try:
                     vehicle = vehicle_from_dict(p["vehicle"])

@@ -1,10 +1,10 @@
 """Malformed messages of every kind docs/PROTOCOL.md rejects, for fault-injection tests.
 
 :func:`malformed` yields payloads that a conforming receiver must reject, each with the
-reason code it must count. ``python -m bridge.faults`` sends them at a running plant
+reason code it must count. ``python -m msagv.bridge.faults`` sends them at a running plant
 (``cmd``) and/or controller (``state``, ``reference``)::
 
-    python -m bridge.faults --connect tcp/127.0.0.1:7448 --id agv0 --count 10000 --at both
+    python -m msagv.bridge.faults --connect tcp/127.0.0.1:7448 --id agv0 --count 10000 --at both
 """
 
 from __future__ import annotations
@@ -143,7 +143,7 @@ def flood(session, vid: str, kind: str, nw: int, count: int, rate_hz: float | No
 def main(argv: list[str] | None = None) -> int:
     from .session import add_session_args, open_session, options_from_args
 
-    ap = argparse.ArgumentParser(prog="python -m bridge.faults", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m msagv.bridge.faults", description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=10000, help="messages per target kind")
     ap.add_argument("--at", choices=["plant", "controller", "both"], default="both",
                     help="plant: cmd messages; controller: state and reference messages")

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from controller.metrics import percentiles
+from msagv.controller.metrics import percentiles
 
 from . import messages as M
 from .loss import SAFE, CommandWatch
@@ -393,7 +393,7 @@ class PlantNode:
             self.final_state = st
 
     def _apply(self, omega_w, omega_s) -> None:
-        from plant.stepping import PlantError
+        from msagv.plant.stepping import PlantError
 
         try:
             self.plant.set_inputs(omega_w, omega_s)

@@ -91,7 +91,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plant import layout as lay
+from msagv.plant import layout as lay
 
 from . import rollout as _ro
 from .mirrors.casadi_rollout import _wrap, ca, symbolic_step

@@ -47,8 +47,8 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.signal import savgol_filter
 
-from plant.tire import magic_formula
-from plant.vehicle import G_ACCEL, Vehicle
+from msagv.plant.tire import magic_formula
+from msagv.plant.vehicle import G_ACCEL, Vehicle
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plant import layout as lay
+from msagv.plant import layout as lay
 
 from . import rollout as _ro
 from .mirrors.casadi_rollout import TINY_SQ, TINY_W2, ca, symbolic_cost, symbolic_rollout  # noqa: F401

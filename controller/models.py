@@ -14,9 +14,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from plant import layout as lay
-from plant.dynamics import pack_params
-from plant.vehicle import Vehicle
+from msagv.plant import layout as lay
+from msagv.plant.dynamics import pack_params
+from msagv.plant.vehicle import Vehicle
 
 from . import rollout as _ro
 

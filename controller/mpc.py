@@ -16,8 +16,8 @@ from typing import Callable, Mapping
 import numba
 import numpy as np
 
-from plant import layout as lay
-from plant.vehicle import Vehicle
+from msagv.plant import layout as lay
+from msagv.plant.vehicle import Vehicle
 
 from . import rollout as _ro
 from .sa_kernel import CompiledAnnealer

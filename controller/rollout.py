@@ -81,9 +81,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
-import plant.tire as _tire
-from plant import layout as lay
-from plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX,
+import msagv.plant.tire as _tire
+from msagv.plant import layout as lay
+from msagv.plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX,
                           P_DELTA_MIN, P_DUGOFF_C_ALPHA, P_DUGOFF_C_S, P_DUGOFF_MU, P_G, P_K_T,
                           P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C, P_LON_E,
                           P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN, P_OMEGA_W_MAX,
@@ -98,7 +98,7 @@ from . import approx as _approx
 
 # The names the kernels below call are bound per set of primitives by make_prediction
 # (plant.tire.bind_globals); these module-level ones are the math library's, for reading.
-from plant.tire import (dugoff_forces, magic_formula_and_slope, slip_angle,  # noqa: E402,F401
+from msagv.plant.tire import (dugoff_forces, magic_formula_and_slope, slip_angle,  # noqa: E402,F401
                         slip_jacobian, slip_ratio, wear_power_angle, wear_power_slip,
                         wear_power_steer, wheel_to_body, wheel_velocity)
 from .approx import atan2_exact as atan2, cos_exact as cos, sin_exact as sin  # noqa: E402

@@ -49,8 +49,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-import plant.tire as _tire
-from plant import layout as lay
+import msagv.plant.tire as _tire
+from msagv.plant import layout as lay
 
 from . import approx as _approx
 from . import rollout as _ro

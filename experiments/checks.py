@@ -1,6 +1,6 @@
 """What a run is asked to do, checked before it starts and its solve times after it ends.
 
-A request no vehicle can meet is refused (:class:`experiments.scenario.ScenarioError`,
+A request no vehicle can meet is refused (:class:`ScenarioError`,
 one line naming the problem: the command exits 2 before anything runs); a request that
 runs but whose result needs a caveat gives a warning, a one-line string that the command
 prints on stderr and lists under ``warnings`` in its JSON. The cases (docs/SCENARIOS.md):
@@ -27,14 +27,18 @@ G = 9.81  # m/s^2
 KMH = 3.6  # km/h per m/s
 
 
+class ScenarioError(ValueError):
+    """A scenario that cannot be built or run (the message names the field). Defined here,
+    below :mod:`experiments.scenario` (which re-exports it), so the checks need not import
+    the scenario."""
+
+
 def reference_checks(vehicle, reference, duration: float, after_end: str = "continue",
                      speed_option: str = "speed") -> list[str]:
     """Warnings for running ``reference`` for ``duration`` s with ``vehicle``; raises
-    :class:`experiments.scenario.ScenarioError` for a speed no wheel can reach.
+    :class:`ScenarioError` for a speed no wheel can reach.
     ``speed_option`` names the option or key the user set the speed with."""
-    from controller.reference import wheel_speeds
-
-    from .scenario import ScenarioError
+    from msagv.controller.reference import wheel_speeds
 
     warnings = []
     t0 = float(reference.t[0])

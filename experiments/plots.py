@@ -103,7 +103,7 @@ def plot_run(log, reference, path, title: str = "") -> None:
     error [cm]; the heading error [deg]; the wear powers [kW]. One quantity per axis."""
     import numpy as np
 
-    from controller.metrics import wrap_angle
+    from msagv.controller.metrics import wrap_angle
 
     plt = pyplot()
     a = log.arrays()

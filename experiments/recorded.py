@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bridge.recording import RecordedRun, read_recording, split_runs
+from msagv.bridge.recording import RecordedRun, read_recording, split_runs
 
 
 class ReportError(ValueError):
@@ -30,7 +30,7 @@ class _Cmd:
 
 
 def reference_from_message(m: dict, t_offset: float = 0.0):
-    from controller.reference import from_samples
+    from msagv.controller.reference import from_samples
 
     t = np.asarray(m["t"], dtype=float) + t_offset
     return from_samples(t, m["x"], m["y"], m["phi"], name=m.get("name", "trajectory"))
@@ -39,7 +39,7 @@ def reference_from_message(m: dict, t_offset: float = 0.0):
 def log_from_run(run: RecordedRun, reference):
     """``(RunLog, solve_ms, references)``: rows for every state before the end (or before
     the last recorded state if the run was cut short); W at the end from the last state."""
-    from controller.loop import RunLog
+    from msagv.controller.loop import RunLog
 
     seqs = sorted(run.states)
     last = run.end_seq if run.end_seq is not None else seqs[-1]
@@ -92,7 +92,7 @@ def load_run(path: str | Path, run_index: int = -1):
 
 def evaluate(path: str | Path, run_index: int = -1):
     """``(metrics, info, log, reference)`` of one run of a recording (default the last)."""
-    from controller.metrics import compute_metrics, percentiles
+    from msagv.controller.metrics import compute_metrics, percentiles
 
     header, records, summary, runs, run = load_run(path, run_index)
     reference = reference_from_message(header["reference"])

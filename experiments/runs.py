@@ -180,7 +180,7 @@ def execute(spec_d: dict, key: str) -> dict:
     as deterministic as a result."""
     import tempfile
 
-    from controller.loop import closed_loop
+    from msagv.controller.loop import closed_loop
 
     _worker_init()
     spec = RunSpec.from_dict(spec_d)

@@ -24,6 +24,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
+from .checks import ScenarioError, reference_checks
+
 SOLVERS = ("sa", "ipopt", "acados", "ff")  # the annealer, IPOPT, acados SQP-RTI, or no
 # optimisation (the feed-forward)
 CASES = ("curve", "line", "lane", "turn", "random")  # paper Cases 1, 2; the study's paths
@@ -31,10 +33,6 @@ AFTER_END = ("continue", "stop")  # past the reference's end: go on straight, or
 PERIOD = 0.01  # s, the paper's control period T
 # top-level keys of a scenario file that are MPC settings (the rest go under [settings])
 SETTING_KEYS = ("method", "model", "seed")
-
-
-class ScenarioError(ValueError):
-    """A scenario that cannot be built (the message names the field)."""
 
 
 @dataclass
@@ -150,7 +148,7 @@ class Scenario:
     def resolve_vehicle(self, given=None):
         """The vehicle: ``given`` (e.g. the one a plant serves as its params, or the FMU's),
         else the scenario's, with ``mass_kg`` applied."""
-        from plant.vehicle import Vehicle, load_vehicle
+        from msagv.plant.vehicle import Vehicle, load_vehicle
 
         if given is not None:
             v = given
@@ -159,7 +157,7 @@ class Scenario:
         else:
             v = load_vehicle(self.vehicle)
         if self.axles is not None and given is None and v.n_axles != self.axles:
-            from plant.vehicle import n_axle_vehicle
+            from msagv.plant.vehicle import n_axle_vehicle
 
             v = n_axle_vehicle(self.axles, base=v)
         if self.mass_kg is not None and v.mass != self.mass_kg:
@@ -168,13 +166,13 @@ class Scenario:
 
     def reference(self):
         """``(reference, initial_state_fn)``: ``initial_state_fn(vehicle)`` starts on it."""
-        from controller.reference import from_csv, make_case
+        from msagv.controller.reference import from_csv, make_case
 
         if self.trajectory is not None:
             ref = from_csv(self.trajectory).with_after_end("continue")
             return ref, ref.initial_state
         if self.case in ("lane", "turn", "random"):
-            from controller import paths
+            from msagv.controller import paths
 
             v, speed = self.resolve_vehicle(), float(self.speed if self.speed is not None else 15)
             ref = (paths.lane_change(v, speed) if self.case == "lane" else
@@ -191,7 +189,7 @@ class Scenario:
     def initial_state(self, vehicle, start_fn) -> dict[str, float]:
         """The plant's initial state: on the reference (``start_fn(vehicle)``), or at rest
         with ``from_rest``; then the ``initial`` overrides."""
-        from controller.reference import rolling_wheels
+        from msagv.controller.reference import rolling_wheels
 
         st = {} if self.from_rest else dict(start_fn(vehicle))
         given = {k: float(v) for k, v in self.initial.items()}
@@ -213,7 +211,7 @@ class Scenario:
 
     def mpc_settings(self, **override):
         """The :class:`controller.models.MPCSettings` of this scenario (plus ``override``)."""
-        from controller.models import MPCSettings
+        from msagv.controller.models import MPCSettings
 
         known = set(MPCSettings.field_names())
         kw = {}
@@ -233,16 +231,16 @@ class Scenario:
         settings = self.mpc_settings(**override)
         T = self.period if period is None else period
         if self.solver == "acados":
-            from controller.acados_rti import AcadosMPC, check_supported as acados_supported
+            from msagv.controller.acados_rti import AcadosMPC, check_supported as acados_supported
 
             acados_supported(settings)
             return AcadosMPC(vehicle, settings, reference, period=T, options=options)
         if self.solver == "ipopt":
-            from controller.ipopt import IpoptMPC, check_supported
+            from msagv.controller.ipopt import IpoptMPC, check_supported
 
             check_supported(settings)
             return IpoptMPC(vehicle, settings, reference, period=T, options=options)
-        from controller.mpc import MPC, FeedForward
+        from msagv.controller.mpc import MPC, FeedForward
 
         cls = FeedForward if self.solver == "ff" else MPC
         return cls(vehicle, settings, reference, period=T)
@@ -251,11 +249,11 @@ class Scenario:
         """Fail early (before any plant or network) if the solver cannot serve the settings
         (IPOPT without CasADi, or with a baseline's prediction model)."""
         if self.solver == "ipopt":
-            from controller.ipopt import check_supported
+            from msagv.controller.ipopt import check_supported
 
             check_supported(self.mpc_settings())
         elif self.solver == "acados":
-            from controller.acados_rti import check_supported as acados_supported
+            from msagv.controller.acados_rti import check_supported as acados_supported
 
             acados_supported(self.mpc_settings())
 
@@ -263,7 +261,7 @@ class Scenario:
         """``(plant, vehicle, reference, initial)``: the plant at its initial state."""
         ref, start = self.reference()
         if self.fmu is not None:
-            from fmu_build.host import FmuPlant
+            from msagv.fmu_build.host import FmuPlant
 
             given = None
             if self.vehicle is not None:
@@ -280,7 +278,7 @@ class Scenario:
                 plant.close()
                 raise
             return plant, vehicle, ref, initial
-        from plant.stepping import Plant
+        from msagv.plant.stepping import Plant
 
         vehicle = self.resolve_vehicle()
         actual = self.plant_vehicle(vehicle)
@@ -292,7 +290,7 @@ class Scenario:
         ``plant_tire_scale`` applied (the controller's is ``vehicle`` itself)."""
         if not self.plant_options and self.plant_tire_scale == 1.0:
             return vehicle
-        from plant.vehicle import vehicle_from_dict
+        from msagv.plant.vehicle import vehicle_from_dict
 
         d = vehicle.to_dict()
         unknown = sorted(set(self.plant_options) - set(d["plant"]))
@@ -316,8 +314,6 @@ class Scenario:
     def check(self, vehicle, reference) -> list[str]:
         """Warnings about running this scenario (:mod:`experiments.checks`); raises
         :class:`ScenarioError` for a request no vehicle can meet."""
-        from .checks import reference_checks
-
         d = float(self.duration) if self.duration is not None else float(reference.duration)
         return reference_checks(vehicle, reference, d, self.after_end)
 
@@ -346,7 +342,7 @@ class Scenario:
     # ---- as data -------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """Plain data (the vehicle as its file path or its description)."""
-        from plant.vehicle import Vehicle
+        from msagv.plant.vehicle import Vehicle
 
         d = {f.name: getattr(self, f.name) for f in fields(self)}
         if isinstance(self.vehicle, Vehicle):
@@ -362,7 +358,7 @@ class Scenario:
         ``method``, ``model`` and ``seed`` may be given at the top level as well as under
         ``settings``. Every key is checked here (type, range, files exist), so a bad
         file fails naming its key before anything is built. Unknown keys are refused."""
-        from plant.vehicle import VehicleError, vehicle_from_dict
+        from msagv.plant.vehicle import VehicleError, vehicle_from_dict
 
         d = {k: v for k, v in d.items() if v is not None}  # None: not given (to_dict)
         known = {f.name for f in fields(cls)} | set(SETTING_KEYS)
@@ -407,7 +403,7 @@ class Scenario:
             sp = kw["speed"]
             if not (_is_number(sp) or isinstance(sp, str)):
                 raise ScenarioError(f"speed: expected km/h or a profile 't:kmh,...', got {sp!r}")
-            from controller.reference import ReferenceError, SpeedProfile
+            from msagv.controller.reference import ReferenceError, SpeedProfile
 
             try:
                 SpeedProfile.parse(sp)

@@ -108,7 +108,7 @@ def pareto_specs(*, speeds=None, duration=None, vehicle=None, two_scales=TWO_SCA
                  baselines=("Kinematic", "DH", "TCT", "FF", "NTWO-wheel")) -> list[RunSpec]:
     """TWO with L scaled, NTWO with (R_dw, R_dd) and with (R_ow, R_od) scaled, baselines
     and the wear-blind references (FF, NTWO-wheel) as points."""
-    from controller.models import MPCSettings
+    from msagv.controller.models import MPCSettings
 
     d = MPCSettings()
     specs = []
@@ -138,7 +138,7 @@ def pareto_specs(*, speeds=None, duration=None, vehicle=None, two_scales=TWO_SCA
 
 def ridge_specs(*, speeds=None, levels=RIDGE_LEVELS, duration=None, vehicle=None) -> list[RunSpec]:
     """NTWO and TWO with (R_ow, R_od) = level x RIDGE_BASE (everything else default)."""
-    from controller.models import MPCSettings
+    from msagv.controller.models import MPCSettings
 
     d = MPCSettings()
     specs = []

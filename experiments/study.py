@@ -246,7 +246,7 @@ def run_specs(scenarios: list[StudyScenario], quick: bool = False) -> list[RunSp
 # ---- the floors, once per path ------------------------------------------------------------------
 def floor_task(sc_dict: dict, digest: str) -> dict:
     """The wear floors of one scenario's reference (a Dask task): ``{key, floors}``."""
-    from controller.floors import wear_floors
+    from msagv.controller.floors import wear_floors
 
     t0 = time.perf_counter()
     sc = StudyScenario(**sc_dict)

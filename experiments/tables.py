@@ -281,7 +281,7 @@ def plot_trajectories(results: list[dict], out_dir: Path, path: Path, title: str
 def plot_errors(results: list[dict], out_dir: Path, path: Path, title: str) -> None:
     """e_x, e_y [cm] and e_phi [deg] over time for every method, one row per group; one
     quantity per axis."""
-    from controller.metrics import wrap_angle
+    from msagv.controller.metrics import wrap_angle
 
     from .plots import WIDTH, robust_ylim, style
 

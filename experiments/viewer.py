@@ -190,7 +190,7 @@ class RunView:
         if p_total is not None:
             rec.log("wear/power/total", rr.Scalars(p_total))
         if self.reference is not None:
-            from controller.metrics import wrap_angle
+            from msagv.controller.metrics import wrap_angle
 
             r = self.reference.sample(t)
             ex, ey = x - r[0], y - r[1]
@@ -294,7 +294,7 @@ class ViewSink:
         pass
 
     def _run(self) -> None:
-        from bridge import messages as M
+        from msagv.bridge import messages as M
 
         nw = self.view.vehicle.n_wheels
         while True:
@@ -358,7 +358,7 @@ def view_recording(path: str | Path, view_kwargs: dict, run_index: int = -1) -> 
     new :class:`RunView` (``view_kwargs``: its keyword arguments: save, serve, ports,
     stream). Returns the view and the number of states logged. The wheel colours use the
     run's peak wear power."""
-    from plant.vehicle import vehicle_from_dict
+    from msagv.plant.vehicle import vehicle_from_dict
 
     from .recorded import load_run, reference_from_message
 

@@ -34,8 +34,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-import plant as plant_pkg
-from plant.vehicle import Vehicle, default_vehicle
+from msagv import plant as plant_pkg
+from msagv.plant.vehicle import Vehicle, default_vehicle
 
 from . import slave as slave_mod
 from .variables import UNITS, VariableTableError, fmu_variables
@@ -49,7 +49,8 @@ MODEL_NAME = "MsagvPlant"
 MAX_AXLES = 24
 BUILD_TIMEOUT_S = 300.0
 
-_ABS_IMPORT = re.compile(r"^\s*(from\s+plant(\.|\s)|import\s+plant(\.|\s|,|$))", re.M)
+_ABS_IMPORT = re.compile(r"^\s*(from\s+(msagv\.)?plant(\.|\s)|import\s+(msagv\.)?plant(\.|\s|,|$)"
+                         r"|from\s+msagv(\.|\s)|import\s+msagv(\.|\s|,|$))", re.M)
 # XML 1.0 cannot carry these characters at all (not even escaped).
 _XML_BAD = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ufffe\uffff]")
 
@@ -106,8 +107,8 @@ def _check_relative_imports(files: list[Path]) -> None:
     for p in files:
         if p.suffix == ".py" and _ABS_IMPORT.search(p.read_text()):
             raise FmuBuildError(
-                f"plant/{p.relative_to(root)} imports 'plant' by absolute name; the FMU bundles "
-                f"the package under another name, so plant must import itself relatively "
+                f"plant/{p.relative_to(root)} imports 'msagv.plant' (or msagv) by absolute name; the "
+                f"FMU bundles the package under another name, so plant must import itself relatively "
                 f"(from . import ...)")
 
 

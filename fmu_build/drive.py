@@ -6,7 +6,7 @@ advance by ``h``, read every output. Row 0 of the result holds the outputs after
 initialization (``nan`` where an engine cannot read them before its first step); row
 k + 1 those after step k. Columns follow ``plant.signal_names`` (our signal names).
 
-Run as ``python -m fmu_build.drive JOB.json OUT.npz`` to simulate in a fresh process
+Run as ``python -m msagv.fmu_build.drive JOB.json OUT.npz`` to simulate in a fresh process
 (FMUs in one process share ``sys.modules``). This module imports ``plant`` only for the
 native runner, so a job can check that an FMU does not touch the project's ``plant``.
 """
@@ -81,7 +81,7 @@ def run_native(vehicle, U: np.ndarray, h: float | np.ndarray = 0.01,
     """The native ``plant.Plant`` under the runners' protocol. ``parameters`` by our
     names: initial values ``<state>_0``, ``rtol``/``atol``/``v_eps``, vehicle values.
     ``h`` may be an array of per-step sizes (see :func:`libcosim_step_sizes`)."""
-    from plant.stepping import Plant, state_names
+    from msagv.plant.stepping import Plant, state_names
 
     from .variables import set_path, vehicle_paths
 
@@ -89,7 +89,7 @@ def run_native(vehicle, U: np.ndarray, h: float | np.ndarray = 0.01,
     initial = {s: params.pop(f"{s}_0") for s in state_names(vehicle) if f"{s}_0" in params}
     opts = {k: params.pop(k) for k in ("rtol", "atol", "v_eps") if k in params}
     if params:
-        from plant.vehicle import vehicle_from_dict
+        from msagv.plant.vehicle import vehicle_from_dict
 
         paths = {n: p for n, p, _, _ in vehicle_paths(vehicle)}
         vd = vehicle.to_dict()
@@ -209,7 +209,7 @@ def libcosim_step_sizes(n_steps: int, h: float) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m fmu_build.drive JOB.json OUT.npz``.
+    """``python -m msagv.fmu_build.drive JOB.json OUT.npz``.
 
     JOB: ``{"runs": [{"engine": "fmpy" | "libcosim", "fmu": path, "seconds": 2.0,
     "h": 0.01, "seed": 0, "parameters": {...}}, ...]}``, inputs from

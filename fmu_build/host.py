@@ -37,9 +37,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from plant.interface import PlantError, check_inputs, check_step, saturate, state_message
-from plant.stepping import signal_names, state_names
-from plant.vehicle import Vehicle, vehicle_from_dict
+from msagv.plant.interface import PlantError, check_inputs, check_step, saturate, state_message
+from msagv.plant.stepping import signal_names, state_names
+from msagv.plant.vehicle import Vehicle, vehicle_from_dict
 
 from .slave import CONFIG_FILE
 from .variables import fmu_variables, set_path, vehicle_paths

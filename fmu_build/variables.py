@@ -19,9 +19,9 @@ import re
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from plant.stepping import Plant, signal_names, state_names
-from plant.tire import V_EPS_DEFAULT
-from plant.vehicle import Vehicle
+from msagv.plant.stepping import Plant, signal_names, state_names
+from msagv.plant.tire import V_EPS_DEFAULT
+from msagv.plant.vehicle import Vehicle
 
 # Integrator defaults of plant.Plant (kept equal; a test checks them against Plant()).
 RTOL_DEFAULT = 1e-8

@@ -15,8 +15,8 @@ import sys
 import traceback
 from pathlib import Path
 
-from bridge.session import DEFAULT_ID, DEFAULT_LEASE_MS, SessionOptions, check_id
-from experiments.scenario import AFTER_END, SOLVERS, Scenario
+from msagv.bridge.session import DEFAULT_ID, DEFAULT_LEASE_MS, SessionOptions, check_id
+from msagv.experiments.scenario import AFTER_END, SOLVERS, Scenario
 
 from . import __version__
 
@@ -184,7 +184,7 @@ def add_fmu_args(ap: argparse.ArgumentParser, positional: bool) -> None:
 def settings_from_args(a) -> dict:
     """The MPC settings the options ask for, as MPCSettings fields (checked by the
     Scenario when it builds them)."""
-    from controller.models import MPCSettings
+    from msagv.controller.models import MPCSettings
 
     kw = {}
     for k in ("method", "model", "policy", "seed", "iterations", "chains", "threads"):

@@ -12,7 +12,7 @@ import argparse
 
 
 def main(argv: list[str]) -> int:
-    from bridge.security import ROLES, SecurityError, create_certs, parse_extra
+    from msagv.bridge.security import ROLES, SecurityError, create_certs, parse_extra
 
     from .args import add_common_args, fail, note
 

@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
 
 # ---- msagv vehicle show -----------------------------------------------------------------
 def vehicle_main(argv: list[str]) -> int:
-    from plant.vehicle import VehicleError, load_vehicle
+    from msagv.plant.vehicle import VehicleError, load_vehicle
 
     from .args import add_common_args, fail
 
@@ -141,8 +141,8 @@ def vehicle_main(argv: list[str]) -> int:
 
 # ---- msagv plant replay -----------------------------------------------------------------
 def replay_main(argv: list[str]) -> int:
-    from plant.replay import read_inputs, replay, write_signals
-    from plant.vehicle import load_vehicle
+    from msagv.plant.replay import read_inputs, replay, write_signals
+    from msagv.plant.vehicle import load_vehicle
 
     from .args import add_common_args, check_output, fail, note, parse_assignments
     from .errors import USAGE_ERRORS
@@ -175,8 +175,8 @@ def replay_main(argv: list[str]) -> int:
 def _recording_scenario(info: dict, header: dict, log, ref) -> dict:
     """The result's ``scenario`` block from a recording's header (a plant's recording
     knows no MPC settings; the speed and case come from the recorded command line)."""
-    from experiments.results import CASE_NAMES, DEFAULT_SPEED, speed_value, vehicle_info
-    from plant.vehicle import vehicle_from_dict
+    from msagv.experiments.results import CASE_NAMES, DEFAULT_SPEED, speed_value, vehicle_info
+    from msagv.plant.vehicle import vehicle_from_dict
 
     argv = [str(x) for x in header.get("argv") or []]
 
@@ -211,10 +211,10 @@ def _recording_scenario(info: dict, header: dict, log, ref) -> dict:
 def report_main(argv: list[str]) -> int:
     from pathlib import Path
 
-    from bridge.recording import RecordingError, read_recording
-    from controller.metrics import format_table, format_wheel_wear
-    from experiments.recorded import ReportError, evaluate
-    from experiments.results import result
+    from msagv.bridge.recording import RecordingError, read_recording
+    from msagv.controller.metrics import format_table, format_wheel_wear
+    from msagv.experiments.recorded import ReportError, evaluate
+    from msagv.experiments.results import result
 
     from .args import PLOT_SUFFIXES, OptionError, add_common_args, check_output, fail, warn
     from .view import add_view_args, check_view_args, serve_until_stopped, view_kwargs
@@ -273,17 +273,17 @@ def report_main(argv: list[str]) -> int:
     if a.log:
         log.to_csv(a.log)
     if a.plot:
-        from experiments.plots import plot_run, run_title
+        from msagv.experiments.plots import plot_run, run_title
 
         plot_run(log, ref, a.plot, title=run_title(
             scenario, f"over Zenoh ({info['run_mode']}, {info['role']} recording)"))
     if a.wear_plot and wear is not None:
-        from experiments.plots import plot_wear, run_title
+        from msagv.experiments.plots import plot_wear, run_title
 
         plot_wear(log, a.wear_plot, title=run_title(scenario, f"{info['role']} recording"))
     view = None
     if want_view:
-        from experiments.viewer import ViewerError, view_recording
+        from msagv.experiments.viewer import ViewerError, view_recording
 
         try:
             view, _ = view_recording(a.recording, view_kwargs(a), a.run)
@@ -341,8 +341,8 @@ def fmu_main(argv: list[str]) -> int:
 
 
 def fmu_build_main(argv: list[str]) -> int:
-    from fmu_build.build import FmuBuildError, build_fmu
-    from plant.vehicle import load_vehicle
+    from msagv.fmu_build.build import FmuBuildError, build_fmu
+    from msagv.plant.vehicle import load_vehicle
 
     from .args import add_common_args, check_output, fail, note, parse_assignments
     from .errors import USAGE_ERRORS
@@ -375,7 +375,7 @@ def fmu_build_main(argv: list[str]) -> int:
 
 # ---- msagv bench --------------------------------------------------------------------------
 def bench_main(argv: list[str] | None = None) -> int:
-    from benchmarks import suite
+    from msagv.benchmarks import suite
 
     from .args import add_common_args, check_output, fail, warn
 

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bridge.process import free_port
+from msagv.bridge.process import free_port
 
 
 def msagv_cmd(*args: str) -> list[str]:
@@ -56,7 +56,7 @@ def run_demo(duration: float = 20.0, speed: str = "15", run_mode: str = "realtim
              secure: str | Path | None = None) -> dict:
     """Run plant + controller; returns ``{"metrics", "plant", "controller", "recording"}``.
     ``secure``: a certificate directory (``msagv certs``): mutual TLS and access control."""
-    from experiments.recorded import evaluate
+    from msagv.experiments.recorded import evaluate
 
     work = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="msagv-demo-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -105,8 +105,8 @@ def run_demo(duration: float = 20.0, speed: str = "15", run_mode: str = "realtim
 def _demo_scenario(a) -> dict:
     """The result's ``scenario`` block of the demo (Case 1 at ``--speed``, the built-in
     vehicle, TWO with the paper's model)."""
-    from experiments.results import speed_value, vehicle_info
-    from plant.vehicle import default_vehicle
+    from msagv.experiments.results import speed_value, vehicle_info
+    from msagv.plant.vehicle import default_vehicle
 
     vehicle = vehicle_info(default_vehicle())  # the demo's plant serves the built-in one
     return {"case": "curve", "trajectory": None, "reference": "case1-curve",
@@ -117,9 +117,9 @@ def _demo_scenario(a) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    from controller.metrics import format_table
-    from experiments.plots import plot_run, run_title
-    from experiments.results import result
+    from msagv.controller.metrics import format_table
+    from msagv.experiments.plots import plot_run, run_title
+    from msagv.experiments.results import result
 
     from .args import PLOT_SUFFIXES, add_common_args, check_output, fail, note, warn
 
@@ -177,7 +177,7 @@ def main(argv: list[str]) -> int:
             rt = ["--rt-priority", str(a.rt_priority)] if a.rt_priority else []
             certs = None
             if a.secure:
-                from bridge.security import create_certs
+                from msagv.bridge.security import create_certs
 
                 certs = Path(work) / "certs"
                 create_certs(certs)
@@ -242,8 +242,8 @@ def main(argv: list[str]) -> int:
 def _interrupted(work: Path, a) -> None:
     """Ctrl-C: both processes got it too and closed their recordings; report the metrics
     of the part that ran, from the plant's recording, if there is one."""
-    from controller.metrics import format_table
-    from experiments.recorded import evaluate
+    from msagv.controller.metrics import format_table
+    from msagv.experiments.recorded import evaluate
 
     try:
         m, info, _, ref = evaluate(work / "plant.rec")

@@ -8,6 +8,6 @@ that cannot be hosted is :class:`fmu_build.host.FmuHostError`.
 
 from __future__ import annotations
 
-from fmu_build.host import FmuHostError
+from msagv.fmu_build.host import FmuHostError
 
 USAGE_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, FmuHostError)

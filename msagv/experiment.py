@@ -8,7 +8,7 @@ import math
 import sys
 from pathlib import Path
 
-from experiments import studies
+from msagv.experiments import studies
 
 from .args import OptionError, add_common_args, check_output, fail, note, warn
 
@@ -99,7 +99,7 @@ def main(argv: list[str]) -> int:
         if a.experiment != "study" and (a.quick or a.trajectory):
             raise OptionError("--quick and --trajectory apply to the study")
         if a.experiment == "study":
-            from experiments.study import run_study
+            from msagv.experiments.study import run_study
 
             summary = run_study(a.out, quick=a.quick, jobs=a.jobs, scheduler=a.scheduler,
                                 force=a.force, progress=progress, vehicle=a.vehicle,

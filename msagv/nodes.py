@@ -16,8 +16,8 @@ import os
 import sys
 import threading
 
-from bridge import messages as M
-from bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtime_priority,
+from msagv.bridge import messages as M
+from msagv.bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtime_priority,
                             setup_logging)
 
 from .args import (OptionError, add_case_args, add_common_args, add_fmu_args, add_mpc_args,
@@ -47,7 +47,7 @@ def add_record_args(ap: argparse.ArgumentParser) -> None:
 
 def check_record_args(a) -> None:
     """Refuse bad recording options and an unwritable --record path, before start-up."""
-    from bridge.recording import RecordingError, check_writable
+    from msagv.bridge.recording import RecordingError, check_writable
 
     if not a.record_max_mb * (1 << 20) >= 4096:
         raise OptionError(f"--record-max-mb must be at least 0.004 (4 KiB), got {a.record_max_mb:g}")
@@ -63,7 +63,7 @@ def check_record_args(a) -> None:
 
 def open_recording(a, header: dict):
     """The :class:`bridge.recording.Recorder` of ``--record`` (None without it)."""
-    from bridge.recording import Recorder, RecordingError
+    from msagv.bridge.recording import Recorder, RecordingError
 
     if not a.record:
         return None
@@ -115,7 +115,7 @@ def plant_parser() -> argparse.ArgumentParser:
 
 
 def plant_main(argv: list[str]) -> int:
-    from bridge.plant_node import PlantConfig, serve
+    from msagv.bridge.plant_node import PlantConfig, serve
     a = plant_parser().parse_args(argv)
     setup_logging("msagv plant", a.id, a.quiet, a.verbose)
     log = logging.getLogger("msagv.plant")
@@ -143,7 +143,7 @@ def plant_main(argv: list[str]) -> int:
             "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
             "fmu": a.fmu, "argv": list(argv)})
         if want_view:  # beside the recorder: it only queues, a thread logs
-            from experiments.viewer import RunView, Tee, ViewSink
+            from msagv.experiments.viewer import RunView, Tee, ViewSink
 
             view = RunView(vehicle, ref, name=f"msagv plant {opts.id}", **view_kwargs(a))
             announce(view, "msagv plant")
@@ -224,7 +224,7 @@ def controller_parser() -> argparse.ArgumentParser:
 
 
 def controller_main(argv: list[str]) -> int:
-    from bridge.controller_node import ControllerConfig, realtime_defaults, serve
+    from msagv.bridge.controller_node import ControllerConfig, realtime_defaults, serve
     a = controller_parser().parse_args(argv)
     setup_logging("msagv controller", a.id, a.quiet, a.verbose)
     log = logging.getLogger("msagv.controller")
@@ -293,8 +293,8 @@ def controller_main(argv: list[str]) -> int:
 
 # ---- msagv router -------------------------------------------------------------------------
 def router_main(argv: list[str]) -> int:
-    from bridge.router import serve
-    from bridge.session import ROUTER_PORT, SessionError
+    from msagv.bridge.router import serve
+    from msagv.bridge.session import ROUTER_PORT, SessionError
 
     ap = argparse.ArgumentParser(
         prog="msagv router",

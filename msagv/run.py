@@ -58,10 +58,10 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     Exit codes: 0 done (warnings on stderr and in the JSON), 1 the run failed, 2 bad
     options or input (nothing run), 130 interrupted (the result so far is printed)."""
     a = build_parser(prog, fmu).parse_args(argv)
-    from controller.loop import RunLog, closed_loop
-    from controller.metrics import format_table, format_wheel_wear
-    from experiments.checks import solve_time_warnings
-    from experiments.results import result, scenario_info
+    from msagv.controller.loop import RunLog, closed_loop
+    from msagv.controller.metrics import format_table, format_wheel_wear
+    from msagv.experiments.checks import solve_time_warnings
+    from msagv.experiments.results import result, scenario_info
 
     from .errors import USAGE_ERRORS
 
@@ -88,7 +88,7 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     warn(prog, built.warnings)
     view = None
     if want_view:
-        from experiments.viewer import RunView, ViewerError
+        from msagv.experiments.viewer import RunView, ViewerError
 
         try:
             view = RunView(built.vehicle, built.reference, name=prog, **view_kwargs(a))
@@ -134,11 +134,11 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     if a.log:
         log.to_csv(a.log)
     if a.plot:
-        from experiments.plots import plot_run, run_title
+        from msagv.experiments.plots import plot_run, run_title
 
         plot_run(log, ref, a.plot, title=run_title(info))
     if a.wear_plot:
-        from experiments.plots import plot_wear, run_title
+        from msagv.experiments.plots import plot_wear, run_title
 
         plot_wear(log, a.wear_plot, title=run_title(info))
     if a.json_out:

@@ -40,7 +40,7 @@ def check_view_args(a) -> bool:
     check_output(a.view_save, "--view-save", suffixes=(".rrd",))
     if a.view_port is not None and not 1024 <= a.view_port <= 65534:
         raise OptionError(f"--view-port must be 1024..65534, got {a.view_port}")
-    from experiments.viewer import ViewerError, require_rerun
+    from msagv.experiments.viewer import ViewerError, require_rerun
 
     try:
         require_rerun()
@@ -50,7 +50,7 @@ def check_view_args(a) -> bool:
 
 
 def view_kwargs(a) -> dict:
-    from experiments.viewer import GRPC_PORT, WEB_PORT
+    from msagv.experiments.viewer import GRPC_PORT, WEB_PORT
 
     serve = bool(getattr(a, "view", False))
     kw: dict = {"save": a.view_save, "serve": serve}
@@ -99,9 +99,9 @@ def main(argv: list[str]) -> int:
     add_common_args(ap)
     a = ap.parse_args(argv)
     a.view = not a.no_serve
-    from bridge.recording import RecordingError
-    from experiments.recorded import ReportError
-    from experiments.viewer import ViewerError, view_recording
+    from msagv.bridge.recording import RecordingError
+    from msagv.experiments.recorded import ReportError
+    from msagv.experiments.viewer import ViewerError, view_recording
 
     try:
         if a.no_serve and not a.view_save:

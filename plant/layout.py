@@ -232,6 +232,7 @@ def kernel_stamp(*depends_on: str) -> int:
     inline) and of the source files ``depends_on`` (the other kernel modules whose
     functions a kernel module compiles into its own)."""
     h = hashlib.blake2b(digest_size=7)
+    h.update(__name__.encode())  # a cache of the package under another name is stale too
     for path in (__file__, *depends_on):
         with open(path, "rb") as f:
             h.update(f.read())
@@ -243,9 +244,14 @@ def drop_stale_cache(stamp_kernel, stamp: int, module_file: str) -> bool:
     ``njit(cache=True)`` function of that module returning its :func:`kernel_stamp`,
     compiled or loaded from the cache) differs from ``stamp``. Call it at import, before
     any other kernel of the module runs (numba loads cached kernels on their first call).
-    Returns True when files were removed."""
-    if stamp_kernel() == stamp:
-        return False
+    Returns True when files were removed. A cache that cannot even be loaded (e.g. written
+    when the package had another name: its pickled environment names a module that no
+    longer exists) is stale too."""
+    try:
+        if stamp_kernel() == stamp:
+            return False
+    except Exception:  # an unloadable cache entry: drop it like a stale one
+        pass
     cache = getattr(stamp_kernel, "_cache", None)
     path = getattr(cache, "cache_path", None)
     if not path or not os.path.isdir(path):

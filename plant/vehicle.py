@@ -296,7 +296,7 @@ def load_vehicle(path: str | Path | None = None) -> Vehicle:
     ``FileNotFoundError`` when the file does not exist.
     """
     if path is None:
-        text = resources.files("plant").joinpath("data/paper-2axle.toml").read_text()
+        text = resources.files(__package__).joinpath("data/paper-2axle.toml").read_text()
         where = "built-in paper-2axle"
     else:
         p = Path(path)

@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from controller.sa_kernel import SCALE_MAX, SCALE_MIN, AnnealResult, ladder_factors
+from msagv.controller.sa_kernel import SCALE_MAX, SCALE_MIN, AnnealResult, ladder_factors
 
 
 def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.ndarray,

@@ -10,7 +10,7 @@ import helpers
 @pytest.fixture(scope="session")
 def paper_vehicle():
     """The paper's 2-axle, 12 t vehicle (built in)."""
-    from plant import default_vehicle
+    from msagv.plant import default_vehicle
 
     return default_vehicle()
 
@@ -42,6 +42,6 @@ def port():
 @pytest.fixture(scope="session")
 def paper_fmu(tmp_path_factory):
     """The plant FMU of the paper's vehicle, built once for the session."""
-    from fmu_build.build import build_fmu
+    from msagv.fmu_build.build import build_fmu
 
     return build_fmu(tmp_path_factory.mktemp("paper_fmu") / "plant.fmu")

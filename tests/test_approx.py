@@ -19,7 +19,7 @@ import math
 import numpy as np
 from numba import njit
 
-from controller import approx as A
+from msagv.controller import approx as A
 
 _FLAGS = set(A.FASTMATH)
 

@@ -22,9 +22,9 @@ import math
 import numpy as np
 import pytest
 
-from controller.models import MODELS, MPCSettings, make_model
-from plant import default_vehicle
-from plant.tire import dugoff_forces
+from msagv.controller.models import MODELS, MPCSettings, make_model
+from msagv.plant import default_vehicle
+from msagv.plant.tire import dugoff_forces
 
 VEH = default_vehicle()
 R_W = 0.5
@@ -268,8 +268,8 @@ def test_tct_never_changes_the_longitudinal_speed(case):
 def test_dh_stiffnesses_are_the_tires_and_scale_with_the_load():
     """DH's Dugoff stiffnesses are the Magic Formula's slopes at zero slip at the vehicle's
     load (B C mu F_N), so they scale with the mass; 'file' keeps the file's values."""
-    from controller.models import dugoff_stiffness
-    from plant import layout as lay
+    from msagv.controller.models import dugoff_stiffness
+    from msagv.plant import layout as lay
 
     lo, la = VEH.tire_longitudinal, VEH.tire_lateral
     for mass in (8000.0, 12000.0, 20000.0):
@@ -288,7 +288,7 @@ def test_dh_stiffnesses_are_the_tires_and_scale_with_the_load():
 
 # ---- decision parametrisations: twist (single centre), raw (eq. 27's U) ---------------------
 def _policy_commands(model, x0, refk, z, dt=0.01):
-    from controller import rollout as ro
+    from msagv.controller import rollout as ro
 
     nw = model.n_wheels
     om_w, om_s = np.empty(nw), np.empty(nw)
@@ -302,8 +302,8 @@ def test_twist_policy_steers_every_wheel_about_one_centre(axles):
     """Kinematic as the paper defines it: whatever the decision (a body-twist offset),
     the target steering angles of all wheels have axes that meet in one point, the
     instantaneous centre of the commanded twist, and the wheel speeds are that twist's."""
-    from controller.models import make_model
-    from plant import n_axle_vehicle
+    from msagv.controller.models import make_model
+    from msagv.plant import n_axle_vehicle
 
     v = VEH if axles == 2 else n_axle_vehicle(3)
     m = make_model(v, MPCSettings(model="kinematic", method="ntwo", policy="twist"))
@@ -336,7 +336,7 @@ def test_twist_policy_steers_every_wheel_about_one_centre(axles):
 
 
 def test_raw_policy_commands_are_the_decision_clipped_to_eq_27():
-    from controller.models import make_model
+    from msagv.controller.models import make_model
 
     m = make_model(VEH, MPCSettings(method="ntwo", policy="raw"))
     lo, hi, sig = m.box()

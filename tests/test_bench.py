@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from benchmarks.suite import SECTIONS
+from msagv.benchmarks.suite import SECTIONS
 from msagv.cli import bench_main as main
 
 

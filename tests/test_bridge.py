@@ -10,13 +10,13 @@ import msgpack
 import numpy as np
 import pytest
 
-from bridge import faults
-from bridge import messages as M
-from bridge.controller_node import ControllerConfig, ControllerNode
-from bridge.plant_node import PlantConfig, PlantNode
-from bridge.recording import Recorder, RecordingError, read_recording
-from bridge.session import Keys, SessionError, SessionOptions, check_id, make_config
-from plant import Plant, default_vehicle
+from msagv.bridge import faults
+from msagv.bridge import messages as M
+from msagv.bridge.controller_node import ControllerConfig, ControllerNode
+from msagv.bridge.plant_node import PlantConfig, PlantNode
+from msagv.bridge.recording import Recorder, RecordingError, read_recording
+from msagv.bridge.session import Keys, SessionError, SessionOptions, check_id, make_config
+from msagv.plant import Plant, default_vehicle
 
 T = 0.01
 
@@ -111,9 +111,9 @@ def test_plant_config_rejects_bad_values():
 # ---- controller node ----------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def mpc(vehicle):
-    from controller.models import MPCSettings
-    from controller.mpc import MPC
-    from controller.reference import case1_curve
+    from msagv.controller.models import MPCSettings
+    from msagv.controller.mpc import MPC
+    from msagv.controller.reference import case1_curve
 
     m = MPC(vehicle, MPCSettings(iterations=3, chains=4), case1_curve(15.0))
     m.warmup()
@@ -123,12 +123,12 @@ def mpc(vehicle):
 @pytest.fixture
 def ctl(mpc):
     mpc.reset()
-    mpc.set_reference(__import__("controller.reference", fromlist=["x"]).case1_curve(15.0))
+    mpc.set_reference(__import__("msagv.controller.reference", fromlist=["x"]).case1_curve(15.0))
     return ControllerNode(mpc, Keys("t0"), ControllerConfig())
 
 
 def _state_payload(seq, vehicle, **kw):
-    from controller.reference import case1_curve
+    from msagv.controller.reference import case1_curve
 
     ini = case1_curve(15.0).initial_state(vehicle)
     st = {k: ini[k] for k in ("x", "y", "phi", "vx", "vy", "r")}
@@ -177,7 +177,7 @@ def test_controller_falls_back_to_states_when_the_plants_token_never_shows(ctl, 
     # plant's states are then the evidence of its presence, their silence of its loss
     from types import SimpleNamespace
 
-    from bridge.controller_node import FALLBACK_LOSS_S
+    from msagv.bridge.controller_node import FALLBACK_LOSS_S
 
     ctl.plant_present, ctl.plant_seen = False, False
     ctl._plant_presence = SimpleNamespace(generation=0)
@@ -303,12 +303,12 @@ def test_recording_round_trip_and_truncated_tail(tmp_path):
 def test_report_of_a_recorded_in_process_run_equals_its_metrics(tmp_path, vehicle):
     """A recording made of the in-process loop's messages is evaluated to the same metrics
     as the loop's own log (the report's code path, without any transport)."""
-    from controller.loop import closed_loop
-    from controller.models import MPCSettings
-    from controller.mpc import MPC
-    from controller.reference import case1_curve
+    from msagv.controller.loop import closed_loop
+    from msagv.controller.models import MPCSettings
+    from msagv.controller.mpc import MPC
+    from msagv.controller.reference import case1_curve
 
-    from experiments.recorded import evaluate
+    from msagv.experiments.recorded import evaluate
 
     ref = case1_curve(15.0)
     plant = Plant(vehicle, initial=ref.initial_state(vehicle))

@@ -187,7 +187,7 @@ def test_a_trajectory_that_ends_is_continued_or_ends_the_run(tmp_path, capsys):
 
 
 def test_the_reference_after_its_end():
-    from controller.reference import from_samples
+    from msagv.controller.reference import from_samples
 
     t = np.array([0.0, 1.0, 2.0, 3.0])
     ref = from_samples(t, 2.0 * t, 1.0 * t, np.full(4, math.atan2(1, 2)))
@@ -208,7 +208,7 @@ def test_solves_longer_than_the_period_warn(capsys):
 
 
 def test_solve_time_warning_threshold():
-    from experiments.checks import solve_time_warnings
+    from msagv.experiments.checks import solve_time_warnings
 
     assert solve_time_warnings([5.0] * 100, 0.01) == []
     assert solve_time_warnings([5.0] * 98 + [11.0, 12.0], 0.01) == []  # a busy machine
@@ -237,8 +237,8 @@ def test_lagged_wheels_start_at_the_rolling_speed(tmp_path, capsys):
 
 
 def test_initial_u_is_the_forward_body_speed(capsys):
-    from experiments.scenario import Scenario, ScenarioError
-    from plant.vehicle import default_vehicle
+    from msagv.experiments.scenario import Scenario, ScenarioError
+    from msagv.plant.vehicle import default_vehicle
 
     v = default_vehicle()
     sc = Scenario(case="line", initial={"u": 6.0})
@@ -333,14 +333,14 @@ def test_the_logged_commands_replay_to_the_logged_path(tmp_path, capsys):
 
 
 def test_report_of_a_plant_without_wear_fields_says_so(tmp_path, capsys):
-    from bridge import messages as M
-    from bridge.recording import Recorder
-    from controller.loop import closed_loop
-    from controller.models import MPCSettings
-    from controller.mpc import MPC
-    from controller.reference import case1_curve
-    from plant.stepping import Plant
-    from plant.vehicle import default_vehicle
+    from msagv.bridge import messages as M
+    from msagv.bridge.recording import Recorder
+    from msagv.controller.loop import closed_loop
+    from msagv.controller.models import MPCSettings
+    from msagv.controller.mpc import MPC
+    from msagv.controller.reference import case1_curve
+    from msagv.plant.stepping import Plant
+    from msagv.plant.vehicle import default_vehicle
 
     vehicle = default_vehicle()
     ref = case1_curve(15.0)

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from controller import rollout as ro
-from controller.loop import closed_loop
-from controller.metrics import compute_metrics, omega_index, tracking_errors, wrap_angle
-from controller.models import MPCSettings, make_model
-from controller.mpc import MPC, ControllerError
-from controller.reference import (ReferenceError, SpeedProfile, case1_curve, case2_line,
+from msagv.controller import rollout as ro
+from msagv.controller.loop import closed_loop
+from msagv.controller.metrics import compute_metrics, omega_index, tracking_errors, wrap_angle
+from msagv.controller.models import MPCSettings, make_model
+from msagv.controller.mpc import MPC, ControllerError
+from msagv.controller.reference import (ReferenceError, SpeedProfile, case1_curve, case2_line,
                                   from_csv, make_case)
-from plant import Plant, default_vehicle, n_axle_vehicle
+from msagv.plant import Plant, default_vehicle, n_axle_vehicle
 
 try:
     from .annealer_reference import anneal
@@ -222,7 +222,7 @@ def test_annealer_seeded_and_deadline():
 def test_compiled_annealer_equals_the_generic_one_on_the_mpc_cost(threads):
     """The MPC's compiled solver loop (controller.sa_kernel) is the generic annealer run on
     the MPC's batch cost: same seed, same random draws, same answer."""
-    from controller import rollout as ro
+    from msagv.controller import rollout as ro
 
     v = default_vehicle()
     ref, init = make_case("curve", 25.0)
@@ -314,7 +314,7 @@ def test_case1_curvature_feasible_for_steering_limits():
 
 
 def test_initial_state_is_pure_rolling():
-    from plant.stepping import Plant as P
+    from msagv.plant.stepping import Plant as P
     ref = case1_curve(25.0)
     p = P(VEH, initial=ref.initial_state(VEH))
     # wheel speeds for pure rolling: v_wx / r_w with the kinematic angles
@@ -485,7 +485,7 @@ def test_wear_energy_term_by_hand():
 
 
 def test_feed_forward_controller_is_the_policy_without_optimisation():
-    from controller.mpc import FeedForward
+    from msagv.controller.mpc import FeedForward
 
     ref, init = make_case("curve", 15.0)
     st = dict(init(VEH), t=0.5)

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from plant import Plant, VehicleError, default_vehicle, n_axle_vehicle, vehicle_from_dict
-from plant import dynamics as dyn
+from msagv.plant import Plant, VehicleError, default_vehicle, n_axle_vehicle, vehicle_from_dict
+from msagv.plant import dynamics as dyn
 
 G = 9.81
 
@@ -409,7 +409,7 @@ def test_combined_slip_scales_each_force_by_its_weight():
     """With [plant] combined_slip = 1 every wheel's forces are the pure-slip forces times the
     weights of plant.tire.combined_slip_weights at that wheel's slips; the wear powers
     follow the forces (eq. 13, 14); 0 is the paper's model."""
-    from plant.tire import combined_slip_weights
+    from msagv.plant.tire import combined_slip_weights
 
     v0 = default_vehicle()
     v1 = with_plant_options(v0, combined_slip=1.0)

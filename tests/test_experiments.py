@@ -11,10 +11,10 @@ import math
 
 import pytest
 
-from controller.models import MPCSettings
-from experiments import studies as ex
-from experiments.paper import PAPER_COLUMNS, paper_table
-from experiments.tables import (COLUMNS, check_targets, fmt, lower_front, table_rows, wear_at)
+from msagv.controller.models import MPCSettings
+from msagv.experiments import studies as ex
+from msagv.experiments.paper import PAPER_COLUMNS, paper_table
+from msagv.experiments.tables import (COLUMNS, check_targets, fmt, lower_front, table_rows, wear_at)
 from msagv import experiment as ex_cli
 
 CASE1_ARGS = ["case1", "--duration", "2", "--speeds", "15,35", "--no-progress"]
@@ -201,8 +201,8 @@ def test_reduced_ridge(tmp_path, capsys):
         n, t = r["NTWO"]["W_tw"], r["TWO"]["W_tw"]
         assert r["cut_percent"] == pytest.approx(100.0 * (1.0 - t / n))
     # the default ridge is x0.1: that row is the default NTWO of case1 (same key, same run)
-    from experiments.studies import RIDGE_BASE
-    from controller.models import MPCSettings
+    from msagv.experiments.studies import RIDGE_BASE
+    from msagv.controller.models import MPCSettings
 
     assert tuple(MPCSettings().R[2:]) == pytest.approx((0.1 * RIDGE_BASE[0], 0.1 * RIDGE_BASE[1]))
     for name in ("ridge.md", "ridge.csv", "ridge.json"):

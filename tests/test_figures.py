@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from experiments.plots import path_axes, pyplot, robust_ylim, run_title
+from msagv.experiments.plots import path_axes, pyplot, robust_ylim, run_title
 
 
 def test_a_lane_change_keeps_its_shape():

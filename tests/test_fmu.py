@@ -22,12 +22,12 @@ import pytest
 
 from helpers import THREE_AXLE_TOML, edit_toml
 from msagv.cli import main as dispatcher
-from fmu_build.build import MAX_AXLES, FmuBuildError, build_fmu
-from fmu_build.drive import libcosim_step_sizes, run_native, varied_inputs
-from fmu_build.variables import (ATOL_DEFAULT, RTOL_DEFAULT, fmu_variables,
+from msagv.fmu_build.build import MAX_AXLES, FmuBuildError, build_fmu
+from msagv.fmu_build.drive import libcosim_step_sizes, run_native, varied_inputs
+from msagv.fmu_build.variables import (ATOL_DEFAULT, RTOL_DEFAULT, fmu_variables,
                                  variable_table_markdown)
-from plant import Plant, default_vehicle, load_vehicle, n_axle_vehicle
-from plant.tire import V_EPS_DEFAULT
+from msagv.plant import Plant, default_vehicle, load_vehicle, n_axle_vehicle
+from msagv.plant.tire import V_EPS_DEFAULT
 
 ROOT = Path(__file__).resolve().parents[1]
 TOL = 1e-9
@@ -71,7 +71,7 @@ def _run_jobs(tmp: Path, runs: list[dict], timeout: float = 300) -> dict:
     job = tmp / f"job{len(list(tmp.glob('job*.json')))}.json"
     out = job.with_suffix(".npz")
     job.write_text(json.dumps({"runs": runs}))
-    r = subprocess.run([sys.executable, "-m", "fmu_build.drive", str(job), str(out)],
+    r = subprocess.run([sys.executable, "-m", "msagv.fmu_build.drive", str(job), str(out)],
                        cwd=tmp, capture_output=True, text=True, timeout=timeout)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     with np.load(out) as z:
@@ -178,7 +178,7 @@ def test_model_description_is_the_variable_table(fmu2):
     outputs = {u.variable.name for u in md.outputs}
     assert outputs == {v.name for v in table if v.causality == "output"}
     # every plant signal is an output; the actual rates carry _act_ (the inputs own the names)
-    from plant.stepping import signal_names
+    from msagv.plant.stepping import signal_names
 
     assert [v.key for v in table if v.role == "output"] == signal_names(default_vehicle())
     assert got["omega_w_act_11"].causality == "output"
@@ -530,7 +530,7 @@ def test_tunable_vehicle_value_takes_effect_at_the_next_step(slave):
         slave.doStep(k * 0.01, 0.01)
         p.do_step(p.t, 0.01)
     names = p.signal_names
-    from fmu_build.variables import output_name
+    from msagv.fmu_build.variables import output_name
 
     got = slave.getReal([slave.vr[output_name(n)] for n in names])
     assert np.abs(np.array(got) - p.output_vector()).max() <= TOL

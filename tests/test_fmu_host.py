@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fmu_build.build import build_fmu
-from fmu_build.drive import varied_inputs
-from fmu_build.host import FmuHostError, FmuPlant, NameMap, load_mapping
-from fmu_build.variables import fmu_variables
-from plant import Plant, PlantError, VehicleError, default_vehicle
+from msagv.fmu_build.build import build_fmu
+from msagv.fmu_build.drive import varied_inputs
+from msagv.fmu_build.host import FmuHostError, FmuPlant, NameMap, load_mapping
+from msagv.fmu_build.variables import fmu_variables
+from msagv.plant import Plant, PlantError, VehicleError, default_vehicle
 
 PREFIX = "agv0."
 
@@ -89,7 +89,7 @@ def test_same_interface_and_numbers_as_the_plant(fp):
 
 
 def test_both_plants_declare_the_plant_interface(fp):
-    from plant.interface import PlantInterface
+    from msagv.plant.interface import PlantInterface
 
     assert isinstance(Plant(), PlantInterface) and isinstance(fp, PlantInterface)
 
@@ -425,10 +425,10 @@ def test_foreign_fmu_stripped_of_our_config_is_foreign(fmu2, tmp_path):
 def test_closed_loop_runs_unchanged_on_the_fmu(fmu_prefixed, tmp_path):
     """The SA-MPC closed loop (controller.loop.closed_loop, as msagv run sets it up) on the
     prefixed FMU through a mapping file gives the same run as on the native plant."""
-    pytest.importorskip("controller.loop")
+    pytest.importorskip("msagv.controller.loop")
     import argparse
 
-    from controller.loop import closed_loop
+    from msagv.controller.loop import closed_loop
     from msagv.args import add_case_args, add_mpc_args, scenario_from_args
 
     ap = argparse.ArgumentParser()

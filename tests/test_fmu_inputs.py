@@ -41,8 +41,8 @@ def _signals(t, U, steps=False):
 
 
 def test_fmpy_holds_inputs_only_when_told(paper_fmu, tmp_path):
-    from plant.replay import read_inputs, replay
-    from plant.vehicle import default_vehicle
+    from msagv.plant.replay import read_inputs, replay
+    from msagv.plant.vehicle import default_vehicle
 
     t, U = _table()
     u_csv = tmp_path / "U.csv"

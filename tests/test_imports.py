@@ -1,24 +1,37 @@
 """The layout of the house: which package may import which (README, docs/ARCHITECTURE.md).
 
-Read from the source with ``ast`` (every ``import`` and ``from ... import``, also those
-inside functions), so the rule holds for lazily imported modules too:
+Everything installs as one top-level package, ``msagv``: the folders at the top of the
+repository are its subpackages (pyproject.toml's ``package-dir``). Imports are read from
+the source with ``ast`` (every ``import`` and ``from ... import``, also those inside
+functions, and the ``module:Class`` targets of the solver table), so the rules hold for
+lazily imported modules too:
 
-    plant <- controller <- (bridge, fmu_build) <- experiments <- benchmarks <- msagv
+    plant <- controller <- (bridge, fmu_build) <- experiments <- benchmarks <- app
 
-An arrow points from a package to those that may import it; nothing imports upwards and
-there are no cycles. bridge/ is transport only: no matplotlib, no experiments, no app.
+An arrow points from a package to those that may import it (``app``: the modules of
+``msagv/`` itself, the command line); nothing imports upwards; there are no cycles between
+packages, nor between files. bridge/ is transport only: no matplotlib, no experiments, no
+app. No module imports a top-level ``plant``, ``controller``, ... (a user's own module of
+that name would be found instead).
 """
 
 from __future__ import annotations
 
 import ast
 import re
+import shutil
+import subprocess
+import sys
+import zipfile
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks", "msagv")
+FOLDERS = {"plant": "plant", "controller": "controller", "bridge": "bridge",
+           "fmu_build": "fmu_build", "experiments": "experiments", "benchmarks": "benchmarks",
+           "app": "msagv"}
+PACKAGES = tuple(FOLDERS)
 ALLOWED = {
     "plant": set(),
     "controller": {"plant"},
@@ -26,35 +39,135 @@ ALLOWED = {
     "fmu_build": {"plant"},
     "experiments": {"plant", "controller", "bridge", "fmu_build"},
     "benchmarks": {"plant", "controller", "bridge", "fmu_build", "experiments"},
-    "msagv": {"plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks"},
+    "app": {"plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks"},
 }
+SUBPACKAGES = {k for k in FOLDERS if k != "app"}
+# 'module:attribute' strings in the solver table are imports too
+_TARGET = re.compile(r"""["'](msagv(?:\.\w+)+):\w+["']""")
 
 
-def _imports(path: Path, package: str) -> set[str]:
-    """Top-level modules imported anywhere in ``path`` (relative imports resolved)."""
-    tree = ast.parse(path.read_text(), filename=str(path))
+def module_name(path: Path) -> str:
+    """The dotted module name of a source file, as installed (``msagv.plant.tire``)."""
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = list(rel.parts)
+    folder = parts[0]
+    sub = next(k for k, v in FOLDERS.items() if v == folder)
+    head = ["msagv"] if sub == "app" else ["msagv", sub]
+    parts = head + parts[1:]
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _resolve(node: ast.ImportFrom, mod: str, is_pkg: bool) -> str:
+    if not node.level:
+        return node.module or ""
+    base = mod.split(".")
+    if not is_pkg:
+        base = base[:-1]
+    if node.level > 1:
+        base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _file_of(module: str) -> Path | None:
+    """The source file of a dotted module name of ours (None: not a module of ours)."""
+    parts = module.split(".")
+    if parts[0] != "msagv":
+        return None
+    if len(parts) > 1 and parts[1] in SUBPACKAGES:
+        base, rest = ROOT / FOLDERS[parts[1]], parts[2:]
+    else:
+        base, rest = ROOT / FOLDERS["app"], parts[1:]
+    p = base.joinpath(*rest)
+    for f in (p.with_suffix(".py") if rest else None, p / "__init__.py"):
+        if f is not None and f.is_file():
+            return f
+    return None
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every module ``path`` imports (dotted, relative imports resolved). ``from X import
+    y``: ``X.y`` when y is a module of ours (``from . import rollout`` depends on the
+    module, not on the package's ``__init__``), else ``X``."""
+    mod = module_name(path)
+    is_pkg = path.name == "__init__.py"
+    text = path.read_text()
+    tree = ast.parse(text, filename=str(path))
     out = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            out.update(a.name.split(".")[0] for a in node.names)
+            out.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
-            if node.level:  # relative: inside the same top-level package
-                out.add(package)
-            elif node.module:
-                out.add(node.module.split(".")[0])
+            base = _resolve(node, mod, is_pkg)
+            subs = {f"{base}.{a.name}" for a in node.names if a.name != "*"}
+            mods = {m for m in subs if _file_of(m) is not None}
+            out |= mods
+            if len(mods) < len(node.names) or _file_of(base) is None:
+                out.add(base)
+    out.update(_TARGET.findall(text))
     return out
 
 
+def package_of(module: str) -> str | None:
+    """The floor of a dotted module name of ours (None: not ours)."""
+    parts = module.split(".")
+    if parts[0] != "msagv" or module == "msagv":  # the root (its version only) is below all
+        return None
+    if len(parts) > 1 and parts[1] in SUBPACKAGES:
+        return parts[1]
+    return "app"
+
+
 def _sources(package: str):
-    return sorted((ROOT / package).rglob("*.py"))
+    return sorted((ROOT / FOLDERS[package]).rglob("*.py"))
+
+
+def all_sources():
+    return [f for p in PACKAGES for f in _sources(p)]
 
 
 def import_graph() -> dict[str, set[str]]:
     graph = {p: set() for p in PACKAGES}
     for pkg in PACKAGES:
         for f in _sources(pkg):
-            graph[pkg] |= (_imports(f, pkg) & set(PACKAGES)) - {pkg}
+            graph[pkg] |= {q for q in map(package_of, imported_modules(f)) if q} - {pkg}
     return graph
+
+
+def file_graph() -> dict[str, set[str]]:
+    """Module -> the modules of ours it imports (only names that are files of ours)."""
+    mods = {module_name(f): f for f in all_sources()}
+    graph = {}
+    for m, f in mods.items():
+        graph[m] = {q for q in imported_modules(f) if q in mods and q != m}
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    seen, stack, on = set(), [], set()
+
+    def visit(p):
+        if p in on:
+            return stack[stack.index(p):] + [p]
+        if p in seen:
+            return None
+        stack.append(p)
+        on.add(p)
+        for q in sorted(graph.get(p, ())):
+            c = visit(q)
+            if c:
+                return c
+        stack.pop()
+        on.discard(p)
+        seen.add(p)
+        return None
+
+    for p in sorted(graph):
+        c = visit(p)
+        if c:
+            return c
+    return None
 
 
 def test_every_package_imports_only_what_lies_below_it():
@@ -63,43 +176,93 @@ def test_every_package_imports_only_what_lies_below_it():
     assert not bad, f"upward or sideways imports: {bad}"
 
 
-def test_the_import_graph_has_no_cycle():
-    graph = import_graph()
-    seen, stack = set(), []
-
-    def visit(p):
-        if p in stack:
-            raise AssertionError(f"import cycle: {' -> '.join(stack[stack.index(p):] + [p])}")
-        if p in seen:
-            return
-        stack.append(p)
-        for q in graph[p]:
-            visit(q)
-        stack.pop()
-        seen.add(p)
-
-    for p in PACKAGES:
-        visit(p)
+def test_the_import_graph_has_no_cycle_between_packages():
+    c = find_cycle(import_graph())
+    assert c is None, f"import cycle: {' -> '.join(c)}"
 
 
-@pytest.mark.parametrize("module", ["matplotlib", "experiments", "msagv", "tqdm"])
+def test_no_file_imports_another_that_imports_it_back():
+    """No cycle between files (a package's ``__init__`` re-exporting its modules is an
+    edge from the package to them; a module importing its own package's ``__init__`` is
+    one back)."""
+    c = find_cycle(file_graph())
+    assert c is None, f"import cycle between files: {' -> '.join(c)}"
+
+
+def test_nothing_imports_a_generic_top_level_name():
+    generic = {"plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks"}
+    bad = [f"{f.relative_to(ROOT)}: {m}" for f in all_sources() for m in imported_modules(f)
+           if m.split(".")[0] in generic]
+    assert not bad, bad
+
+
+@pytest.mark.parametrize("module", ["matplotlib", "msagv.experiments", "tqdm"])
 def test_bridge_is_transport_only(module):
     users = [str(f.relative_to(ROOT)) for f in _sources("bridge")
-             if module in _imports(f, "bridge")]
+             if any(m == module or m.startswith(module + ".") for m in imported_modules(f))]
     assert not users, f"bridge/ imports {module}: {users}"
 
 
-def test_no_imports_by_string():
-    """Modules are imported by name (visible to this test), never with importlib by string."""
-    pat = re.compile(r"importlib\.import_module|__import__\(")
-    users = [str(f.relative_to(ROOT)) for pkg in PACKAGES for f in _sources(pkg)
-             if pat.search(f.read_text()) and not f.name == "slave.py"]
-    # fmu_build/slave.py imports the plant the FMU bundles under a build-specific name: the
-    # one place where the module's name is only known at run time
+def test_bridge_does_not_import_the_app():
+    users = [str(f.relative_to(ROOT)) for f in _sources("bridge")
+             if any(package_of(m) == "app" and m != "msagv" for m in imported_modules(f))]
     assert not users, users
 
 
-def test_the_checker_sees_lazy_and_relative_imports(tmp_path):
-    f = tmp_path / "m.py"
-    f.write_text("from . import x\n\ndef g():\n    import experiments.runs\n    from plant import a\n")
-    assert _imports(f, "bridge") == {"bridge", "experiments", "plant"}
+def test_no_imports_by_string():
+    """Modules are imported by name (visible to this test), never with importlib by string,
+    except the solver table's ``module:Class`` targets (read above as imports) and the
+    FMU's slave, which imports the plant the FMU bundles under a build-specific name."""
+    pat = re.compile(r"importlib\.import_module|__import__\(")
+    allowed = {"slave.py", "solvers.py"}
+    users = [str(f.relative_to(ROOT)) for f in all_sources()
+             if pat.search(f.read_text()) and f.name not in allowed]
+    assert not users, users
+
+
+def test_the_checker_sees_lazy_relative_and_table_imports(tmp_path, monkeypatch):
+    d = tmp_path / "bridge"
+    d.mkdir()
+    f = d / "m.py"
+    f.write_text("from . import x\nfrom .y import z\n\ndef g():\n    import msagv.experiments.runs\n"
+                 "    from msagv.plant import a\n\nT = 'msagv.controller.mpc:MPC'\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    got = imported_modules(f)
+    assert {"msagv.bridge", "msagv.bridge.y", "msagv.experiments.runs", "msagv.plant",
+            "msagv.controller.mpc"} <= got
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_the_wheel_installs_one_top_level_package(tmp_path):
+    """The built wheel holds ``msagv`` alone at its top level (plus its metadata), and a
+    user's own ``plant`` and ``controller`` modules beside it import fine."""
+    src = tmp_path / "src"
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
+        ".venv", ".git", "__pycache__", "*.egg-info", "build", "out", "runs", ".pytest_cache",
+        ".hypothesis", "*.fmu", "*.nbi", "*.nbc"))
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w",
+                        str(tmp_path), str(src)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    whl, = tmp_path.glob("msagv-*.whl")
+    with zipfile.ZipFile(whl) as z:
+        tops = {n.split("/")[0] for n in z.namelist()}
+        names = set(z.namelist())
+    tops = {t for t in tops if not t.endswith((".dist-info", ".data"))}
+    assert tops == {"msagv"}, tops
+    assert {"msagv/plant/tire.py", "msagv/plant/data/paper-2axle.toml",
+            "msagv/controller/mirrors/rollout_ref.c", "msagv/cli.py"} <= names
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "plant.py").write_text("WHO = 'the user plant'\n")
+    (user / "controller.py").write_text("WHO = 'the user controller'\n")
+    code = ("import plant, controller\n"
+            "from msagv.plant import default_vehicle\n"
+            "from msagv.controller.mpc import MPC\n"
+            "import msagv.cli\n"
+            "assert plant.WHO == 'the user plant' and controller.WHO == 'the user controller'\n"
+            "assert default_vehicle().n_axles == 2\n"
+            "print('ok')\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=user, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]

@@ -21,12 +21,12 @@ import sys
 import numpy as np
 import pytest
 
-from controller import make_case
-from controller import rollout as ro
-from controller.loop import closed_loop
-from controller.models import MPCSettings, make_model
-from controller.mpc import MPC, ControllerError
-from plant import Plant, default_vehicle, n_axle_vehicle
+from msagv.controller import make_case
+from msagv.controller import rollout as ro
+from msagv.controller.loop import closed_loop
+from msagv.controller.models import MPCSettings, make_model
+from msagv.controller.mpc import MPC, ControllerError
+from msagv.plant import Plant, default_vehicle, n_axle_vehicle
 from helpers import assert_commands_within_bounds
 
 try:
@@ -51,7 +51,7 @@ def _vehicle(axles: int):
 @functools.lru_cache(maxsize=None)
 def _nlp(axles: int, settings: MPCSettings):
     """(numba model, HorizonNLP) of one configuration, built once per test session."""
-    from controller.ipopt import HorizonNLP
+    from msagv.controller.ipopt import HorizonNLP
 
     model = make_model(_vehicle(axles), settings)
     return model, HorizonNLP(model, settings)
@@ -185,7 +185,7 @@ def annealer_run():
 
 @needs_casadi
 def test_ipopt_reaches_at_most_the_annealer_cost(annealer_run):
-    from controller.ipopt import REFERENCE_OPTIONS, IpoptMPC
+    from msagv.controller.ipopt import REFERENCE_OPTIONS, IpoptMPC
 
     ref, steps = annealer_run
     ip = IpoptMPC(VEH, MPCSettings(), ref, options=REFERENCE_OPTIONS)
@@ -211,7 +211,7 @@ def test_ipopt_reaches_at_most_the_annealer_cost(annealer_run):
 # ---- (d) IpoptMPC: bounds of eq. 27, closed loop ----------------------------------------
 @needs_casadi
 def test_ipopt_mpc_commands_within_bounds():
-    from controller.ipopt import IpoptMPC, IpoptOptions
+    from msagv.controller.ipopt import IpoptMPC, IpoptOptions
 
     ref, _ = make_case("curve", 25.0)
     mpc = IpoptMPC(VEH, MPCSettings(), ref, options=IpoptOptions(max_iter=30))
@@ -222,7 +222,7 @@ def test_ipopt_mpc_commands_within_bounds():
 def test_ipopt_mpc_on_solve():
     """IpoptMPC calls the MPC's observer hook with the state, the previous solution and the
     command (whose cost is the exact cost of the new solution)."""
-    from controller.ipopt import IpoptMPC, IpoptOptions
+    from msagv.controller.ipopt import IpoptMPC, IpoptOptions
 
     ref, init = make_case("curve", 25.0)
     calls = []
@@ -265,7 +265,7 @@ def test_ipopt_gradient_finite_at_standstill():
 
 @needs_casadi
 def test_ipopt_closed_loop_tracks():
-    from controller.ipopt import IpoptMPC
+    from msagv.controller.ipopt import IpoptMPC
 
     ref, init = make_case("curve", 25.0)
     plant = Plant(VEH, initial=init(VEH))
@@ -281,7 +281,7 @@ def test_ipopt_closed_loop_tracks():
 
 # ---- (e) errors: no CasADi, a baseline model --------------------------------------------
 def test_without_casadi_a_clear_error(monkeypatch, capsys):
-    import controller.ipopt as ip
+    import msagv.controller.ipopt as ip
     from msagv import run as run_cmd
 
     monkeypatch.setattr(ip, "ca", None)
@@ -299,7 +299,7 @@ def test_without_casadi_a_clear_error(monkeypatch, capsys):
 @needs_casadi
 def test_ipopt_rejects_baseline_models(capsys):
     from msagv import run as run_cmd
-    from controller.ipopt import IpoptMPC
+    from msagv.controller.ipopt import IpoptMPC
 
     with pytest.raises(ControllerError, match="'mf' only"):
         IpoptMPC(VEH, MPCSettings(model="dugoff"))

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plant import default_vehicle, n_axle_vehicle
-from plant import dynamics as dyn
-from plant import layout as lay
+from msagv.plant import default_vehicle, n_axle_vehicle
+from msagv.plant import dynamics as dyn
+from msagv.plant import layout as lay
 
 ROOT = Path(__file__).resolve().parents[1]
 KERNELS = ["plant/dynamics.py", "controller/rollout.py", "controller/sa_kernel.py",
@@ -68,7 +68,7 @@ def test_pack_params_puts_each_vehicle_value_at_its_name():
 
 
 def test_settings_hold_only_mpc_settings():
-    from controller.models import MPCSettings, pack_settings
+    from msagv.controller.models import MPCSettings, pack_settings
 
     v = default_vehicle()
     s = MPCSettings(dt=0.05, K_servo=7.0, K_pos=1.5, K_phi=0.5, v_fb_max=2.0, r_fb_max=0.2)
@@ -103,7 +103,7 @@ def test_c_mirror_uses_the_generated_header():
 # ---- the stale-cache guard ---------------------------------------------------------------
 _KERNEL = '''
 from numba import njit
-from plant import layout as lay
+from msagv.plant import layout as lay
 from . import consts
 {guard}
 @njit(cache=True)

@@ -10,8 +10,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from bridge import faults
-from bridge import messages as M
+from msagv.bridge import faults
+from msagv.bridge import messages as M
 
 NW = 4
 

@@ -25,11 +25,11 @@ import sys
 import numpy as np
 import pytest
 
-from controller import make_case
-from controller.loop import closed_loop
-from controller.models import MPCSettings
-from controller.mpc import MPC, ControllerError
-from plant import Plant, default_vehicle
+from msagv.controller import make_case
+from msagv.controller.loop import closed_loop
+from msagv.controller.models import MPCSettings
+from msagv.controller.mpc import MPC, ControllerError
+from msagv.plant import Plant, default_vehicle
 from helpers import assert_commands_within_bounds
 
 VEH = default_vehicle()
@@ -39,7 +39,7 @@ def _have_acados() -> bool:
     if not (shutil.which("make") and shutil.which(os.environ.get("CC", "cc"))):
         return False  # acados builds its solvers with make and a C compiler
     try:
-        from controller.acados_rti import require_acados
+        from msagv.controller.acados_rti import require_acados
 
         require_acados()
         return True
@@ -54,7 +54,7 @@ needs_acados = pytest.mark.skipif(not HAVE_ACADOS, reason="acados not installed 
 
 @functools.lru_cache(maxsize=None)
 def _mpc(method: str = "two"):
-    from controller.acados_rti import AcadosMPC
+    from msagv.controller.acados_rti import AcadosMPC
 
     ref, _ = make_case("curve", 25.0)
     return AcadosMPC(VEH, MPCSettings(method=method), ref)
@@ -72,7 +72,7 @@ def _state(init, t=0.0, **over):
 def test_ocp_cost_is_the_nlp_cost(method):
     """At the trajectory of a decision vector z (what each solve linearises at), acados'
     cost equals the IPOPT NLP's cost of z with the same smoothing: the same problem."""
-    from controller.ipopt import HorizonNLP, IpoptOptions
+    from msagv.controller.ipopt import HorizonNLP, IpoptOptions
 
     mpc = _mpc(method)
     ocp = mpc.ocp
@@ -185,7 +185,7 @@ def test_msagv_run_solver_acados_json_with_a_fresh_build(capfd, tmp_path, monkey
 
 
 def test_without_acados_a_clear_error(monkeypatch, capsys, tmp_path):
-    import controller.acados_rti as ar
+    import msagv.controller.acados_rti as ar
     from msagv import run as run_cmd
 
     monkeypatch.setattr(ar, "_acados", None)
@@ -204,7 +204,7 @@ def test_without_acados_a_clear_error(monkeypatch, capsys, tmp_path):
 
 def test_acados_rejects_baseline_models(capsys):
     from msagv import run as run_cmd
-    from controller.acados_rti import AcadosMPC
+    from msagv.controller.acados_rti import AcadosMPC
 
     with pytest.raises(ControllerError, match="'mf' only"):
         AcadosMPC(VEH, MPCSettings(model="dugoff"))

@@ -16,9 +16,9 @@ import time
 import msgpack
 import pytest
 
-from bridge import messages as M
-from bridge.loss import HOLD, LOST, PRESENT, RUN, SAFE, SUSPECT, CommandWatch, LossTimer
-from bridge.ownership import CLAIM, RELEASE, Ownership
+from msagv.bridge import messages as M
+from msagv.bridge.loss import HOLD, LOST, PRESENT, RUN, SAFE, SUSPECT, CommandWatch, LossTimer
+from msagv.bridge.ownership import CLAIM, RELEASE, Ownership
 from helpers import ep, free_port, msagv
 
 T = 0.01
@@ -117,9 +117,9 @@ def test_loss_timer_confirms_a_loss_only_after_running_time_and_restarts_after_a
 # ---- the nodes -----------------------------------------------------------------------------
 @pytest.fixture
 def plant_node():
-    from bridge.plant_node import PlantConfig, PlantNode
-    from bridge.session import Keys
-    from plant import Plant, default_vehicle
+    from msagv.bridge.plant_node import PlantConfig, PlantNode
+    from msagv.bridge.session import Keys
+    from msagv.plant import Plant, default_vehicle
 
     node = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), Keys("t0"),
                      PlantConfig(run_mode="realtime", steps=10))
@@ -154,12 +154,12 @@ def test_plant_counts_a_command_that_arrives_after_its_step_as_late(plant_node):
 
 
 def test_controller_rejects_states_not_from_its_plant():
-    from bridge.controller_node import ControllerConfig, ControllerNode
-    from bridge.session import Keys
-    from controller.models import MPCSettings
-    from controller.mpc import MPC
-    from controller.reference import case1_curve
-    from plant import default_vehicle
+    from msagv.bridge.controller_node import ControllerConfig, ControllerNode
+    from msagv.bridge.session import Keys
+    from msagv.controller.models import MPCSettings
+    from msagv.controller.mpc import MPC
+    from msagv.controller.reference import case1_curve
+    from msagv.plant import default_vehicle
 
     v = default_vehicle()
     node = ControllerNode(MPC(v, MPCSettings(iterations=3, chains=4), case1_curve(15.0)),
@@ -183,7 +183,7 @@ class Rogue:
     def __init__(self, port: int, vid: str = "agv0"):
         import zenoh
 
-        from bridge.session import Keys, SessionOptions, open_session
+        from msagv.bridge.session import Keys, SessionOptions, open_session
 
         self.keys = Keys(vid)
         self.port = port
@@ -223,7 +223,7 @@ class Rogue:
                 self.keys.controller_token(self.owner)))
 
     def _claim(self):
-        from bridge.ownership import claim, source_info
+        from msagv.bridge.ownership import claim, source_info
 
         n = 0
         while not self._stop.wait(0.05):
@@ -347,8 +347,8 @@ def test_a_stalled_controller_carries_on_with_a_live_plant(procs):
 # ---- processes: two plants answer the params: the controller binds to neither ---------------
 @pytest.mark.timeout(300)
 def test_a_controller_refuses_to_bind_when_two_plants_answer_its_params(procs):
-    from bridge.ownership import params_replies
-    from bridge.session import Keys, SessionOptions, open_session
+    from msagv.bridge.ownership import params_replies
+    from msagv.bridge.session import Keys, SessionOptions, open_session
 
     p1, p2 = free_port(), free_port()
     for name, port in (("plant1", p1), ("plant2", p2)):  # e.g. a rogue with a lighter vehicle

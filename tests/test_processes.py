@@ -20,12 +20,12 @@ import time
 import numpy as np
 import pytest
 
-from bridge import faults
-from bridge import messages as M
-from bridge.presence import Presence
-from bridge.recording import read_recording
-from bridge.session import Keys, SessionOptions, open_session
-from experiments.recorded import evaluate
+from msagv.bridge import faults
+from msagv.bridge import messages as M
+from msagv.bridge.presence import Presence
+from msagv.bridge.recording import read_recording
+from msagv.bridge.session import Keys, SessionOptions, open_session
+from msagv.experiments.recorded import evaluate
 from helpers import ep, free_port, msagv
 
 PY = sys.executable
@@ -119,7 +119,7 @@ def in_process(duration: float):
     """``msagv run --duration D`` in this process: commands by step and the log (cached)."""
     if duration in _IN_PROCESS:
         return _IN_PROCESS[duration]
-    from controller.loop import closed_loop
+    from msagv.controller.loop import closed_loop
     from msagv.args import add_case_args, add_mpc_args, scenario_from_args
 
     ap = argparse.ArgumentParser()
@@ -418,7 +418,7 @@ def test_two_vehicles_through_a_router(procs, tmp_path):
 # ---- the FMU as the plant -----------------------------------------------------------------
 @pytest.mark.timeout(300)
 def test_plant_process_hosts_an_fmu(procs, tmp_path):
-    from fmu_build.build import build_fmu
+    from msagv.fmu_build.build import build_fmu
 
     fmu = build_fmu(tmp_path / "plant.fmu")
     P = free_port()

@@ -16,12 +16,12 @@ import time
 import msgpack
 import pytest
 
-from bridge import messages as M
-from bridge.recording import (MCAP_MAGIC, Recorder, RecordingError, check_writable,
+from msagv.bridge import messages as M
+from msagv.bridge.recording import (MCAP_MAGIC, Recorder, RecordingError, check_writable,
                               iter_records, part_path, read_recording, recording_format,
                               split_runs)
 from helpers import ep, free_port, msagv
-from plant import Plant, default_vehicle
+from msagv.plant import Plant, default_vehicle
 
 KEY_STATE, KEY_CMD = "msagv/t/state", "msagv/t/cmd"
 
@@ -306,7 +306,7 @@ def test_full_disk_mid_run_realtime_plant_keeps_its_period_and_exits_0(procs, tm
 def test_a_50mb_command_does_not_reach_the_recording(procs, tmp_path):
     import zenoh
 
-    from bridge.session import SessionOptions, open_session
+    from msagv.bridge.session import SessionOptions, open_session
 
     rec = tmp_path / "plant.mcap"
     P = _realtime_pair(procs, tmp_path, rec, 5)

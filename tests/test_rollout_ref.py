@@ -16,12 +16,12 @@ import math
 import numpy as np
 import pytest
 
-from benchmarks.rollout_bench import (CBuildError, build_c_rollout, case_inputs,
+from msagv.benchmarks.rollout_bench import (CBuildError, build_c_rollout, case_inputs,
                                       find_compiler, proposal_batches)
-from controller import MPCSettings, make_case
-from controller import rollout as _ro
-from controller.models import MagicFormulaModel
-from plant import default_vehicle, n_axle_vehicle
+from msagv.controller import MPCSettings, make_case
+from msagv.controller import rollout as _ro
+from msagv.controller.models import MagicFormulaModel
+from msagv.plant import default_vehicle, n_axle_vehicle
 
 RTOL = 1e-9
 

@@ -17,12 +17,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controller import MPCSettings, make_case
-from controller import rollout as ro
-from controller.loop import closed_loop
-from controller.models import make_model
-from controller.mpc import MPC
-from plant import Plant, default_vehicle, n_axle_vehicle
+from msagv.controller import MPCSettings, make_case
+from msagv.controller import rollout as ro
+from msagv.controller.loop import closed_loop
+from msagv.controller.models import make_model
+from msagv.controller.mpc import MPC
+from msagv.plant import Plant, default_vehicle, n_axle_vehicle
 
 from test_rollout_ref import _random_case  # noqa: E402 (tests/ is on sys.path)
 

@@ -12,10 +12,10 @@ import pytest
 
 from helpers import ROOT
 
-from controller.reference import from_csv
-from experiments.scenario import Scenario, ScenarioError
+from msagv.controller.reference import from_csv
+from msagv.experiments.scenario import Scenario, ScenarioError
 from msagv.cli import main
-from plant.vehicle import load_vehicle
+from msagv.plant.vehicle import load_vehicle
 
 SCEN = ROOT / "scenarios"
 EXAMPLES = sorted(SCEN.glob("*.toml"))

@@ -13,9 +13,9 @@ import time
 
 import pytest
 
-from bridge import messages as M
-from bridge.security import SecurityError, acl_config, create_certs, parse_extra, read_manifest
-from bridge.session import (MAX_MESSAGE_BYTES, Keys, SessionError, SessionOptions,
+from msagv.bridge import messages as M
+from msagv.bridge.security import SecurityError, acl_config, create_certs, parse_extra, read_manifest
+from msagv.bridge.session import (MAX_MESSAGE_BYTES, Keys, SessionError, SessionOptions,
                             make_config, open_session)
 from helpers import free_port, msagv
 
@@ -194,7 +194,7 @@ class Peer:
             self.sent += 1
 
     def _claim(self):
-        from bridge.ownership import claim, source_info
+        from msagv.bridge.ownership import claim, source_info
 
         n = 0
         while not self._stop.wait(0.1):

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from plant import Plant, PlantError, default_vehicle, n_axle_vehicle
+from msagv.plant import Plant, PlantError, default_vehicle, n_axle_vehicle
 
 try:
     from . import reference_model as ref

@@ -11,11 +11,11 @@ import math
 import numpy as np
 import pytest
 
-from controller.floors import wear_floors
-from controller.paths import feasible_bounds, lane_change, path_from_curvature, random_path, tight_turn
-from experiments.study_report import bootstrap_ratio, lower_envelope, matched, wear_at_accuracy
-from plant import default_vehicle, n_axle_vehicle, vehicle_from_dict
-from plant.tire import magic_formula
+from msagv.controller.floors import wear_floors
+from msagv.controller.paths import feasible_bounds, lane_change, path_from_curvature, random_path, tight_turn
+from msagv.experiments.study_report import bootstrap_ratio, lower_envelope, matched, wear_at_accuracy
+from msagv.plant import default_vehicle, n_axle_vehicle, vehicle_from_dict
+from msagv.plant.tire import magic_formula
 
 VEH = default_vehicle()
 
@@ -63,7 +63,7 @@ def test_floor_is_zero_on_a_straight_line_and_rejects_an_empty_window():
     with pytest.raises(ValueError, match="window"):
         wear_floors(ref, VEH, 5.0, 5.0)
     # the report divides by a floor only where there is one: a line's W / floor is n/a
-    from experiments.study_report import _row
+    from msagv.experiments.study_report import _row
 
     tags = {"family": "NTWO", "lever": "none", "level": None, "aware": False,
             "scenario": "case2", "class": "case2", "plant": "nominal", "seed": 0,
@@ -151,7 +151,7 @@ def test_matched_ratio_and_bootstrap_by_hand():
 def test_reduced_study_end_to_end(tmp_path, monkeypatch):
     """Two short scenarios (one path, two seeds), every family, in this process: the JSON
     has every family, the floors, the physical-unit errors and a ratio with its CI."""
-    from experiments import study
+    from msagv.experiments import study
 
     small = [study.StudyScenario("case1", "curve", 30.0, duration=1.5, seed=s, raw=s == 0)
              for s in (0, 1)]
@@ -176,7 +176,7 @@ def test_reduced_study_end_to_end(tmp_path, monkeypatch):
 def test_design_names_every_scenario_once(tmp_path):
     """Runs are grouped by scenario name for the matched comparison: two paths under one
     name (the 4-axle curve and lane at 15 km/h once were) would be compared as one."""
-    from experiments import study
+    from msagv.experiments import study
 
     veh = tmp_path / "v.toml"
     veh.write_text("")

@@ -15,8 +15,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from plant import default_vehicle
-from plant.tire import (dugoff_forces, magic_formula, magic_formula_and_slope, slip_angle,
+from msagv.plant import default_vehicle
+from msagv.plant.tire import (dugoff_forces, magic_formula, magic_formula_and_slope, slip_angle,
                         slip_jacobian, slip_ratio, wear_power_angle, wear_power_slip,
                         wear_power_steer, wheel_to_body, wheel_velocity)
 
@@ -314,7 +314,7 @@ def test_batches_broadcast_against_parameters():
 
 # ---- combined slip (plant-only option) ------------------------------------------------------
 def test_combined_slip_weights_by_hand():
-    from plant.tire import combined_slip_weights
+    from msagv.plant.tire import combined_slip_weights
 
     s, a = 0.05, 0.05
     # MF 5.2 weighting functions with the documented coefficients, written out here

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from helpers import BUILTIN_TOML, add_toml, drop_toml_table, edit_toml, run_msagv
-from plant import (Plant, Vehicle, VehicleError, default_vehicle, load_vehicle, n_axle_vehicle,
+from msagv.plant import (Plant, Vehicle, VehicleError, default_vehicle, load_vehicle, n_axle_vehicle,
                    vehicle_from_dict)
 
 BUILTIN = BUILTIN_TOML

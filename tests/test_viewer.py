@@ -19,12 +19,12 @@ import pytest
 
 rr = pytest.importorskip("rerun", reason="rerun-sdk (the 'viewer' extra) is not installed")
 
-from bridge import messages as M  # noqa: E402
-from bridge.recording import Recorder  # noqa: E402
-from controller.reference import make_case  # noqa: E402
-from experiments.viewer import BODY_COLOR, RunView, Tee, ViewSink, wheel_colour  # noqa: E402
+from msagv.bridge import messages as M  # noqa: E402
+from msagv.bridge.recording import Recorder  # noqa: E402
+from msagv.controller.reference import make_case  # noqa: E402
+from msagv.experiments.viewer import BODY_COLOR, RunView, Tee, ViewSink, wheel_colour  # noqa: E402
 from helpers import ep, free_port, msagv  # noqa: E402
-from plant import Plant, default_vehicle, n_axle_vehicle  # noqa: E402
+from msagv.plant import Plant, default_vehicle, n_axle_vehicle  # noqa: E402
 
 WHEELS = ["11", "12", "21", "22"]
 
@@ -140,7 +140,7 @@ def test_wheel_colours_go_from_green_to_red():
 
 
 def test_a_view_without_a_sink_or_with_a_bad_file_is_refused(tmp_path):
-    from experiments.viewer import ViewerError
+    from msagv.experiments.viewer import ViewerError
 
     with pytest.raises(ViewerError, match="somewhere"):
         RunView(default_vehicle())

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX, P_DELTA_MIN, P_G,
+from msagv.plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX, P_DELTA_MIN, P_G,
                           N_REF, P_K_T, P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C,
                           P_LON_E, P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN,
                           P_OMEGA_W_MAX, P_V_EPS, P_WHEEL_RADIUS, P_YAW_INERTIA, POSE_PHI,
