@@ -64,7 +64,7 @@ def bench_states(n_axles: int, n_states: int, settings=None, sqp: int = 3) -> di
     t0 = time.perf_counter()
     ac = _solvers(s, solver="acados", vehicle=vehicle)
     setup_s = time.perf_counter() - t0
-    built = any(m.ocp.built for m in ac.values())
+    built = any(m.solver.ocp.built for m in ac.values())
     more = _solvers(s, solver="acados", vehicle=vehicle,
                     options=AcadosOptions(iterations=sqp)) if sqp > 1 else {}
     for m in list(sa.values()) + list(ac.values()) + list(more.values()):
@@ -75,9 +75,8 @@ def bench_states(n_axles: int, n_states: int, settings=None, sqp: int = 3) -> di
         m, q = sa[key], ac[key]
 
         def run_sa():
-            m.rng = np.random.default_rng(1000 + i)
+            m.solver.reset(seed=1000 + i)  # its own stream; step factors from the ladder
             m.z = smp["z"].copy()
-            m._scale = None
             return m.step(smp["state"])
 
         def run_ac():
@@ -90,7 +89,7 @@ def bench_states(n_axles: int, n_states: int, settings=None, sqp: int = 3) -> di
             c_sa, c_ac = run_sa(), run_ac()
         row = {"case": key[0], "speed": key[1], "k": smp["k"], "J_sa": c_sa.cost,
                "J_acados": c_ac.cost, "sa_ms": c_sa.solve_ms,
-               "acados_ms": c_ac.solve_ms, "acados_status": q.last_status}
+               "acados_ms": c_ac.solve_ms, "acados_status": q.solver.last_status}
         if more:
             w = more[key]
             w.z = smp["z"].copy()

@@ -113,17 +113,16 @@ def _bench_optimality_axles(n_axles: int, n_states: int, settings=None) -> dict:
     for i, smp in enumerate(samples):
         key = (smp["case"], smp["speed"])
         m = sa[key]
-        m.rng = np.random.default_rng(1000 + i)
+        m.solver.reset(seed=1000 + i)  # its own stream; step factors from the ladder
         m.z = smp["z"].copy()
-        m._scale = None  # the chains' step factors from the ladder (not another state's)
         c_sa = m.step(smp["state"])
         q = ip[key]
         q.z = smp["z"].copy()
         c_ip = q.step(smp["state"])
         rows.append({"case": key[0], "speed": key[1], "k": smp["k"], "J_sa": c_sa.cost,
                      "J_ipopt": c_ip.cost, "sa_ms": c_sa.solve_ms, "ipopt_ms": c_ip.solve_ms,
-                     "ipopt_status": str(q.last_stats.get("return_status")),
-                     "ipopt_iter": int(q.last_stats.get("iter_count", 0))})
+                     "ipopt_status": str(q.solver.last_stats.get("return_status")),
+                     "ipopt_iter": int(q.solver.last_stats.get("iter_count", 0))})
     r = np.array([x["J_sa"] / x["J_ipopt"] for x in rows])
     ipms = np.array([x["ipopt_ms"] for x in rows])
     sams = np.array([x["sa_ms"] for x in rows])
@@ -196,7 +195,7 @@ def bench_ablation(n_states: int = 40, seeds=(1, 2), settings=None) -> dict:
         m.z = smp["z"].copy()
         x0, R, zprev, warm = m.horizon_problem(smp["state"])
         for label, C, I, lad, up, down, rst in ABLATION:
-            sa = CompiledAnnealer(m.model, m.Q, m.L, m.R, m.lower, m.upper, m.sigma, chains=C,
+            sa = CompiledAnnealer(m.model, m.horizon.Q, m.horizon.L, m.horizon.R, m.horizon.lower, m.horizon.upper, m.horizon.sigma, chains=C,
                                   iterations=I, sigma_final=s.sigma_final, t_start=s.t_start,
                                   t_end=s.t_end, ladder=lad, adapt_up=up, adapt_down=down,
                                   restart_every=rst)

@@ -81,7 +81,7 @@ def run_section(name: str, quick: bool) -> dict:
             a.pop("rows", None)
         return r
     if name == "nmpc":
-        from msagv.controller.mpc import ControllerError
+        from msagv.controller.interface import ControllerError
 
         try:
             from msagv.controller.acados_rti import require_acados

@@ -490,8 +490,8 @@ class ControllerNode:
                          "stalls": self.loss.stalls},
                 "references": s.references, "ends": s.ends, "rejected": self.rej.summary(),
                 "exit_reason": self.exit_reason,
-                "solver": getattr(self.mpc, "solver_name", "sa"),
-                "budget": self.mpc.budget() if hasattr(self.mpc, "budget") else None,
+                "solver": self.mpc.name,
+                "budget": self.mpc.budget(),
                 "settings": dataclasses.asdict(self.mpc.settings)}
 
 
@@ -620,7 +620,7 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
                 return summary, EXIT_OK
             s = mpc.settings
             log.info("MPC warm (%.2f s): %s %s, %s, seed %d", time.perf_counter() - t0,
-                     s.method, s.model, getattr(mpc, "solver_name", "sa"), s.seed)
+                     s.method, s.model, mpc.name, s.seed)
             if open_recorder is not None:
                 rec = open_recorder(mpc, params)
             rebind = None

@@ -7,9 +7,10 @@ in-process, over Zenoh and against an FMU.
 
 from .metrics import compute_metrics, omega_index
 from .models import MPCSettings, make_model
-from .mpc import MPC, Command, ControllerError
+from .interface import Command, Controller, ControllerError
+from .mpc import MPC
 from .reference import Reference, SpeedProfile, case1_curve, case2_line, from_csv, make_case
 
-__all__ = ["MPC", "Command", "ControllerError", "MPCSettings", "make_model", "Reference",
+__all__ = ["MPC", "Controller", "Command", "ControllerError", "MPCSettings", "make_model", "Reference",
            "SpeedProfile", "case1_curve", "case2_line", "from_csv", "make_case",
            "compute_metrics", "omega_index"]

@@ -1,7 +1,7 @@
 """A real-time gradient NMPC: the MPC's horizon problem by acados SQP-RTI.
 
-:class:`AcadosMPC` solves the *same* decision problem as :class:`controller.mpc.MPC` and
-:class:`controller.ipopt.IpoptMPC` - the offsets ``z`` of the move blocks inside their box,
+:class:`Acados` (``--solver acados``) solves the *same* horizon problem as the annealer and
+IPOPT (:class:`controller.horizon.Horizon`) - the offsets ``z`` of the move blocks inside their box,
 pushed through the feed-forward policy and the MF prediction, with the cost of eq. 22-26
 plus ``R`` - by one Gauss-Newton SQP iteration per control period (real-time iteration,
 RTI) of acados (code-generated, compiled C; its QPs by HPIPM).
@@ -95,9 +95,9 @@ from msagv.plant import layout as lay
 
 from . import rollout as _ro
 from .mirrors.casadi_rollout import _wrap, ca, symbolic_step
+from .horizon import Horizon, Solution
+from .interface import ControllerError
 from .models import MPCSettings
-from .mpc import MPC, T_CONTROL, ControllerError
-from .reference import Reference
 
 ACADOS_ENV = "MSAGV_ACADOS"  # the directory of an isolated install (pip install --target)
 CACHE_ENV = "MSAGV_ACADOS_CACHE"
@@ -164,19 +164,6 @@ def require_acados() -> None:
         raise ControllerError("the acados solver needs CasADi, which is not installed "
                               "(pip install 'msagv[ipopt]'), or use --solver sa")
     _import_acados()
-
-
-def check_supported(settings: MPCSettings) -> None:
-    """Raise :class:`ControllerError` unless acados can solve the MPC of ``settings``
-    (CasADi and acados installed, the paper's model 'mf', the offsets parametrisation)."""
-    if settings.model != "mf":
-        raise ControllerError(f"the acados solver supports the prediction model 'mf' only, not "
-                              f"{settings.model!r} (the baselines use the annealer: --solver sa)")
-    if settings.policy != "offsets":
-        raise ControllerError(f"the acados solver supports the decision parametrisation "
-                              f"'offsets' only, not {settings.policy!r} (use the annealer: "
-                              f"--solver sa)")
-    require_acados()
 
 
 @dataclass(frozen=True)
@@ -268,7 +255,7 @@ class HorizonOCP:
     direct ctypes setters for the per-solve data."""
 
     def __init__(self, model, settings: MPCSettings, options: AcadosOptions = AcadosOptions()):
-        check_supported(settings)
+        Acados.check_supported(settings)
         acados = _import_acados()
         from acados.acados_template import AcadosModel, AcadosOcp, AcadosOcpSolver
 
@@ -557,56 +544,46 @@ class HorizonOCP:
         return z, status
 
 
-class AcadosMPC(MPC):
-    """The MPC of :class:`controller.mpc.MPC` with acados SQP-RTI in place of the annealer.
+class Acados:
+    """acados SQP-RTI as a horizon solver (registered as ``acados`` in
+    :mod:`controller.solvers`; see the module docstring for one solve).
 
-    Same interface as :class:`controller.ipopt.IpoptMPC`: the horizon problem, the warm
-    start (the better of the shifted previous solution and zero offsets, by the exact
-    cost), the bounds and the returned commands are the annealer MPC's. ``Command.cost`` is
-    the exact cost (numba, true |.|) and ``Command.iterations`` the SQP iterations run. The
-    annealer fields of ``settings`` are ignored (``deadline_ms`` too: one RTI iteration is
-    its own budget).
-
-    Extra parameter ``options``: :class:`AcadosOptions`.
+    The warm start is the better (by the horizon's cost) of the shifted previous solution
+    and zero offsets, as IPOPT's; the reported cost is the horizon's (numba, true |.|) and
+    the iterations the SQP iterations run. The annealer fields of the settings are ignored
+    (``deadline_ms`` too: one RTI iteration is its own budget). ``options``:
+    :class:`AcadosOptions`; the QP status of the last iteration is in ``last_status``.
     """
 
-    solver_name = "acados"
+    name = "acados"
 
-    def __init__(self, vehicle, settings: MPCSettings | None = None,
-                 reference: Reference | None = None, period: float = T_CONTROL,
-                 options: AcadosOptions | None = None, on_solve=None):
-        check_supported(settings or MPCSettings())
-        super().__init__(vehicle, settings, reference, period, on_solve=on_solve)
+    @classmethod
+    def check_supported(cls, settings: MPCSettings) -> None:
+        """Raise :class:`ControllerError` unless acados can solve the MPC of ``settings``
+        (CasADi and acados installed, the paper's model 'mf', the offsets parametrisation)."""
+        if settings.model != "mf":
+            raise ControllerError(f"the acados solver supports the prediction model 'mf' only, not "
+                                  f"{settings.model!r} (the baselines use the annealer: --solver sa)")
+        if settings.policy != "offsets":
+            raise ControllerError(f"the acados solver supports the decision parametrisation "
+                                  f"'offsets' only, not {settings.policy!r} (use the annealer: "
+                                  f"--solver sa)")
+        require_acados()
+
+    def __init__(self, horizon: Horizon, options: AcadosOptions | None = None):
+        self.horizon = horizon
         self.options = options or AcadosOptions()
-        self.ocp = HorizonOCP(self.model, self.settings, self.options)
-        self._bufs = self.model.allocate(len(LINE_SEARCH))
-        self._costs = np.empty(len(LINE_SEARCH))
+        self.ocp = HorizonOCP(horizon.model, horizon.settings, self.options)
         self._alpha = np.asarray(LINE_SEARCH)[:, None]
         self.last_status = 0
 
-    def exact_costs(self, x0, R, Z, zprev) -> np.ndarray:
-        """The annealer's cost (numba rollout + batch_cost, exact |.|) of each row of Z."""
-        Z = np.ascontiguousarray(Z, dtype=float)
-        out = self._bufs if Z.shape[0] == len(LINE_SEARCH) else None
-        costs = self._costs if out is not None else np.empty(Z.shape[0])
-        r = self.model.rollout(x0, R, Z, out=out)
-        _ro.batch_cost(r.poses, r.wear, R, Z, np.ascontiguousarray(zprev), self.Q, self.L,
-                       self.R, self.model.stride, self.model.nsplit, costs)
-        return costs.copy()
+    def reset(self) -> None:
+        """Nothing carries over between solves (each starts from the warm start)."""
+        self.last_status = 0
 
-    def exact_cost(self, x0, R, z, zprev) -> float:
-        return float(self.exact_costs(x0, R, np.asarray(z, float)[None, :], zprev)[0])
-
-    def _solve(self, x0, R, zprev, warm, t0: float) -> tuple[np.ndarray, float, int]:
-        lo, hi = self.lower, self.upper
-        warm = np.minimum(np.maximum(warm, lo), hi)
-        zero = np.minimum(np.maximum(np.zeros_like(warm), lo), hi)
-        J2 = self.exact_costs(x0, R, np.stack([warm, zero]), zprev)
-        if J2[1] < J2[0]:
-            warm, Jw = zero, float(J2[1])
-        else:
-            Jw = float(J2[0])
-        z, J = warm, Jw
+    def solve(self, x0, R, zprev, warm, t0: float) -> Solution:
+        h = self.horizon
+        z, J = h.better_start(x0, R, zprev, warm)
         its = 0
         for _ in range(self.options.iterations):
             its += 1
@@ -617,15 +594,15 @@ class AcadosMPC(MPC):
             self.last_status = status
             if not np.all(np.isfinite(zn)):
                 break
-            zn = np.minimum(np.maximum(zn, lo), hi)
+            zn = h.clip(zn)
             if self.options.line_search:
                 cand = z[None, :] + self._alpha * (zn - z)[None, :]
-                c = self.exact_costs(x0, R, cand, zprev)
+                c = h.costs(x0, R, cand, zprev)
                 i = int(np.argmin(c))
                 zn, Jn = cand[i], float(c[i])
             else:
-                Jn = self.exact_cost(x0, R, zn, zprev)
+                Jn = h.cost(x0, R, zn, zprev)
             if self.options.keep_best and not (Jn <= J):
                 break
             z, J = zn, Jn
-        return z, J, its
+        return Solution(z, J, its)

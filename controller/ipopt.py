@@ -1,6 +1,7 @@
 """A gradient-based reference solver: the MPC's horizon problem solved by IPOPT (CasADi).
 
-:class:`IpoptMPC` solves the *same* decision problem as :class:`controller.mpc.MPC`: the
+:class:`Ipopt` (``--solver ipopt``) solves the *same* horizon problem as the annealer
+(:class:`controller.horizon.Horizon`): the
 offsets vector ``z`` (``n_blocks * 4n`` entries, the same box bounds), pushed through the
 same policy (:func:`controller.rollout.commands_from_policy`) and the same MF prediction
 (:data:`controller.rollout.EXACT`'s kernels, model 0), with the same cost
@@ -9,8 +10,7 @@ cost are written again symbolically (CasADi SX), operation for operation, in the
 :mod:`controller.mirrors.casadi_rollout`, so IPOPT gets exact first and second derivatives;
 ``tests/test_ipopt.py`` checks that the mirror reproduces the numba rollout (the math
 library's, ``EXACT``) to 1e-9. This
-module builds the NLP from the mirror and solves it (:class:`HorizonNLP`,
-:class:`IpoptMPC`).
+module builds the NLP from the mirror and solves it (:class:`HorizonNLP`, :class:`Ipopt`).
 
 Smoothing
 ---------
@@ -51,11 +51,10 @@ import numpy as np
 
 from msagv.plant import layout as lay
 
-from . import rollout as _ro
 from .mirrors.casadi_rollout import TINY_SQ, TINY_W2, ca, symbolic_cost, symbolic_rollout  # noqa: F401
+from .horizon import Horizon, Solution
+from .interface import ControllerError
 from .models import MPCSettings
-from .mpc import MPC, T_CONTROL, ControllerError
-from .reference import Reference
 
 
 def require_casadi() -> None:
@@ -63,19 +62,6 @@ def require_casadi() -> None:
     if ca is None:
         raise ControllerError("the ipopt solver needs CasADi, which is not installed "
                               "(pip install 'msagv[ipopt]', or use the annealer: --solver sa)")
-
-
-def check_supported(settings: MPCSettings) -> None:
-    """Raise :class:`ControllerError` unless IPOPT can solve the MPC of ``settings``
-    (CasADi installed, the paper's prediction model 'mf')."""
-    require_casadi()
-    if settings.model != "mf":
-        raise ControllerError(f"the ipopt solver supports the prediction model 'mf' only, not "
-                              f"{settings.model!r} (the baselines use the annealer: --solver sa)")
-    if settings.policy != "offsets":
-        raise ControllerError(f"the ipopt solver supports the decision parametrisation "
-                              f"'offsets' only, not {settings.policy!r} (use the annealer: "
-                              f"--solver sa)")
 
 
 @dataclass(frozen=True)
@@ -126,7 +112,7 @@ class HorizonNLP:
     """
 
     def __init__(self, model, settings: MPCSettings, options: IpoptOptions = IpoptOptions()):
-        check_supported(settings)
+        Ipopt.check_supported(settings)
         self.settings, self.options = settings, options
         nw = model.n_wheels
         self.nw, self.dim = nw, model.dim
@@ -168,65 +154,59 @@ class HorizonNLP:
         return np.asarray(r["x"]).reshape(-1), st
 
 
-class IpoptMPC(MPC):
-    """The MPC of :class:`controller.mpc.MPC` with IPOPT in place of the annealer.
+class Ipopt:
+    """IPOPT as a horizon solver (registered as ``ipopt`` in :mod:`controller.solvers`).
 
-    Same interface: ``IpoptMPC(vehicle, settings, reference=None, period=0.01)``,
-    ``step(state, reference=None) -> Command``, ``reset()``, ``warmup(state)``, ``on_solve``,
-    ``set_reference(ref)``, ``solve_times_ms``. The horizon problem, the warm start
-    (previous solution shifted by one period), the bounds and the returned commands are
-    the annealer MPC's, except that IPOPT starts from the better (exact cost) of the
-    shifted previous solution and zero offsets (the annealer's chains 0 and 1); with
-    ``options.keep_best`` a solve that ends worse than that start (or fails) returns the
-    start. ``Command.cost`` is the exact cost (numba ``batch_cost``) of the
-    solution and ``Command.iterations`` IPOPT's iteration count. The annealer fields of
-    ``settings`` (chains, iterations, sigma_*, t_*, ladder, adapt_*, seed) are ignored;
-    ``deadline_ms`` becomes IPOPT's wall-time limit unless ``options.max_wall_ms`` is set.
-
-    Extra parameter ``options``: :class:`IpoptOptions` (smoothing, tolerance, Hessian).
+    Each solve starts from the better (by the horizon's cost) of the shifted previous
+    solution and zero offsets (the annealer's chains 0 and 1); with ``options.keep_best``
+    a solve that ends worse than that start (or fails) returns the start. The reported cost
+    is the horizon's (numba rollout, true |.|) and the iterations IPOPT's. The annealer
+    fields of the settings (chains, iterations, sigma_*, t_*, ladder, adapt_*, seed) are
+    ignored; ``deadline_ms`` becomes IPOPT's wall-time limit unless
+    ``options.max_wall_ms`` is set. ``options``: :class:`IpoptOptions` (smoothing,
+    tolerance, Hessian); IPOPT's stats of the last solve are in ``last_stats``.
     """
 
-    solver_name = "ipopt"
+    name = "ipopt"
 
-    def __init__(self, vehicle, settings: MPCSettings | None = None,
-                 reference: Reference | None = None, period: float = T_CONTROL,
-                 options: IpoptOptions | None = None, on_solve=None):
-        check_supported(settings or MPCSettings())
-        super().__init__(vehicle, settings, reference, period, on_solve=on_solve)
+    @classmethod
+    def check_supported(cls, settings: MPCSettings) -> None:
+        """Raise :class:`ControllerError` unless IPOPT can solve the MPC of ``settings``
+        (CasADi installed, the paper's prediction model 'mf')."""
+        require_casadi()
+        if settings.model != "mf":
+            raise ControllerError(f"the ipopt solver supports the prediction model 'mf' only, not "
+                                  f"{settings.model!r} (the baselines use the annealer: --solver sa)")
+        if settings.policy != "offsets":
+            raise ControllerError(f"the ipopt solver supports the decision parametrisation "
+                                  f"'offsets' only, not {settings.policy!r} (use the annealer: "
+                                  f"--solver sa)")
+
+    def __init__(self, horizon: Horizon, options: IpoptOptions | None = None):
+        self.horizon = horizon
         self.options = options or IpoptOptions()
-        self.nlp = HorizonNLP(self.model, self.settings, self.options)
-        self._buf1 = self.model.allocate(1)
-        self._cost1 = np.empty(1)
+        self.nlp = HorizonNLP(horizon.model, horizon.settings, self.options)
         self.last_stats: dict = {}
 
-    def exact_cost(self, x0, R, z, zprev) -> float:
-        """The annealer's cost (numba rollout + batch_cost, exact |.|) of one vector z."""
-        Z = np.ascontiguousarray(np.asarray(z, float)[None, :])
-        self.model.rollout(x0, R, Z, out=self._buf1)
-        _ro.batch_cost(self._buf1.poses, self._buf1.wear, R, Z, np.ascontiguousarray(zprev),
-                       self.Q, self.L, self.R, self.model.stride, self.model.nsplit,
-                       self._cost1)
-        return float(self._cost1[0])
+    def reset(self) -> None:
+        """Nothing carries over between solves (IPOPT starts from the warm start)."""
+        self.last_stats = {}
 
-    def _solve(self, x0, R, zprev, warm, t0: float) -> tuple[np.ndarray, float, int]:
+    def solve(self, x0, R, zprev, warm, t0: float) -> Solution:
         """One IPOPT solve from the better of the shifted previous solution and zero
-        offsets: ``(z, exact cost, IPOPT iterations)``; IPOPT's stats in ``last_stats``."""
-        warm = np.clip(warm, self.lower, self.upper)
-        Jw = self.exact_cost(x0, R, warm, zprev)
-        zero = np.clip(np.zeros_like(warm), self.lower, self.upper)
-        J0 = self.exact_cost(x0, R, zero, zprev)
-        if J0 < Jw:
-            warm, Jw = zero, J0
+        offsets: ``(z, cost, IPOPT iterations)``; IPOPT's stats in ``last_stats``."""
+        h = self.horizon
+        warm, Jw = h.better_start(x0, R, zprev, warm)
         try:
-            z, st = self.nlp.solve(x0, R, zprev, warm, self.lower, self.upper)
+            z, st = self.nlp.solve(x0, R, zprev, warm, h.lower, h.upper)
         except RuntimeError as e:  # CasADi raises on evaluation errors it cannot recover
             z, st = warm.copy(), {"return_status": f"error: {e}", "iter_count": 0,
                                   "success": False}
         if not np.all(np.isfinite(z)):
             z = warm.copy()
-        z = np.clip(z, self.lower, self.upper)
-        J = self.exact_cost(x0, R, z, zprev)
+        z = h.clip(z)
+        J = h.cost(x0, R, z, zprev)
         if self.options.keep_best and not (J <= Jw):
             z, J = warm, Jw
         self.last_stats = st
-        return z, J, int(st.get("iter_count", 0))
+        return Solution(z, J, int(st.get("iter_count", 0)))

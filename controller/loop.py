@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .metrics import compute_metrics
-from .mpc import MPC
+from .interface import Controller
 from .reference import Reference
 
 
@@ -180,7 +180,7 @@ class RunLog:
         np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt="%.10g")
 
 
-def closed_loop(plant, mpc: MPC, reference: Reference, duration: float, period: float = 0.01,
+def closed_loop(plant, mpc: Controller, reference: Reference, duration: float, period: float = 0.01,
                 progress: bool | None = None, on_step=None, log: RunLog | None = None,
                 outputs: bool = True) -> RunLog:
     """Run the MPC on ``plant`` for ``duration`` seconds of vehicle time.

@@ -20,8 +20,21 @@ from msagv.plant.vehicle import Vehicle
 
 from . import rollout as _ro
 
-METHODS = ("two", "two-energy", "ntwo")  # wear term: quadratic (paper), linear energy, none
-POLICIES = {"offsets": lay.POLICY_OFFSETS, "twist": lay.POLICY_TWIST, "raw": lay.POLICY_RAW}
+# The tables the settings' names are checked against and the command line's choices and
+# help are read from. "method" is the wear term of the cost (eq. 26 or its linear form):
+METHODS: dict[str, str] = {
+    "two": "the paper's quadratic wear term P^T L P (weights L)",
+    "two-energy": "a linear wear-energy term E . P (weights E: the predicted wear work)",
+    "ntwo": "no wear term",
+}
+# the decision parametrisation (controller.rollout.commands_from_policy): name -> (the
+# kernels' code, plant.layout.POLICY_*; one line)
+POLICIES: dict[str, tuple[int, str]] = {
+    "offsets": (lay.POLICY_OFFSETS, "per-wheel offsets from the kinematic feed-forward"),
+    "twist": (lay.POLICY_TWIST, "offsets of the body twist, every wheel about one centre "
+                                "(the paper's Kinematic)"),
+    "raw": (lay.POLICY_RAW, "the commands themselves (eq. 27's U)"),
+}
 
 
 @dataclass(frozen=True)
@@ -196,7 +209,7 @@ def pack_settings(vehicle: Vehicle, s: MPCSettings) -> np.ndarray:
     S[lay.S_V_FB_MAX] = s.v_fb_max
     S[lay.S_R_FB_MAX] = s.r_fb_max
     S[lay.S_K_ALPHA] = k_alpha
-    S[lay.S_POLICY] = POLICIES[s.policy]
+    S[lay.S_POLICY] = POLICIES[s.policy][0]
     S[lay.S_STRIDE] = policy_stride(s.policy, vehicle.n_wheels)
     return S
 
@@ -221,6 +234,7 @@ class PredictionModel:
 
     model_id: int = _ro.MODEL_MF
     name: str = "mf"
+    summary: str = ""  # one line for the command line's help
 
     def __init__(self, vehicle: Vehicle, settings: MPCSettings):
         self.vehicle = vehicle
@@ -310,6 +324,7 @@ class MagicFormulaModel(PredictionModel):
     """The paper's model (TWO/NTWO): rigid body eq. (17)-(21) with Magic Formula tires
     (eq. 9-12) and the wear powers eq. (13)-(16), constant loads (Assumption 2)."""
 
+    summary = "the paper's: Magic Formula tires and wear powers (TWO/NTWO)"
     model_id = _ro.MODEL_MF
     name = "mf"
 
@@ -322,6 +337,7 @@ class DugoffModel(PredictionModel):
     load as the plant (:func:`dugoff_stiffness`), so they scale with the mass; the file's
     fixed values with ``dugoff_stiffness='file'`` (the project's earlier DH)."""
 
+    summary = "the DH baseline: Dugoff tires"
     model_id = _ro.MODEL_DUGOFF
     name = "dugoff"
 
@@ -337,6 +353,7 @@ class KinematicModel(PredictionModel):
     pairs it with ``policy='twist'``: the decision is the body twist, every wheel follows
     it about one instantaneous centre."""
 
+    summary = "the Kinematic baseline: pure rolling, no tire forces"
     model_id = _ro.MODEL_KINEMATIC
     name = "kinematic"
 
@@ -346,6 +363,7 @@ class TCTModel(PredictionModel):
     yaw dynamics only, with Magic Formula lateral forces; the longitudinal speed is held at
     the reference speed (no longitudinal tire forces, no longitudinal dynamics)."""
 
+    summary = "the TCT baseline: lateral and yaw dynamics only"
     model_id = _ro.MODEL_TCT
     name = "tct"
 

@@ -3,6 +3,12 @@
 Knows nothing of processes or transport: it takes a state mapping (the fields of
 DESIGN.md's ``state`` message) and a :class:`controller.reference.Reference`, and returns
 wheel-speed and steering-rate commands inside the bounds of eq. (27).
+
+One class for every horizon solver: :class:`MPC` holds the horizon problem
+(:class:`controller.horizon.Horizon`), the warm start, the reference and the time budget,
+and hands each period's problem to its solver (``solver='sa'``, ``'ipopt'``, ``'acados'``,
+``'ff'`` or any other entry of :mod:`controller.solvers`). It implements
+:class:`controller.interface.Controller`.
 """
 
 from __future__ import annotations
@@ -10,23 +16,23 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
 from typing import Callable, Mapping
 
-import numba
 import numpy as np
 
 from msagv.plant import layout as lay
+from msagv.plant.interface import BODY_FIELDS
 from msagv.plant.vehicle import Vehicle
 
-from . import rollout as _ro
-from .sa_kernel import CompiledAnnealer
-from .models import MPCSettings, make_model
+from . import solvers
+from .horizon import Horizon
+from .interface import Command, ControllerError
+from .models import MPCSettings
 from .reference import Reference
 
+__all__ = ["MPC", "Command", "ControllerError", "T_CONTROL"]
+
 T_CONTROL = 0.01  # s, the paper's control period
-CARRY_SCALES = True  # each solve starts its chains' step factors where the last one ended
-RESTART_EVERY = 5  # the worst quarter of the chains restarts from the best every 5 iterations
 BUDGET_SOLVES = 20  # timed warm-up solves (MPC.warmup)
 BUDGET_SECONDS = 0.5  # ... for at most this long
 BUDGET_CHECK = 100  # during a run, check the solve p99 every this many solves
@@ -35,38 +41,34 @@ BUDGET_WINDOW = 500  # ... over the last this many
 _log = logging.getLogger("msagv.controller")
 
 
-class ControllerError(ValueError):
-    """Bad input to the controller (its state is left unchanged)."""
-
-
-@dataclass(frozen=True)
-class Command:
-    omega_w: np.ndarray  # (2n,) rad/s, in [0, omega_w_max]
-    omega_s: np.ndarray  # (2n,) rad/s, in [omega_s_min, omega_s_max]
-    solve_ms: float  # wall time of the solve
-    cost: float  # best cost found
-    iterations: int  # annealing iterations run
-
-
 class MPC:
-    """Simulated-annealing MPC over a batch prediction model.
+    """The MPC over a batch prediction model, with any registered horizon solver.
 
     Parameters
     ----------
     vehicle : the vehicle description (its limits bound every command).
-    settings : :class:`MPCSettings` (method 'two' or 'ntwo', model, horizon, budgets).
+    settings : :class:`MPCSettings` (method, model, policy, horizon, weights, budgets).
     reference : optional default reference for :meth:`step`.
     period : control period T [s] (the time a command is held by the plant).
+    solver : the name of a solver in :data:`controller.solvers.SOLVERS` (default 'sa',
+        the annealer); its :meth:`check_supported` refuses settings it cannot solve.
+    options : the solver's own options (:class:`controller.ipopt.IpoptOptions`,
+        :class:`controller.acados_rti.AcadosOptions`; None: its defaults).
     on_solve : optional observer, also settable as the attribute ``on_solve``: called after
         every solve of :meth:`step` as ``on_solve(state, z_prev, command)`` with the state
         mapping given to ``step``, the previous solution ``z_prev`` (the decision vector
         before the solve: the warm start's source; do not modify it) and the returned
         :class:`Command`; the new solution is ``self.z``. Its time is not in ``solve_ms``.
+
+    Attributes: ``name`` (the solver's name), ``horizon`` (the problem every solver
+    shares), ``model`` (its prediction model), ``solver`` (the solver object), ``z`` (the
+    current solution).
     """
 
     def __init__(self, vehicle: Vehicle, settings: MPCSettings | None = None,
                  reference: Reference | None = None, period: float = T_CONTROL,
-                 on_solve: Callable[[Mapping, np.ndarray, "Command"], None] | None = None):
+                 on_solve: Callable[[Mapping, np.ndarray, "Command"], None] | None = None,
+                 *, solver: str = solvers.DEFAULT_SOLVER, options=None):
         self.vehicle = vehicle
         self.on_solve = on_solve
         self.settings = settings or MPCSettings()
@@ -74,22 +76,13 @@ class MPC:
         if not period > 0:
             raise ControllerError("period must be > 0")
         self.period = float(period)
-        self.model = make_model(vehicle, self.settings)
-        s = self.settings
-        nw = vehicle.n_wheels
-        self.nw = nw
-        self.lower, self.upper, self.sigma = self.model.box()
-        self.Q = np.array(s.Q, dtype=float)
-        self.L = np.array(s.effective_L, dtype=float)
-        self.R = np.array(s.R, dtype=float)
-        self._sa = CompiledAnnealer(self.model, self.Q, self.L, self.R, self.lower, self.upper,
-                                    self.sigma, chains=s.chains, iterations=s.iterations,
-                                    sigma_final=s.sigma_final, t_start=s.t_start,
-                                    t_end=s.t_end, parallel=s.threads > 1, ladder=s.ladder,
-                                    adapt_up=s.adapt_up, adapt_down=s.adapt_down,
-                                    pool_seed=s.seed,
-                                    proposals=max(1, _ro.LANES // s.chains),
-                                    restart_every=RESTART_EVERY)
+        cls = solvers.solver_class(solver)
+        cls.check_supported(self.settings)
+        self.name = solver
+        self.horizon = Horizon(vehicle, self.settings, self.period)
+        self.model = self.horizon.model
+        self.nw = vehicle.n_wheels
+        self.solver = cls(self.horizon, options)
         self.warmup_solve_ms: list[float] = []
         self.budget_warnings: list[str] = []
         self.reset()
@@ -97,10 +90,10 @@ class MPC:
     # ---- state -------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the warm start and reseed (same seed -> same commands)."""
-        self.rng = np.random.default_rng(self.settings.seed)
-        self.z = np.zeros(self.model.dim)
+        self.z = np.zeros(self.horizon.dim)
         self._fresh = True  # no solution yet: the warm start is the plain feed-forward
-        self._scale = None  # the annealer's step factors: its ladder until a first solve
+        self._last = None  # (x0, R) of the last solve, for predicted_poses
+        self.solver.reset()
         self.solve_times_ms: list[float] = []
         self._run_warned = False
 
@@ -112,7 +105,7 @@ class MPC:
     def _state_vector(self, state: Mapping) -> tuple[float, np.ndarray]:
         try:
             t = float(state["t"])
-            base = [float(state[k]) for k in ("x", "y", "phi", "vx", "vy", "r")]
+            base = [float(state[k]) for k in BODY_FIELDS]
             delta = np.asarray(state["delta"], dtype=float).reshape(-1)
         except KeyError as e:
             raise ControllerError(f"state: missing field {e.args[0]!r}") from None
@@ -120,9 +113,9 @@ class MPC:
             raise ControllerError("state: fields must be numbers (delta a list)") from None
         if delta.size != self.nw:
             raise ControllerError(f"state: delta must have {self.nw} entries, got {delta.size}")
-        x0 = np.empty(6 + delta.size)  # (np.r_ cost ~15 us)
-        x0[:6] = base
-        x0[6:] = delta
+        x0 = np.empty(lay.x0_size(self.nw))  # (np.r_ cost ~15 us)
+        x0[:lay.X0_DELTA] = base
+        x0[lay.X0_DELTA:] = delta
         if not (math.isfinite(t) and np.all(np.isfinite(x0))):
             raise ControllerError("state: NaN or inf in the state")
         return t, x0
@@ -140,17 +133,18 @@ class MPC:
         s = self.settings
         R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
         if self._fresh:
-            self.z = self.model.origin(x0, R[0], self.period)
+            self.z = self.horizon.origin(x0, R[0])
             self._fresh = False
-        return x0, R, self.z[: self.model.stride].copy(), self._shifted(self.z)
+        return x0, R, self.z[: self.model.stride].copy(), self.horizon.shifted(self.z)
 
     def step(self, state: Mapping, reference: Reference | None = None) -> Command:
         """One MPC solve: commands to hold over the next control period."""
         t0 = time.perf_counter()
         x0, R, zprev, warm = self.horizon_problem(state, reference)
         z_prev = self.z
-        self.z, cost, iterations = self._solve(x0, R, zprev, warm, t0)
-        om_w, om_s = self.commands_for(x0, R[0], self.z)
+        self.z, cost, iterations = self.solver.solve(x0, R, zprev, warm, t0)
+        self._last = (x0, R)
+        om_w, om_s = self.horizon.commands(x0, R[0], self.z)
         ms = (time.perf_counter() - t0) * 1000.0
         self.solve_times_ms.append(ms)
         self._check_budget()
@@ -159,44 +153,13 @@ class MPC:
             self.on_solve(state, z_prev, cmd)
         return cmd
 
-    def _solve(self, x0, R, zprev, warm, t0: float) -> tuple[np.ndarray, float, int]:
-        """The solver of :meth:`step` (the annealer): ``(z, cost, iterations)`` for the
-        horizon problem; ``t0`` is the solve's start (the deadline counts from it)."""
-        s = self.settings
-        if s.threads > 1:
-            numba.set_num_threads(min(s.threads, numba.config.NUMBA_NUM_THREADS))
-        deadline = None if s.deadline_ms is None else s.deadline_ms / 1000.0 - (time.perf_counter() - t0)
-        origin = None if self.model.policy != "raw" else self.model.origin(x0, R[0], self.period)
-        res = self._sa.solve(x0, R, zprev, warm, self.rng, deadline, origin=origin,
-                             scale0=self._scale if CARRY_SCALES else None)
-        self._scale = self._sa.scale.copy()
-        return res.x, res.cost, res.iterations
-
-    def commands_for(self, x0: np.ndarray, ref0: np.ndarray, z: np.ndarray):
-        """The policy's commands at state ``x0`` over one control period T (bounded)."""
-        om_w = np.empty(self.nw)
-        om_s = np.empty(self.nw)
-        _ro.commands_from_policy(x0[lay.X0_X:lay.X0_PHI + 1].copy(), x0[lay.X0_DELTA:].copy(),
-                                 ref0, np.ascontiguousarray(z), 0, self.nw,
-                                 self.model.P, self.model.S, self.model.wx, self.model.wy,
-                                 self.period, om_w, om_s)
-        return om_w, om_s
-
-    def _shifted(self, z: np.ndarray) -> np.ndarray:
-        """Warm start: the previous solution shifted by one control period T.
-
-        Blocks are piecewise constant in time; moving the horizon by T < block length
-        moves a fraction T / len_b of block b+1 into block b (linear blend), the last
-        block is held.
-        """
-        s = self.settings
-        nb = len(s.blocks)
-        Zb = z.reshape(nb, self.model.stride)
-        out = Zb.copy()
-        for b in range(nb - 1):
-            f = min(self.period / (s.blocks[b] * s.dt), 1.0)
-            out[b] = (1 - f) * Zb[b] + f * Zb[b + 1]
-        return out.reshape(-1)
+    def predicted_poses(self) -> np.ndarray | None:
+        """The last solve's predicted poses ``(N_p + 1, 3)``: x, y, phi from the state it
+        started from (row 0) over the horizon (the controller's own prediction of its
+        solution). None before the first solve."""
+        if self._last is None:
+            return None
+        return self.horizon.poses(*self._last, self.z)
 
     def warmup(self, state: Mapping | None = None) -> float:
         """Compile the kernels (first call) with a throw-away solve, then time up to
@@ -266,15 +229,3 @@ class MPC:
         over = any(p is not None and p["p99"] > period for p in (warm, run))
         return {"period_ms": period, "warmup_solve_ms": warm, "run_solve_ms": run,
                 "over_period": bool(over), "warnings": list(self.budget_warnings)}
-
-
-class FeedForward(MPC):
-    """The policy with no optimisation at all: every solve returns the plain feed-forward
-    (zero offsets; for ``policy='raw'`` the feed-forward's own commands), the simplest
-    controller that could win (docs/RESULTS.md). Same interface as :class:`MPC`;
-    ``Command.cost`` is NaN and ``iterations`` 0."""
-
-    solver_name = "ff"
-
-    def _solve(self, x0, R, zprev, warm, t0: float) -> tuple[np.ndarray, float, int]:
-        return self.model.origin(x0, R[0], self.period), float("nan"), 0

@@ -90,7 +90,7 @@ def spec_info(spec: dict, duration: float | None = None) -> dict:
     return {"case": CASE_NAMES.get(rs.case, rs.case), "trajectory": None, "reference": ref_name,
             "speed_kmh": float(rs.speed_kmh),
             "vehicle": vehicle_info(vehicle, rs.vehicle),
-            "method": settings.method, "model": settings.model, "solver": "sa",
+            "method": settings.method, "model": settings.model, "solver": sc.solver,
             "seed": settings.seed,
             "duration_s": None if duration is None and rs.duration is None
             else float(duration if duration is not None else rs.duration),

@@ -26,8 +26,6 @@ from typing import Any, Mapping
 
 from .checks import ScenarioError, reference_checks
 
-SOLVERS = ("sa", "ipopt", "acados", "ff")  # the annealer, IPOPT, acados SQP-RTI, or no
-# optimisation (the feed-forward)
 CASES = ("curve", "line", "lane", "turn", "random")  # paper Cases 1, 2; the study's paths
 AFTER_END = ("continue", "stop")  # past the reference's end: go on straight, or end the run
 PERIOD = 0.01  # s, the paper's control period T
@@ -40,7 +38,7 @@ class Built:
     """What :meth:`Scenario.build` returns: connect ``plant`` and ``controller`` your way."""
 
     plant: Any  # plant.Plant or fmu_build.host.FmuPlant (plant.interface.PlantInterface)
-    controller: Any  # controller.mpc.MPC or controller.ipopt.IpoptMPC
+    controller: Any  # controller.interface.Controller (controller.mpc.MPC)
     reference: Any  # controller.reference.Reference
     vehicle: Any  # plant.vehicle.Vehicle
     initial: dict  # the plant's initial state by signal name
@@ -77,7 +75,8 @@ class Scenario:
         heading and speed; 'continue' runs the whole ``duration`` (with a warning if it
         passes the end), 'stop' ends the run at the end.
     settings : :class:`controller.models.MPCSettings` fields that differ from the defaults.
-    solver : 'sa' (simulated annealing), 'ipopt', 'acados' (SQP-RTI) or 'ff'.
+    solver : a horizon solver of :data:`controller.solvers.SOLVERS`: 'sa' (simulated
+        annealing), 'ipopt', 'acados' (SQP-RTI), 'ff' (the feed-forward alone), ...
     fmu, fmu_map, fmu_params : an FMI 2.0 co-simulation FMU as the plant, its name mapping
         file and its parameters by our names.
     period : control period T [s].
@@ -122,6 +121,8 @@ class Scenario:
                                 "timing")
         if self.case is not None and self.case not in CASES + ("case1", "case2"):
             raise ScenarioError(f"case: expected one of {', '.join(CASES)}, got '{self.case}'")
+        from msagv.controller.solvers import SOLVERS
+
         if self.solver not in SOLVERS:
             raise ScenarioError(f"solver: expected one of {', '.join(SOLVERS)}, got "
                                 f"'{self.solver}'")
@@ -224,38 +225,21 @@ class Scenario:
 
     def make_controller(self, vehicle, reference, period: float | None = None, *,
                         options=None, **override):
-        """The MPC for ``solver``: :class:`controller.mpc.MPC` (sa),
-        :class:`controller.ipopt.IpoptMPC` (ipopt) or
-        :class:`controller.acados_rti.AcadosMPC` (acados), the last two with their
-        ``options``, same interface; ``override``: settings fields on top of the scenario's."""
-        settings = self.mpc_settings(**override)
+        """The controller: :class:`controller.mpc.MPC` with the scenario's solver (an
+        entry of :data:`controller.solvers.SOLVERS`) and its ``options``; ``override``:
+        settings fields on top of the scenario's."""
+        from msagv.controller.mpc import MPC
+
         T = self.period if period is None else period
-        if self.solver == "acados":
-            from msagv.controller.acados_rti import AcadosMPC, check_supported as acados_supported
-
-            acados_supported(settings)
-            return AcadosMPC(vehicle, settings, reference, period=T, options=options)
-        if self.solver == "ipopt":
-            from msagv.controller.ipopt import IpoptMPC, check_supported
-
-            check_supported(settings)
-            return IpoptMPC(vehicle, settings, reference, period=T, options=options)
-        from msagv.controller.mpc import MPC, FeedForward
-
-        cls = FeedForward if self.solver == "ff" else MPC
-        return cls(vehicle, settings, reference, period=T)
+        return MPC(vehicle, self.mpc_settings(**override), reference, period=T,
+                   solver=self.solver, options=options)
 
     def check_solver(self) -> None:
         """Fail early (before any plant or network) if the solver cannot serve the settings
         (IPOPT without CasADi, or with a baseline's prediction model)."""
-        if self.solver == "ipopt":
-            from msagv.controller.ipopt import check_supported
+        from msagv.controller.solvers import check_supported
 
-            check_supported(self.mpc_settings())
-        elif self.solver == "acados":
-            from msagv.controller.acados_rti import check_supported as acados_supported
-
-            acados_supported(self.mpc_settings())
+        check_supported(self.solver, self.mpc_settings())
 
     def make_plant(self):
         """``(plant, vehicle, reference, initial)``: the plant at its initial state."""
@@ -330,14 +314,6 @@ class Scenario:
                 close()
             raise
         return Built(plant, ctl, ref, vehicle, initial, self.run_duration(ref), warnings)
-
-    def describe(self) -> str:
-        """One line naming the scenario (for titles and logs)."""
-        where = (f"trajectory {Path(self.trajectory).name}" if self.trajectory
-                 else f"{self.case or 'curve'}" + (f" at {self.speed} km/h" if self.speed else ""))
-        s = self.settings
-        return (f"{where}, {str(s.get('method', 'two')).upper()} ({s.get('model', 'mf')}"
-                f"{', ' + self.solver if self.solver in ('ipopt', 'acados') else ''})")
 
     # ---- as data -------------------------------------------------------------------------
     def to_dict(self) -> dict:

@@ -16,7 +16,7 @@ import traceback
 from pathlib import Path
 
 from msagv.bridge.session import DEFAULT_ID, DEFAULT_LEASE_MS, SessionOptions, check_id
-from msagv.experiments.scenario import AFTER_END, SOLVERS, Scenario
+from msagv.experiments.scenario import AFTER_END, Scenario
 
 from . import __version__
 
@@ -138,32 +138,38 @@ def add_case_args(ap: argparse.ArgumentParser, default_case: str = "curve") -> N
                          "vx, vy are global, u= is the forward speed in the body frame")
 
 
+def _choices_help(table: dict, default: str, lead: str = "") -> str:
+    """``lead``, then ``name: what it is`` for each entry of a table, the default marked."""
+    items = [f"{k}: {v}{' (default)' if k == default else ''}" for k, v in table.items()]
+    return lead + "; ".join(items)
+
+
 def add_mpc_args(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--method", choices=["two", "two-energy", "ntwo"], default=None,
-                    help="two: the paper's quadratic wear term (weights L; default); "
-                         "two-energy: a linear wear-energy term (weights E); ntwo: no wear term")
-    ap.add_argument("--policy", choices=["offsets", "twist", "raw"], default=None,
-                    help="decision parametrisation: offsets from the feed-forward (default), "
-                         "twist (body-twist offsets, every wheel about one centre: the "
-                         "paper's Kinematic), raw (the commands themselves, eq. 27's U)")
-    ap.add_argument("--model", choices=["mf", "dugoff", "kinematic", "tct"], default=None,
-                    help="prediction model (mf: the paper's, default; others: the baselines)")
-    ap.add_argument("--seed", type=int, default=None, help="annealer seed (default 0)")
+    """The controller's options; their choices and help come from the tables of methods,
+    policies, prediction models and solvers (controller.models, controller.solvers)."""
+    from msagv.controller import solvers
+    from msagv.controller.models import METHODS, MODELS, POLICIES, MPCSettings
+
+    d = MPCSettings()
+    ap.add_argument("--method", choices=list(METHODS), default=None,
+                    help=_choices_help(METHODS, d.method, "the wear term of the cost: "))
+    ap.add_argument("--policy", choices=list(POLICIES), default=None,
+                    help=_choices_help({k: v[1] for k, v in POLICIES.items()}, d.policy,
+                                       "decision parametrisation: "))
+    ap.add_argument("--model", choices=list(MODELS), default=None,
+                    help=_choices_help({k: m.summary for k, m in MODELS.items()}, d.model,
+                                       "prediction model: "))
+    ap.add_argument("--seed", type=int, default=None, help=f"annealer seed (default {d.seed})")
     ap.add_argument("--iterations", type=int, help="annealing iterations per solve")
     ap.add_argument("--chains", type=int, help="annealing chains")
     ap.add_argument("--deadline-ms", type=float,
                     help="wall-clock budget per solve (anytime); default: fixed iterations only")
-    ap.add_argument("--threads", type=int, help="numba threads for the rollout (default 1)")
+    ap.add_argument("--threads", type=int, help=f"numba threads for the rollout (default {d.threads})")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="any MPCSettings field, e.g. --set L=0.05,0.05,0.05 --set N_p=12")
-    ap.add_argument("--solver", choices=SOLVERS, default=None,
-                    help="horizon solver: sa (simulated annealing, default), ipopt (CasADi + "
-                         "IPOPT, exact derivatives; --model mf only, needs msagv[ipopt]; the "
-                         "annealer options are ignored, --deadline-ms is IPOPT's wall-time "
-                         "limit), acados (acados SQP-RTI: one Gauss-Newton iteration per "
-                         "period, compiled; --model mf only, needs comma-deps-acados installed "
-                         "apart, see docs/CONTROLLER.md) or ff (no optimisation: the "
-                         "feed-forward policy alone)")
+    ap.add_argument("--solver", choices=list(solvers.SOLVERS), default=None,
+                    help=_choices_help({k: e.help for k, e in solvers.SOLVERS.items()},
+                                       solvers.DEFAULT_SOLVER, "horizon solver: "))
 
 
 def add_fmu_args(ap: argparse.ArgumentParser, positional: bool) -> None:

@@ -202,5 +202,5 @@ def assert_commands_within_bounds(mpc, vehicle) -> None:
         assert np.all(cmd.omega_s >= lim.omega_s_min) and np.all(cmd.omega_s <= lim.omega_s_max)
         nxt = delta + 0.01 * cmd.omega_s
         assert np.all(nxt >= lim.delta_min - 1e-12) and np.all(nxt <= lim.delta_max + 1e-12)
-        assert np.all(mpc.z >= mpc.lower) and np.all(mpc.z <= mpc.upper)
+        assert np.all(mpc.z >= mpc.horizon.lower) and np.all(mpc.z <= mpc.horizon.upper)
         assert math.isfinite(cmd.cost)

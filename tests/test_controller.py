@@ -142,7 +142,7 @@ def test_mpc_rejects_bad_state_without_changing_state():
             "delta": [0.0] * 4}
     mpc.step(good)
     z_before = mpc.z.copy()
-    rng_before = mpc.rng.bit_generator.state
+    rng_before = mpc.solver.rng.bit_generator.state
     bad = [
         {k: v for k, v in good.items() if k != "vy"},
         dict(good, x=float("nan")),
@@ -153,7 +153,7 @@ def test_mpc_rejects_bad_state_without_changing_state():
         with pytest.raises(ControllerError):
             mpc.step(b)
         assert np.array_equal(mpc.z, z_before)
-        assert mpc.rng.bit_generator.state == rng_before
+        assert mpc.solver.rng.bit_generator.state == rng_before
     with pytest.raises(ControllerError, match="reference"):
         MPC(VEH, MPCSettings(iterations=2, chains=2)).step(good)
 
@@ -233,29 +233,29 @@ def test_compiled_annealer_equals_the_generic_one_on_the_mpc_cost(threads):
     R = np.ascontiguousarray(ref.sample(s.dt * np.arange(s.N_p + 1)))
     warm = np.random.default_rng(3).normal(size=mpc.model.dim) * 0.05
     zprev = warm[:8].copy()
-    got = mpc._sa.solve(x0, R, zprev, warm, np.random.default_rng(5))
+    got = mpc.solver.kernel.solve(x0, R, zprev, warm, np.random.default_rng(5))
     buf, costs = mpc.model.allocate(s.chains), np.empty(s.chains)
 
     def cost(Z):
         mpc.model.rollout(x0, R, Z, out=buf)
-        ro.batch_cost(buf.poses, buf.wear, R, Z, zprev, mpc.Q, mpc.L, mpc.R, 8, 4, costs)
+        ro.batch_cost(buf.poses, buf.wear, R, Z, zprev, mpc.horizon.Q, mpc.horizon.L, mpc.horizon.R, 8, 4, costs)
         return costs
 
-    want = anneal(cost, warm, mpc.lower, mpc.upper, mpc.sigma, np.random.default_rng(5),
+    want = anneal(cost, warm, mpc.horizon.lower, mpc.horizon.upper, mpc.horizon.sigma, np.random.default_rng(5),
                   chains=s.chains, iterations=s.iterations, sigma_final=s.sigma_final,
                   t_start=s.t_start, t_end=s.t_end, ladder=s.ladder, adapt_up=s.adapt_up,
-                  adapt_down=s.adapt_down, pool=mpc._sa.pool, proposals=mpc._sa.proposals,
-                  restart_every=mpc._sa.restart_every)
+                  adapt_down=s.adapt_down, pool=mpc.solver.kernel.pool, proposals=mpc.solver.kernel.proposals,
+                  restart_every=mpc.solver.kernel.restart_every)
     assert got.cost == pytest.approx(want.cost, rel=1e-12)
     assert np.allclose(got.x, want.x, rtol=0, atol=1e-12)
     assert got.iterations == want.iterations == 25
     assert got.accepted == pytest.approx(want.accepted)
     # the warm start is among the candidates: annealing never returns worse than it
-    assert got.cost <= cost(np.clip(warm, mpc.lower, mpc.upper)[None, :])[0]
+    assert got.cost <= cost(np.clip(warm, mpc.horizon.lower, mpc.horizon.upper)[None, :])[0]
     # a deadline stops early with the best point so far, inside the box
-    late = mpc._sa.solve(x0, R, zprev, warm, np.random.default_rng(5), deadline_s=1e-4)
+    late = mpc.solver.kernel.solve(x0, R, zprev, warm, np.random.default_rng(5), deadline_s=1e-4)
     assert 1 <= late.iterations < 25
-    assert np.all(late.x >= mpc.lower) and np.all(late.x <= mpc.upper)
+    assert np.all(late.x >= mpc.horizon.lower) and np.all(late.x <= mpc.horizon.upper)
 
 
 # ---- rollout vs plant --------------------------------------------------------------------
@@ -485,15 +485,14 @@ def test_wear_energy_term_by_hand():
 
 
 def test_feed_forward_controller_is_the_policy_without_optimisation():
-    from msagv.controller.mpc import FeedForward
-
+    
     ref, init = make_case("curve", 15.0)
     st = dict(init(VEH), t=0.5)
     st["delta"] = [st.pop(f"delta_{w}") for w in VEH.wheel_names]
-    ff = FeedForward(VEH, MPCSettings(), ref)
+    ff = MPC(VEH, MPCSettings(), ref, solver="ff")
     cmd = ff.step(st)
     mpc = MPC(VEH, MPCSettings(), ref)
     x0, R, _, _ = mpc.horizon_problem(st)
-    w, s = mpc.commands_for(x0, R[0], np.zeros(mpc.model.dim))
+    w, s = mpc.horizon.commands(x0, R[0], np.zeros(mpc.model.dim))
     assert np.array_equal(cmd.omega_w, w) and np.array_equal(cmd.omega_s, s)
     assert cmd.iterations == 0 and math.isnan(cmd.cost)

@@ -5,7 +5,7 @@
   drive the policy's clips, for 2 and 3 axles;
 * the reference-optimum property: IPOPT run to convergence from the annealer's own warm
   start never ends above the annealer's cost, at states of a closed-loop run;
-* ``IpoptMPC.step`` inside the bounds of eq. (27), a short closed loop that tracks;
+* ``MPC(solver='ipopt').step`` inside the bounds of eq. (27), a short closed loop that tracks;
 * the command line (``--solver ipopt``) and the errors without CasADi or with a baseline
   model.
 """
@@ -185,10 +185,10 @@ def annealer_run():
 
 @needs_casadi
 def test_ipopt_reaches_at_most_the_annealer_cost(annealer_run):
-    from msagv.controller.ipopt import REFERENCE_OPTIONS, IpoptMPC
+    from msagv.controller.ipopt import REFERENCE_OPTIONS
 
     ref, steps = annealer_run
-    ip = IpoptMPC(VEH, MPCSettings(), ref, options=REFERENCE_OPTIONS)
+    ip = MPC(VEH, MPCSettings(), ref, options=REFERENCE_OPTIONS, solver="ipopt")
     s = ip.settings
     gains = []
     for k in (5, 20, 40, 59):
@@ -197,37 +197,37 @@ def test_ipopt_reaches_at_most_the_annealer_cost(annealer_run):
         R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
         zprev = z_before[: 2 * ip.nw]
         # the annealer's reported cost is the exact cost of its answer
-        assert ip.exact_cost(x0, R, z_sa, zprev) == pytest.approx(J_sa, rel=1e-12)
-        warm = np.clip(ip._shifted(z_before), ip.lower, ip.upper)  # the annealer's chain 0
-        z_ip, stats = ip.nlp.solve(x0, R, zprev, warm, ip.lower, ip.upper)
+        assert ip.horizon.cost(x0, R, z_sa, zprev) == pytest.approx(J_sa, rel=1e-12)
+        warm = np.clip(ip.horizon.shifted(z_before), ip.horizon.lower, ip.horizon.upper)  # the annealer's chain 0
+        z_ip, stats = ip.solver.nlp.solve(x0, R, zprev, warm, ip.horizon.lower, ip.horizon.upper)
         assert stats["return_status"] == "Solve_Succeeded", (k, stats["return_status"])
-        assert np.all(z_ip >= ip.lower - 1e-9) and np.all(z_ip <= ip.upper + 1e-9)
-        J_ip = ip.exact_cost(x0, R, np.clip(z_ip, ip.lower, ip.upper), zprev)
+        assert np.all(z_ip >= ip.horizon.lower - 1e-9) and np.all(z_ip <= ip.horizon.upper + 1e-9)
+        J_ip = ip.horizon.cost(x0, R, np.clip(z_ip, ip.horizon.lower, ip.horizon.upper), zprev)
         assert J_ip <= J_sa + 1e-9 * (1.0 + J_sa), (k, J_ip, J_sa)
         gains.append(1.0 - J_ip / J_sa)
     assert max(gains) > 0.0  # not only ties: the reference optimum says something
 
 
-# ---- (d) IpoptMPC: bounds of eq. 27, closed loop ----------------------------------------
+# ---- (d) the IPOPT MPC: bounds of eq. 27, closed loop ----------------------------------------
 @needs_casadi
 def test_ipopt_mpc_commands_within_bounds():
-    from msagv.controller.ipopt import IpoptMPC, IpoptOptions
+    from msagv.controller.ipopt import IpoptOptions
 
     ref, _ = make_case("curve", 25.0)
-    mpc = IpoptMPC(VEH, MPCSettings(), ref, options=IpoptOptions(max_iter=30))
+    mpc = MPC(VEH, MPCSettings(), ref, options=IpoptOptions(max_iter=30), solver="ipopt")
     assert_commands_within_bounds(mpc, VEH)
 
 
 @needs_casadi
 def test_ipopt_mpc_on_solve():
-    """IpoptMPC calls the MPC's observer hook with the state, the previous solution and the
+    """The IPOPT MPC calls the MPC's observer hook with the state, the previous solution and the
     command (whose cost is the exact cost of the new solution)."""
-    from msagv.controller.ipopt import IpoptMPC, IpoptOptions
+    from msagv.controller.ipopt import IpoptOptions
 
     ref, init = make_case("curve", 25.0)
     calls = []
-    mpc = IpoptMPC(VEH, MPCSettings(), ref, options=IpoptOptions(max_iter=20),
-                   on_solve=lambda st, z, cmd: calls.append((st, z.copy(), cmd)))
+    mpc = MPC(VEH, MPCSettings(), ref, solver="ipopt", options=IpoptOptions(max_iter=20),
+              on_solve=lambda st, z, cmd: calls.append((st, z.copy(), cmd)))
     st0 = init(VEH)
     st = {"t": 0.0, **{k: st0[k] for k in ("x", "y", "phi", "vx", "vy", "r")},
           "delta": [st0[f"delta_{w}"] for w in VEH.wheel_names]}
@@ -239,7 +239,7 @@ def test_ipopt_mpc_on_solve():
     t, x0 = mpc._state_vector(st)
     s = mpc.settings
     R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
-    assert cmd.cost == pytest.approx(mpc.exact_cost(x0, R, mpc.z, z0[: 2 * mpc.nw]), rel=1e-12)
+    assert cmd.cost == pytest.approx(mpc.horizon.cost(x0, R, mpc.z, z0[: 2 * mpc.nw]), rel=1e-12)
 
 
 @needs_casadi
@@ -265,18 +265,18 @@ def test_ipopt_gradient_finite_at_standstill():
 
 @needs_casadi
 def test_ipopt_closed_loop_tracks():
-    from msagv.controller.ipopt import IpoptMPC
+    from msagv.controller.mpc import MPC
 
     ref, init = make_case("curve", 25.0)
     plant = Plant(VEH, initial=init(VEH))
-    mpc = IpoptMPC(VEH, MPCSettings(), ref)
+    mpc = MPC(VEH, MPCSettings(), ref, solver="ipopt")
     log = closed_loop(plant, mpc, ref, 1.0)
     m = log.metrics()
     assert m["steps"] == 100
     assert m["e_bar"] < 0.5, m
     assert m["W_tw"] > 0
     assert np.all(np.isfinite(log.cost))
-    assert mpc.last_stats["return_status"] == "Solve_Succeeded"
+    assert mpc.solver.last_stats["return_status"] == "Solve_Succeeded"
 
 
 # ---- (e) errors: no CasADi, a baseline model --------------------------------------------
@@ -287,7 +287,7 @@ def test_without_casadi_a_clear_error(monkeypatch, capsys):
     monkeypatch.setattr(ip, "ca", None)
     ref, _ = make_case("curve", 15.0)
     with pytest.raises(ControllerError, match="CasADi"):
-        ip.IpoptMPC(VEH, MPCSettings(), ref)
+        MPC(VEH, MPCSettings(), ref, solver="ipopt")
     with pytest.raises(ControllerError, match="CasADi"):
         ip.HorizonNLP(make_model(VEH, MPCSettings()), MPCSettings())
     rc = run_cmd.main(["--case", "curve", "--duration", "0.1", "--solver", "ipopt", "--json"])
@@ -299,10 +299,10 @@ def test_without_casadi_a_clear_error(monkeypatch, capsys):
 @needs_casadi
 def test_ipopt_rejects_baseline_models(capsys):
     from msagv import run as run_cmd
-    from msagv.controller.ipopt import IpoptMPC
+    from msagv.controller.mpc import MPC
 
     with pytest.raises(ControllerError, match="'mf' only"):
-        IpoptMPC(VEH, MPCSettings(model="dugoff"))
+        MPC(VEH, MPCSettings(model="dugoff"), solver="ipopt")
     rc = run_cmd.main(["--case", "curve", "--duration", "0.1", "--solver", "ipopt",
                        "--model", "kinematic", "--json"])
     out = capsys.readouterr()

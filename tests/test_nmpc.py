@@ -54,10 +54,10 @@ needs_acados = pytest.mark.skipif(not HAVE_ACADOS, reason="acados not installed 
 
 @functools.lru_cache(maxsize=None)
 def _mpc(method: str = "two"):
-    from msagv.controller.acados_rti import AcadosMPC
+    from msagv.controller.mpc import MPC
 
     ref, _ = make_case("curve", 25.0)
-    return AcadosMPC(VEH, MPCSettings(method=method), ref)
+    return MPC(VEH, MPCSettings(method=method), ref, solver="acados")
 
 
 def _state(init, t=0.0, **over):
@@ -75,8 +75,8 @@ def test_ocp_cost_is_the_nlp_cost(method):
     from msagv.controller.ipopt import HorizonNLP, IpoptOptions
 
     mpc = _mpc(method)
-    ocp = mpc.ocp
-    nlp = HorizonNLP(mpc.model, mpc.settings, IpoptOptions(eps_w=mpc.options.eps_w))
+    ocp = mpc.solver.ocp
+    nlp = HorizonNLP(mpc.model, mpc.settings, IpoptOptions(eps_w=mpc.solver.options.eps_w))
     ref, init = make_case("curve", 25.0)
     rng = np.random.default_rng(3)
     mpc.reset()
@@ -85,7 +85,7 @@ def test_ocp_cost_is_the_nlp_cost(method):
     x0, R, zprev, warm = mpc.horizon_problem(st)
     sv = ocp.solver
     for _ in range(3):
-        z = np.clip(warm + rng.normal(0.0, 1.0, warm.size) * mpc.sigma, mpc.lower, mpc.upper)
+        z = np.clip(warm + rng.normal(0.0, 1.0, warm.size) * mpc.horizon.sigma, mpc.horizon.lower, mpc.horizon.upper)
         zprev = rng.normal(0.0, 0.1, zprev.size)
         s0 = np.r_[x0, zprev, np.ones(3)]
         S = ocp.trajectory(s0, R, z).copy()
@@ -103,7 +103,7 @@ def test_ocp_cost_is_the_nlp_cost(method):
         J_nlp = float(nlp.cost_fn(z, nlp.params(x0, R, zprev)))
         assert J_ocp == pytest.approx(J_nlp, rel=1e-10)
         # and the smoothing adds at most eps_w per wheel and term to the exact cost's powers
-        assert J_nlp >= mpc.exact_cost(x0, R, z, zprev) - 1e-9 * J_nlp
+        assert J_nlp >= mpc.horizon.cost(x0, R, z, zprev) - 1e-9 * J_nlp
 
 
 @needs_acados
@@ -123,10 +123,10 @@ def test_never_above_the_warm_start():
         s = mpc.settings
         R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
         zprev = z_before[: mpc.model.stride]
-        warm = np.clip(mpc._shifted(z_before), mpc.lower, mpc.upper)
-        Jw = min(mpc.exact_cost(x0, R, warm, zprev),
-                 mpc.exact_cost(x0, R, np.zeros_like(warm), zprev))
-        assert cmd.cost == pytest.approx(mpc.exact_cost(x0, R, mpc.z, zprev), rel=1e-12)
+        warm = np.clip(mpc.horizon.shifted(z_before), mpc.horizon.lower, mpc.horizon.upper)
+        Jw = min(mpc.horizon.cost(x0, R, warm, zprev),
+                 mpc.horizon.cost(x0, R, np.zeros_like(warm), zprev))
+        assert cmd.cost == pytest.approx(mpc.horizon.cost(x0, R, mpc.z, zprev), rel=1e-12)
         assert cmd.cost <= Jw * (1 + 1e-12), (t, cmd.cost, Jw)
         seen.append(cmd.cost < Jw * (1 - 1e-9))
 
@@ -136,7 +136,7 @@ def test_never_above_the_warm_start():
         # poor warm starts: random offsets over the whole box
         st = _state(init(VEH), t=0.5)
         for _ in range(5):
-            mpc.z = rng.uniform(mpc.lower, mpc.upper)
+            mpc.z = rng.uniform(mpc.horizon.lower, mpc.horizon.upper)
             mpc.step(st)
     finally:
         mpc.on_solve = None
@@ -195,7 +195,7 @@ def test_without_acados_a_clear_error(monkeypatch, capsys, tmp_path):
     monkeypatch.setitem(sys.modules, "acados", None)  # import acados -> ImportError
     ref, _ = make_case("curve", 15.0)
     with pytest.raises(ControllerError, match="comma-deps-acados"):
-        ar.AcadosMPC(VEH, MPCSettings(), ref)
+        MPC(VEH, MPCSettings(), ref, solver="acados")
     rc = run_cmd.main(["--case", "curve", "--duration", "0.1", "--solver", "acados", "--json"])
     out = capsys.readouterr()
     assert rc == 2 and out.out == ""
@@ -204,10 +204,10 @@ def test_without_acados_a_clear_error(monkeypatch, capsys, tmp_path):
 
 def test_acados_rejects_baseline_models(capsys):
     from msagv import run as run_cmd
-    from msagv.controller.acados_rti import AcadosMPC
+    from msagv.controller.mpc import MPC
 
     with pytest.raises(ControllerError, match="'mf' only"):
-        AcadosMPC(VEH, MPCSettings(model="dugoff"))
+        MPC(VEH, MPCSettings(model="dugoff"), solver="acados")
     rc = run_cmd.main(["--case", "curve", "--duration", "0.1", "--solver", "acados",
                        "--model", "kinematic", "--json"])
     out = capsys.readouterr()

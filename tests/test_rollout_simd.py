@@ -107,16 +107,16 @@ def test_annealer_costs_are_the_exact_kernels():
     x0, R, zprev, warm = mpc.horizon_problem(st)
     rng = np.random.default_rng(1)
     Z = np.ascontiguousarray(np.clip(warm + rng.standard_normal((2 * ro.LANES + 1, mpc.model.dim))
-                                     * mpc.sigma, mpc.lower, mpc.upper))
+                                     * mpc.horizon.sigma, mpc.horizon.lower, mpc.horizon.upper))
     m = mpc.model
     J = {}
     for name, fn in (("serial", ro.FAST.evaluate_serial), ("parallel", ro.FAST.evaluate_parallel)):
         ws = np.empty((3, ro.workspace_size(m.n_wheels, m.dim)))
         J[name] = np.empty(Z.shape[0])
-        fn(m.model_id, x0, R, Z, m.block, m.P, m.S, m.wx, m.wy, mpc.Q, mpc.L, mpc.R, m.nsplit,
+        fn(m.model_id, x0, R, Z, m.block, m.P, m.S, m.wx, m.wy, mpc.horizon.Q, mpc.horizon.L, mpc.horizon.R, m.nsplit,
            zprev, ws, J[name])
     assert np.array_equal(J["serial"], J["parallel"])
     out = m.rollout(x0, R, Z, exact=True)
     want = np.empty(Z.shape[0])
-    ro.batch_cost(out.poses, out.wear, R, Z, zprev, mpc.Q, mpc.L, mpc.R, m.stride, m.nsplit, want)
+    ro.batch_cost(out.poses, out.wear, R, Z, zprev, mpc.horizon.Q, mpc.horizon.L, mpc.horizon.R, m.stride, m.nsplit, want)
     np.testing.assert_allclose(J["serial"], want, rtol=1e-9)
