@@ -9,6 +9,7 @@ prints the metrics table and the transport figures, writes a PNG and stops both 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -104,27 +105,24 @@ def run_demo(duration: float = 20.0, speed: str = "15", run_mode: str = "realtim
 
 def _demo_scenario(a) -> dict:
     """The result's ``scenario`` block of the demo (Case 1 at ``--speed``, the built-in
-    vehicle, TWO with the paper's model)."""
+    vehicle, the controller's default method and model)."""
+    from msagv.controller.models import MPCSettings
     from msagv.experiments.results import speed_value, vehicle_info
     from msagv.plant.vehicle import default_vehicle
 
+    d = MPCSettings()
     vehicle = vehicle_info(default_vehicle())  # the demo's plant serves the built-in one
     return {"case": "curve", "trajectory": None, "reference": "case1-curve",
-            "speed_kmh": speed_value(a.speed), "vehicle": vehicle, "method": "two",
-            "model": "mf", "solver": a.solver, "seed": a.seed, "duration_s": a.duration,
+            "speed_kmh": speed_value(a.speed), "vehicle": vehicle, "method": d.method,
+            "model": d.model, "solver": a.solver, "seed": a.seed, "duration_s": a.duration,
             "period_s": 0.01, "after_end": "continue", "plant": "native",
             "initial": "reference"}
 
 
-def main(argv: list[str]) -> int:
-    from msagv.controller.metrics import format_table
-    from msagv.experiments.plots import plot_run, run_title
-    from msagv.experiments.results import result
+def _parser() -> argparse.ArgumentParser:
+    from .args import add_common_args
 
-    from .args import PLOT_SUFFIXES, add_common_args, check_output, fail, note, warn
-
-    prog = "msagv demo"
-    ap = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="msagv demo", description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0, metavar="S",
                     help="vehicle time [s] (default 20)")
     ap.add_argument("--speed", default="15", metavar="KMH", help="Case 1 speed (default 15)")
@@ -150,7 +148,14 @@ def main(argv: list[str]) -> int:
                     help="mutual TLS and access control (certificates made for the run by "
                          "msagv certs; docs/SECURITY.md)")
     add_common_args(ap)  # -v also shows the processes' logs
-    a = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str]) -> int:
+    from .args import PLOT_SUFFIXES, check_output, fail, warn
+
+    prog = "msagv demo"
+    a = _parser().parse_args(argv)
     if a.keep:
         warn(prog, ["--keep is deprecated, use --out DIR"])
         a.out = a.out or a.keep
@@ -163,27 +168,14 @@ def main(argv: list[str]) -> int:
         check_output(a.json_out, "--json-out")
     except ValueError as e:
         return fail(prog, e, a)
-    tmp = None
-    work = a.out
-    if work is None:
-        tmp = tempfile.TemporaryDirectory(prefix="msagv-demo-")
-        work = tmp.name
     t0 = time.monotonic()
-    try:
+    with (tempfile.TemporaryDirectory(prefix="msagv-demo-") if a.out is None
+          else contextlib.nullcontext(a.out)) as work:
         if not (a.json or a.quiet):
             print(f"msagv demo: plant and controller over Zenoh (loopback), Case 1 at "
                   f"{a.speed} km/h, {a.duration:g} s, {a.run_mode}...", file=sys.stderr, flush=True)
         try:
-            rt = ["--rt-priority", str(a.rt_priority)] if a.rt_priority else []
-            certs = None
-            if a.secure:
-                from msagv.bridge.security import create_certs
-
-                certs = Path(work) / "certs"
-                create_certs(certs)
-            r = run_demo(a.duration, a.speed, a.run_mode, a.deadline_ms, a.seed, work,
-                         quiet=not a.verbose, extra_plant=rt,
-                         extra_controller=rt + ["--solver", a.solver], secure=certs)
+            r = _run_processes(a, Path(work))
         except (RuntimeError, ValueError) as e:
             return fail(prog, e, a, 1)
         except KeyboardInterrupt:
@@ -191,21 +183,50 @@ def main(argv: list[str]) -> int:
             return 130
         scenario = _demo_scenario(a)
         if a.plot:
+            from msagv.experiments.plots import plot_run, run_title
+
             plot_run(r["log"], r["reference"], a.plot,
                      title=run_title(scenario, f"two processes over Zenoh ({a.run_mode})"))
-    finally:
-        if tmp is not None:
-            tmp.cleanup()
-    m, ps, cs = r["metrics"], r["plant"], r["controller"]
+    _report(a, prog, r, scenario, t0)
+    return 0
+
+
+def _run_processes(a, work: Path) -> dict:
+    """The two processes of the demo (:func:`run_demo`) with the options' extras."""
+    rt = ["--rt-priority", str(a.rt_priority)] if a.rt_priority else []
+    certs = None
+    if a.secure:
+        from msagv.bridge.security import create_certs
+
+        certs = work / "certs"
+        create_certs(certs)
+    return run_demo(a.duration, a.speed, a.run_mode, a.deadline_ms, a.seed, work,
+                    quiet=not a.verbose, extra_plant=rt,
+                    extra_controller=rt + ["--solver", a.solver], secure=certs)
+
+
+def _transport(a, ps: dict, cs: dict) -> dict:
+    """The result's ``transport`` block, from the plant's and the controller's summaries."""
     rejected = ps["rejected"]["total"] + cs.get("rejected", {}).get("total", 0)
-    lat = {k: ps["latency_ms"][k] for k in ("p50", "p99", "max")}
-    transport = {"run_mode": a.run_mode, "secure": a.secure,
-                 "missed_periods": ps["missed_periods"],
-                 "latency_ms": lat, "rejected": rejected,
-                 "period_jitter_ms": {k: ps["period_jitter_ms"][k] for k in ("p50", "p99", "max")},
-                 "accepted_commands": ps["commands"]["accepted"],
-                 "lost_commands": ps["commands"]["lost"], "late_commands": ps["commands"]["late"],
-                 "safe_events": ps["safe"]["events"]}
+    return {"run_mode": a.run_mode, "secure": a.secure,
+            "missed_periods": ps["missed_periods"],
+            "latency_ms": {k: ps["latency_ms"][k] for k in ("p50", "p99", "max")},
+            "rejected": rejected,
+            "period_jitter_ms": {k: ps["period_jitter_ms"][k] for k in ("p50", "p99", "max")},
+            "accepted_commands": ps["commands"]["accepted"],
+            "lost_commands": ps["commands"]["lost"], "late_commands": ps["commands"]["late"],
+            "safe_events": ps["safe"]["events"]}
+
+
+def _report(a, prog: str, r: dict, scenario: dict, t0: float) -> None:
+    """The result: warnings, the JSON document or the table and the transport's figures."""
+    from msagv.controller.metrics import format_table
+    from msagv.experiments.results import result
+
+    from .args import note, warn
+
+    m, ps = r["metrics"], r["plant"]
+    transport = _transport(a, ps, r["controller"])
     warnings = []
     if a.run_mode == "realtime" and ps["missed_periods"]:
         warnings.append(f"{ps['missed_periods']} control periods were missed (a loaded "
@@ -217,12 +238,14 @@ def main(argv: list[str]) -> int:
         Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
         print(json.dumps(doc))
-        return 0
-    print(format_table(m, f"{r['reference'].name}, TWO (mf), two processes over Zenoh, "
+        return
+    how = f"{scenario['method'].upper()} ({scenario['model']}" + (
+        f", {a.solver})" if a.solver != "sa" else ")")
+    print(format_table(m, f"{r['reference'].name}, {how}, two processes over Zenoh, "
                           f"{a.run_mode}{', mutual TLS + access control' if a.secure else ''}"))
-    c = ps["commands"]
+    c, lat = ps["commands"], transport["latency_ms"]
     print(f"  commands   {c['accepted']} accepted, {c['late']} late, {c['lost']} lost; "
-          f"rejected messages {rejected}")
+          f"rejected messages {transport['rejected']}")
     if lat["p50"] is not None:
         print(f"  latency    p50 {lat['p50']:.3f}  p99 {lat['p99']:.3f}  max {lat['max']:.3f} ms "
               f"(state published -> command received, without the solve)")
@@ -236,7 +259,6 @@ def main(argv: list[str]) -> int:
     if a.out:
         print(f"  recordings {Path(a.out) / 'plant.rec'}, {Path(a.out) / 'controller.rec'}")
     note(a, f"  wall time  {time.monotonic() - t0:.1f} s")
-    return 0
 
 
 def _interrupted(work: Path, a) -> None:

@@ -57,26 +57,12 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
 
     Exit codes: 0 done (warnings on stderr and in the JSON), 1 the run failed, 2 bad
     options or input (nothing run), 130 interrupted (the result so far is printed)."""
-    a = build_parser(prog, fmu).parse_args(argv)
-    from msagv.controller.loop import RunLog, closed_loop
-    from msagv.controller.metrics import format_table, format_wheel_wear
-    from msagv.experiments.checks import solve_time_warnings
-    from msagv.experiments.results import result, scenario_info
-
     from .errors import USAGE_ERRORS
 
+    a = build_parser(prog, fmu).parse_args(argv)
     built = None
     try:
-        if getattr(a, "scenario_file", None):
-            if a.scenario:
-                raise OptionError("give the scenario file once (positional or --scenario)")
-            a.scenario = a.scenario_file
-        check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
-        check_output(a.log, "--log")
-        check_output(a.json_out, "--json-out")
-        check_output(a.wear_plot, "--wear-plot", suffixes=PLOT_SUFFIXES)
-        want_view = check_view_args(a)
-        scenario = scenario_from_args(a)
+        scenario, want_view = _checked_options(a)
         built = scenario.build()
     except USAGE_ERRORS as e:
         return fail(prog, e, a)
@@ -96,6 +82,45 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
             built.close()
             return fail(prog, f"--view: {e}", a)
         announce(view, prog)
+    log, interrupted, error = _run(a, scenario, built, view)
+    if error is not None:
+        return fail(prog, error, a, EXIT_FAILED)
+    if view is not None:
+        view.finish(log.final_state or None)
+    if not log.t:
+        print(f"{prog}: interrupted before the first step", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    _report(a, prog, fmu, scenario, built, log, interrupted)
+    if view is not None and not interrupted:
+        if a.view:
+            serve_until_stopped(view, prog)
+        else:
+            view.close()
+    return EXIT_INTERRUPTED if interrupted else 0
+
+
+def _checked_options(a):
+    """Every option checked and every output path known to be writable, before anything
+    is built: ``(scenario, want_view)``; raises a usage error naming the option."""
+    if getattr(a, "scenario_file", None):
+        if a.scenario:
+            raise OptionError("give the scenario file once (positional or --scenario)")
+        a.scenario = a.scenario_file
+    check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
+    check_output(a.log, "--log")
+    check_output(a.json_out, "--json-out")
+    check_output(a.wear_plot, "--wear-plot", suffixes=PLOT_SUFFIXES)
+    want_view = check_view_args(a)
+    return scenario_from_args(a), want_view
+
+
+def _run(a, scenario, built, view):
+    """The closed loop: ``(log, interrupted, error)``; the plant is closed afterwards. A
+    Ctrl-C keeps the rows so far (``interrupted``); a failed step is ``error`` (a line)."""
+    from msagv.controller.loop import RunLog, closed_loop
+
+    from .errors import USAGE_ERRORS
+
     log = RunLog()
     interrupted = False
     try:
@@ -107,20 +132,24 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         log.cut_short()
     except USAGE_ERRORS as e:
         t = log.t[-1] if log.t else 0.0
-        return fail(prog, f"the run failed at t = {t:.2f} s: {e}", a, EXIT_FAILED)
+        return log, False, f"the run failed at t = {t:.2f} s: {e}"
     finally:
         built.close()
-    if view is not None:
-        view.finish(log.final_state or None)
-    if not log.t:
-        print(f"{prog}: interrupted before the first step", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    return log, interrupted, None
+
+
+def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) -> None:
+    """The result: warnings, the JSON document, the log, the figures, the table."""
+    from msagv.controller.metrics import format_table, format_wheel_wear
+    from msagv.experiments.checks import solve_time_warnings
+    from msagv.experiments.results import result, scenario_info
+
     ref, settings, vehicle = built.reference, built.controller.settings, built.vehicle
     info = scenario_info(scenario, vehicle, ref, settings, built.duration)
     late = solve_time_warnings(log.solve_ms, scenario.period)
     warn(prog, late)
-    budget = built.controller.budget() if hasattr(built.controller, "budget") else None
-    warnings = list(built.warnings) + (budget["warnings"] if budget else []) + late
+    budget = built.controller.budget()
+    warnings = list(built.warnings) + budget["warnings"] + late
     if interrupted:
         done = len(log.t) * scenario.period
         warnings.append(f"interrupted after {done:.2f} s of {built.duration:g} s: the metrics "
@@ -129,8 +158,7 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     m = log.metrics()
     wear = log.wheel_wear()  # per wheel and per axle
     doc = result(prog.split(" ", 1)[1], info, m, warnings, completed=not interrupted, wear=wear)
-    if budget is not None:
-        doc["budget"] = budget  # the controller's time budget (controller.mpc.MPC.budget)
+    doc["budget"] = budget  # the controller's time budget (Controller.budget)
     if a.log:
         log.to_csv(a.log)
     if a.plot:
@@ -145,21 +173,14 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
         Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
         print(json.dumps(doc))
-    else:
-        where = f"FMU {Path(a.fmu).name}" if fmu else f"{vehicle.name} {vehicle.mass:g} kg"
-        how = (f"{settings.model}, {scenario.solver}" if scenario.solver in ("ipopt", "acados")
-               else settings.model)
-        speed = f" at {info['speed_kmh']} km/h" if info["speed_kmh"] is not None else ""
-        print(format_table(m, f"{ref.name}{speed}, {settings.method.upper()} ({how}), {where}"
-                              f"{' (interrupted)' if interrupted else ''}"))
-        print("\n".join(format_wheel_wear(wear)))
-        for k, path in (("log", a.log), ("plot", a.plot), ("wear plot", a.wear_plot),
-                        ("view", a.view_save), ("json", a.json_out)):
-            if path:
-                print(f"  {k:<10} {Path(path)}")
-    if view is not None and not interrupted:
-        if a.view:
-            serve_until_stopped(view, prog)
-        else:
-            view.close()
-    return EXIT_INTERRUPTED if interrupted else 0
+        return
+    where = f"FMU {Path(a.fmu).name}" if fmu else f"{vehicle.name} {vehicle.mass:g} kg"
+    how = settings.model + (f", {scenario.solver}" if scenario.solver != "sa" else "")
+    speed = f" at {info['speed_kmh']} km/h" if info["speed_kmh"] is not None else ""
+    print(format_table(m, f"{ref.name}{speed}, {settings.method.upper()} ({how}), {where}"
+                          f"{' (interrupted)' if interrupted else ''}"))
+    print("\n".join(format_wheel_wear(wear)))
+    for k, path in (("log", a.log), ("plot", a.plot), ("wear plot", a.wear_plot),
+                    ("view", a.view_save), ("json", a.json_out)):
+        if path:
+            print(f"  {k:<10} {Path(path)}")
