@@ -46,6 +46,9 @@ LOSS_CONFIRM_S = 2.0  # s of running time without the plant before it is lost
 LOCAL = object()  # handle_state's source when a test feeds it directly: no binding check
 
 
+ON_PLANT_LOSS = ("wait", "exit")  # --on-plant-loss
+
+
 class ControllerRunError(RuntimeError):
     """The controller cannot go on (no plant, the plant gone with --on-plant-loss exit)."""
 
@@ -63,6 +66,11 @@ class ControllerConfig:
     max_age_ms: float | None = None
     on_plant_loss: str = "wait"
     exit_at_end: bool = False
+
+    def __post_init__(self):
+        if self.on_plant_loss not in ON_PLANT_LOSS:
+            raise ValueError(f"on_plant_loss: expected one of {', '.join(ON_PLANT_LOSS)}, got "
+                             f"'{self.on_plant_loss}'")
 
 
 @dataclasses.dataclass

@@ -13,24 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .metrics import compute_metrics
+from msagv.plant.signals import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS, wheel_suffixes
+
 from .interface import Controller
+from .metrics import compute_metrics
 from .reference import Reference
 
 
 # state-message fields that are not signals (DESIGN.md's envelope)
 _NOT_SIGNALS = {"t", "seq", "v", "end"}
-_BODY = ("x", "y", "phi", "vx", "vy", "r")
-_WEAR = ("W_s", "W_alpha", "W_t")
-_WHEEL_WEAR = ("W_s_ij", "W_alpha_ij", "W_t_ij")  # per-wheel arrays of the state message
-
-
-def wheel_suffixes(n_wheels: int) -> list[str]:
-    """``['11', '12', '21', ...]``: the signal suffixes of ``n_wheels`` wheels (as
-    :attr:`plant.vehicle.Vehicle.wheel_names`)."""
-    return [f"{i}{j}" for i in range(1, n_wheels // 2 + 1) for j in (1, 2)]
-
-
 def _signal_row(st: dict, ref_row, outputs) -> dict:
     """The columns of one log row beyond pose, reference pose, commands and wear work,
     named as the signals (plant.stepping.signal_names): the body velocities, the
@@ -52,7 +43,7 @@ def _signal_row(st: dict, ref_row, outputs) -> dict:
     for k, v in zip(wheels, st.get("omega_w", ())):
         row[f"omega_w_act_{k}"] = float(v)
     for name, v in st.items():
-        if name in _NOT_SIGNALS or name in _BODY or name in _WEAR or name in ("delta", "omega_w"):
+        if name in _NOT_SIGNALS or name in BODY_FIELDS or name in WEAR_FIELDS or name in ("delta", "omega_w"):
             continue
         if isinstance(v, (list, tuple)) and len(v) == nw:
             base = name[:-3] if name.endswith("_ij") else name  # W_s_ij -> W_s_11, ...
@@ -64,7 +55,7 @@ def _signal_row(st: dict, ref_row, outputs) -> dict:
         for rate in ("omega_w_", "omega_s_"):
             if name.startswith(rate) and not name.startswith(rate + "act_"):
                 name = rate + "act_" + name[len(rate):]
-        if name in row or name in _BODY or name in _WEAR:
+        if name in row or name in BODY_FIELDS or name in WEAR_FIELDS:
             continue
         row[name] = float(v)
     return row
@@ -104,7 +95,7 @@ class RunLog:
         self.solve_ms.append(cmd.solve_ms)
         self.cost.append(cmd.cost)
         self.signals.append(_signal_row(st, ref_row, outputs))
-        self.W_ij.append([list(st[k]) for k in _WHEEL_WEAR] if all(k in st for k in _WHEEL_WEAR)
+        self.W_ij.append([list(st[k]) for k in WHEEL_WEAR_FIELDS] if all(k in st for k in WHEEL_WEAR_FIELDS)
                          else None)
 
     def wheel_wear(self) -> dict | None:
@@ -117,8 +108,8 @@ class RunLog:
         if not self.W_ij or any(w is None for w in self.W_ij):
             return None
         fs = self.final_state
-        if not self.interrupted and all(k in fs for k in _WHEEL_WEAR):
-            end = np.array([fs[k] for k in _WHEEL_WEAR], dtype=float)
+        if not self.interrupted and all(k in fs for k in WHEEL_WEAR_FIELDS):
+            end = np.array([fs[k] for k in WHEEL_WEAR_FIELDS], dtype=float)
         else:
             end = np.asarray(self.W_ij[-1], dtype=float)
         start = np.asarray(self.W_ij[0], dtype=float)
@@ -167,7 +158,7 @@ class RunLog:
                 sig[i, index[k]] = v
         cols = ["t", "x", "y", "phi", "x_ref", "y_ref", "phi_ref"] + front
         cols += [f"omega_w_{k}" for k in wheels] + [f"omega_s_{k}" for k in wheels]
-        cols += rest + ["W_s", "W_alpha", "W_t", "solve_ms", "cost"]
+        cols += rest + list(WEAR_FIELDS) + ["solve_ms", "cost"]
         parts = [a["t"].reshape(n, -1), a["pose"].reshape(n, -1), a["ref"].reshape(n, -1),
                  sig[:, :len(front)], a["omega_w"].reshape(n, -1), a["omega_s"].reshape(n, -1),
                  sig[:, len(front):], a["W"].reshape(n, -1), a["solve_ms"].reshape(n, -1),

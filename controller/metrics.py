@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from msagv.plant.signals import WEAR_FIELDS
+
 METRIC_KEYS = ["W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar",
                "Omega", "e_lat_rms_cm", "e_lat_max_cm", "solve_ms", "steps"]
 
@@ -98,7 +100,7 @@ def format_table(m: dict, title: str = "") -> str:
     return "\n".join(lines)
 
 
-WHEEL_WEAR_KEYS = ("W_s", "W_alpha", "W_t")
+WHEEL_WEAR_KEYS = WEAR_FIELDS  # the rows of a per-wheel wear array
 
 
 def wear_by_wheel(dW, n_wheels: int | None = None) -> dict:

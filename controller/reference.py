@@ -20,6 +20,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from msagv.plant.signals import BODY_FIELDS
+
 KMH = 1.0 / 3.6
 AFTER_END = ("hold", "continue")
 HEADING_JUMP = math.pi / 2  # rad: a larger heading change between two CSV rows is refused
@@ -112,7 +114,7 @@ class Reference:
             raise ReferenceError(f"after_end: expected one of {', '.join(AFTER_END)}, got "
                                  f"'{self.after_end}'")
         n = len(self.t)
-        for k in ("x", "y", "phi", "vx", "vy", "r"):
+        for k in BODY_FIELDS:  # the reference's fields are the body's
             a = np.asarray(getattr(self, k), dtype=float)
             if a.shape != (n,):
                 raise ReferenceError(f"reference: {k} must have the length of t ({n})")

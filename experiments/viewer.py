@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from msagv.plant.signals import WEAR_FIELDS, WHEEL_WEAR_FIELDS
+
 log = logging.getLogger("msagv.viewer")
 
 BODY_COLOR = (125, 45, 200)  # the vehicle's body: purple, unlike the viewer's own UI
@@ -44,7 +46,6 @@ REFERENCE_COLOR = (90, 90, 90)
 PATH_COLOR = (255, 150, 0)
 COOL, HOT = np.array([60, 180, 75]), np.array([220, 30, 40])  # wheel colours: no wear -> peak
 WEB_PORT, GRPC_PORT = 9090, 9876
-WHEEL_WEAR = ("W_s_ij", "W_alpha_ij", "W_t_ij")
 PATH_EVERY = 10  # log the driven path every this many states (and at the end)
 
 
@@ -212,20 +213,20 @@ class RunView:
 
     def _wheel_power(self, st: dict) -> list[float] | None:
         prev = self._prev
-        if prev is None or not all(k in st and k in prev for k in WHEEL_WEAR):
+        if prev is None or not all(k in st and k in prev for k in WHEEL_WEAR_FIELDS):
             return None
         dt = float(st["t"]) - float(prev["t"])
         if not dt > 0:
             return None
-        now = np.sum([st[k] for k in WHEEL_WEAR], axis=0)
-        before = np.sum([prev[k] for k in WHEEL_WEAR], axis=0)
+        now = np.sum([st[k] for k in WHEEL_WEAR_FIELDS], axis=0)
+        before = np.sum([prev[k] for k in WHEEL_WEAR_FIELDS], axis=0)
         p = ((now - before) / dt / 1000.0).tolist()
         self._peak = max(self._peak, max(p))
         return p
 
     def _total_power(self, st: dict) -> float | None:
         prev = self._prev
-        keys = ("W_s", "W_alpha", "W_t")
+        keys = WEAR_FIELDS
         if prev is None or not all(k in st and k in prev for k in keys):
             return None
         dt = float(st["t"]) - float(prev["t"])
@@ -279,7 +280,7 @@ class ViewSink:
         if self.plant is not None:
             try:
                 st = self.plant.state_message()
-                extra = {k: st[k] for k in WHEEL_WEAR if k in st}
+                extra = {k: st[k] for k in WHEEL_WEAR_FIELDS if k in st}
             except Exception:
                 extra = None
         try:
@@ -383,10 +384,10 @@ def _peak_power(states: list[dict]) -> float | None:
     None without per-wheel wear work."""
     powers = []
     for a, b in zip(states, states[1:]):
-        if not all(k in a and k in b for k in WHEEL_WEAR):
+        if not all(k in a and k in b for k in WHEEL_WEAR_FIELDS):
             return None
         dt = b["t"] - a["t"]
         if dt > 0:
-            powers.extend((np.sum([b[k] for k in WHEEL_WEAR], axis=0)
-                           - np.sum([a[k] for k in WHEEL_WEAR], axis=0)) / dt / 1000.0)
+            powers.extend((np.sum([b[k] for k in WHEEL_WEAR_FIELDS], axis=0)
+                           - np.sum([a[k] for k in WHEEL_WEAR_FIELDS], axis=0)) / dt / 1000.0)
     return max(float(np.percentile(powers, 95)), 0.05) if powers else None

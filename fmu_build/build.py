@@ -38,7 +38,7 @@ from msagv import plant as plant_pkg
 from msagv.plant.vehicle import Vehicle, default_vehicle
 
 from . import slave as slave_mod
-from .variables import UNITS, VariableTableError, fmu_variables
+from .variables import CONFIG_FILE, CONFIG_FORMAT, UNITS, VariableTableError, fmu_variables
 
 MODEL_NAME = "MsagvPlant"
 # The modelDescription grows by 26 variables per axle (13 per wheel) and the plant's cost
@@ -124,7 +124,7 @@ def _stage(src: Path, vehicle: Vehicle, prefix: str, initial: dict | None, h: st
         shutil.copyfile(p, dst)
     table = fmu_variables(vehicle, prefix, initial=initial)
     cfg = {
-        "format": slave_mod.CONFIG_FORMAT,
+        "format": CONFIG_FORMAT,
         "plant_package": pkg_name,
         "version": _version(),
         "description": (f"msagv plant: {vehicle.n_axles}-axle swerve-drive AGV "
@@ -135,7 +135,7 @@ def _stage(src: Path, vehicle: Vehicle, prefix: str, initial: dict | None, h: st
         "units": UNITS,
         "variables": [v.to_json() for v in table],
     }
-    cfg_path = src / slave_mod.CONFIG_FILE
+    cfg_path = src / CONFIG_FILE
     cfg_path.write_text(json.dumps(cfg, indent=1))
     script = src / f"msagv_slave_{h}.py"
     shutil.copyfile(slave_mod.__file__, script)

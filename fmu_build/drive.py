@@ -22,7 +22,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .slave import CONFIG_FILE
+from .variables import CONFIG_FILE
 
 
 def varied_inputs(n_wheels: int, n_steps: int, h: float = 0.01, seed: int = 0) -> np.ndarray:
@@ -81,7 +81,8 @@ def run_native(vehicle, U: np.ndarray, h: float | np.ndarray = 0.01,
     """The native ``plant.Plant`` under the runners' protocol. ``parameters`` by our
     names: initial values ``<state>_0``, ``rtol``/``atol``/``v_eps``, vehicle values.
     ``h`` may be an array of per-step sizes (see :func:`libcosim_step_sizes`)."""
-    from msagv.plant.stepping import Plant, state_names
+    from msagv.plant.signals import state_names
+    from msagv.plant.stepping import Plant
 
     from .variables import set_path, vehicle_paths
 

@@ -38,13 +38,12 @@ from typing import Any, Mapping
 import numpy as np
 
 from msagv.plant.interface import PlantError, check_inputs, check_step, saturate, state_message
-from msagv.plant.stepping import signal_names, state_names
+from msagv.plant.signals import BODY_FIELDS, WEAR_FIELDS, signal_names, state_names
 from msagv.plant.vehicle import Vehicle, vehicle_from_dict
 
-from .slave import CONFIG_FILE
-from .variables import fmu_variables, set_path, vehicle_paths
+from .variables import CONFIG_FILE, fmu_variables, set_path, vehicle_paths
 
-REQUIRED_OUTPUTS = ("x", "y", "phi", "vx", "vy", "r")  # plus delta_ij of every wheel
+REQUIRED_OUTPUTS = BODY_FIELDS  # plus delta_ij of every wheel
 
 
 class FmuHostError(RuntimeError):
@@ -424,9 +423,9 @@ class FmuPlant:
         omega_w = ([y[ix[f"omega_w_{k}"]] for k in w] if all(f"omega_w_{k}" in ix for k in w)
                    else self._u_w)
         wear = None
-        if all(k in ix for k in ("W_s", "W_alpha", "W_t")):
-            wear = [y[ix[k]] for k in ("W_s", "W_alpha", "W_t")]
-        per_wheel = [[f"{q}_{k}" for k in w] for q in ("W_s", "W_alpha", "W_t")]
+        if all(k in ix for k in WEAR_FIELDS):
+            wear = [y[ix[k]] for k in WEAR_FIELDS]
+        per_wheel = [[f"{q}_{k}" for k in w] for q in WEAR_FIELDS]
         wheel_wear = None  # each wheel's wear work, when the FMU has every such output
         if all(n in ix for row in per_wheel for n in row):
             wheel_wear = [[y[ix[n]] for n in row] for row in per_wheel]

@@ -66,6 +66,8 @@ from pythonfmu.default_experiment import DefaultExperiment
 from pythonfmu.enums import Fmi2Causality, Fmi2Initial, Fmi2Status, Fmi2Variability
 from pythonfmu.variables import Real, ScalarVariable
 
+# the FMU's configuration file and format: fmu_build.variables.CONFIG_FILE/CONFIG_FORMAT (this
+# script runs inside the FMU without the package, so it carries them; a test pins them)
 CONFIG_FILE = "msagv_fmu.json"
 CONFIG_FORMAT = 1
 BUILD_ENV = "MSAGV_FMU_BUILDING"  # set by fmu_build.build to the bundled package's name

@@ -19,9 +19,17 @@ import re
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from msagv.plant.stepping import Plant, signal_names, state_names
+from msagv.plant.signals import signal_names, state_names
+from msagv.plant.stepping import Plant
 from msagv.plant.tire import V_EPS_DEFAULT
 from msagv.plant.vehicle import Vehicle
+
+# The FMU's own configuration file in its resources/ (written by the build, read by the
+# slave, the host and the driver) and its format. The slave (fmu_build/slave.py) runs as a
+# standalone script inside the FMU and cannot import this module: it carries the same two
+# values, pinned to these by tests/test_imports.py.
+CONFIG_FILE = "msagv_fmu.json"
+CONFIG_FORMAT = 1
 
 # Integrator defaults of plant.Plant (kept equal; a test checks them against Plant()).
 RTOL_DEFAULT = 1e-8

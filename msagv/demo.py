@@ -19,6 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from msagv.bridge.messages import RUN_MODES
 from msagv.bridge.process import free_port
 
 
@@ -126,7 +127,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--duration", type=float, default=20.0, metavar="S",
                     help="vehicle time [s] (default 20)")
     ap.add_argument("--speed", default="15", metavar="KMH", help="Case 1 speed (default 15)")
-    ap.add_argument("--run-mode", choices=["realtime", "lockstep"], default="realtime")
+    ap.add_argument("--run-mode", choices=list(RUN_MODES), default="realtime",
+                    help="the plant's stepping (default realtime: on the wall clock)")
     ap.add_argument("--deadline-ms", type=float, default=7.0,
                     help="the controller's solve budget per period (default 7)")
     ap.add_argument("--seed", type=int, default=0)

@@ -76,36 +76,43 @@ def open_recording(a, header: dict):
 
 # ---- msagv plant --------------------------------------------------------------------------
 def plant_parser() -> argparse.ArgumentParser:
+    from msagv.bridge.plant_node import WHEEL_WEAR_MODES, PlantConfig
+
+    d = PlantConfig()  # the defaults, written once
     ap = argparse.ArgumentParser(
         prog="msagv plant",
         description="The plant as a Zenoh process (state out, commands in, params queryable, "
                     "liveliness token). 'msagv plant replay' is the open-loop CSV replay.")
-    ap.add_argument("--run-mode", choices=list(M.RUN_MODES), default="lockstep",
+    ap.add_argument("--run-mode", choices=list(M.RUN_MODES), default=d.run_mode,
                     help="lockstep: step when the command for the current state arrives "
                          "(deterministic); realtime: step on the wall clock at 1/T "
-                         "(default lockstep)")
+                         f"(default {d.run_mode})")
     add_case_args(ap)
     ap.add_argument("--from-rest", action="store_true",
                     help="start at rest at the origin (+ --initial), as 'plant replay', "
                          "instead of on the reference")
     add_fmu_args(ap, positional=False)
-    ap.add_argument("--period", type=float, default=0.01, help="control period T [s] (0.01)")
-    ap.add_argument("--timeout", type=float, default=10.0, metavar="S",
+    ap.add_argument("--period", type=float, default=d.period,
+                    help=f"control period T [s] (default {d.period:g})")
+    ap.add_argument("--timeout", type=float, default=d.timeout_s, metavar="S",
                     help="lockstep: longest wait for a command; realtime: for the first one "
-                         "(default 10)")
-    ap.add_argument("--wait", type=float, default=60.0, metavar="S",
-                    help="wait this long for a controller at start, 0 = forever (default 60)")
-    ap.add_argument("--stale-ms", type=float, default=50.0,
+                         f"(default {d.timeout_s:g})")
+    ap.add_argument("--wait", type=float, default=d.wait_s, metavar="S",
+                    help="wait this long for a controller at start, 0 = forever "
+                         f"(default {d.wait_s:g})")
+    ap.add_argument("--stale-ms", type=float, default=d.stale_ms,
                     help="realtime: more than stale-ms/T consecutive periods without an "
-                         "answer put the plant in its safe behaviour (default 50)")
-    ap.add_argument("--resume-periods", type=int, default=3, metavar="N",
+                         f"answer put the plant in its safe behaviour (default {d.stale_ms:g})")
+    ap.add_argument("--resume-periods", type=int, default=d.resume_periods, metavar="N",
                     help="realtime: the safe behaviour ends after N consecutive periods in "
-                         "which the owner keeps up (default 3)")
-    ap.add_argument("--safe-decel", type=float, default=2.0, metavar="M/S2",
-                    help="realtime safe behaviour: wheel ramp-down at the rim (default 2)")
-    ap.add_argument("--wheel-wear", choices=["auto", "on", "off"], default="auto",
+                         f"which the owner keeps up (default {d.resume_periods})")
+    ap.add_argument("--safe-decel", type=float, default=d.safe_decel, metavar="M/S2",
+                    help="realtime safe behaviour: wheel ramp-down at the rim "
+                         f"(default {d.safe_decel:g})")
+    ap.add_argument("--wheel-wear", choices=list(WHEEL_WEAR_MODES), default=d.wheel_wear,
                     help="per-wheel wear work in the state (W_s_ij, ...): auto = when the "
-                         "controller's params query asks for it (default), on, off")
+                         "controller's params query asks for it, on, off "
+                         f"(default {d.wheel_wear})")
     add_record_args(ap)
     add_view_args(ap)  # --view, --view-save, --view-port: the running plant in Rerun
     ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
@@ -201,6 +208,9 @@ def _plant_report(s: dict, as_json: bool) -> None:
 
 # ---- msagv controller ---------------------------------------------------------------------
 def controller_parser() -> argparse.ArgumentParser:
+    from msagv.bridge.controller_node import ON_PLANT_LOSS, ControllerConfig
+
+    d = ControllerConfig()
     ap = argparse.ArgumentParser(
         prog="msagv controller",
         description="The MPC as a Zenoh process: answers each state with a command.")
@@ -212,8 +222,9 @@ def controller_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-age-ms", type=float, metavar="MS",
                     help="never send a command for a state older than this (default: "
                          "50 against a realtime plant, none in lockstep)")
-    ap.add_argument("--on-plant-loss", choices=["wait", "exit"], default="wait",
-                    help="when the plant's token disappears: wait for it (default) or exit 3")
+    ap.add_argument("--on-plant-loss", choices=list(ON_PLANT_LOSS), default=d.on_plant_loss,
+                    help="when the plant's token disappears: wait for it or exit 3 "
+                         f"(default {d.on_plant_loss})")
     ap.add_argument("--exit-at-end", action="store_true",
                     help="exit after the plant's last state (end = true)")
     add_record_args(ap)

@@ -12,6 +12,8 @@ import argparse
 import json
 from pathlib import Path
 
+from msagv.plant.signals import WEAR_FIELDS
+
 from .args import PLOT_SUFFIXES, add_common_args, check_output, fail, warn
 from .view import add_view_args, check_view_args, serve_until_stopped, view_kwargs
 
@@ -120,7 +122,7 @@ def _measured(m: dict, info: dict, log, a) -> tuple[dict, list[str]]:
     """The metrics as far as the recording measures them, and the warnings saying what it
     does not (no wear work, a run cut short, unanswered states, no per-wheel wear)."""
     warnings = []
-    if not any(k in log.final_state for k in ("W_s", "W_alpha", "W_t")):
+    if not any(k in log.final_state for k in WEAR_FIELDS):
         warnings.append("the recorded states carry no wear work (W_s, W_alpha, W_t are "
                         "optional fields of the state message): W_tw and Omega are not "
                         "measured")

@@ -15,7 +15,11 @@ from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
+from .signals import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
 from .vehicle import Vehicle
+
+__all__ = ["PlantError", "PlantInterface", "check_inputs", "saturate", "check_step",
+           "state_message", "BODY_FIELDS", "WEAR_FIELDS", "WHEEL_WEAR_FIELDS"]
 
 
 class PlantError(ValueError):
@@ -97,11 +101,6 @@ def check_step(t_plant: float, t: float, h: float) -> None:
         raise PlantError(f"do_step: t = {t} does not match the plant's time {t_plant}")
 
 
-BODY_FIELDS = ("x", "y", "phi", "vx", "vy", "r")
-WEAR_FIELDS = ("W_s", "W_alpha", "W_t")
-# the per-wheel wear work in the state message: arrays in the wheel order (the ``_ij``
-# stands for "of every wheel ij"; the signals are W_s_11, W_s_12, ...)
-WHEEL_WEAR_FIELDS = ("W_s_ij", "W_alpha_ij", "W_t_ij")
 
 
 def state_message(t: float, body: Sequence[float], delta: Sequence[float],

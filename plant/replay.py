@@ -9,7 +9,8 @@ from typing import Mapping
 
 import numpy as np
 
-from .stepping import Plant, input_names
+from .signals import input_names
+from .stepping import Plant
 from .vehicle import Vehicle
 
 

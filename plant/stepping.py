@@ -12,52 +12,11 @@ import numpy as np
 from . import dynamics as dyn
 from . import layout as lay
 from .interface import PlantError, check_inputs, check_step, saturate, state_message
+from .signals import BODY_FIELDS, signal_names, state_names
 from .tire import V_EPS_DEFAULT
 from .vehicle import Vehicle, default_vehicle
 
-__all__ = ["Plant", "PlantError", "PlantSnapshot", "input_names", "signal_names", "state_names",
-           "wheel_wear_names"]
-
-
-def state_names(vehicle: Vehicle) -> list[str]:
-    """Names of the settable initial-state signals (``--initial name=value``)."""
-    w = vehicle.wheel_names
-    return (["x", "y", "phi", "vx", "vy", "r"] + [f"delta_{k}" for k in w]
-            + [f"omega_w_{k}" for k in w] + [f"omega_s_{k}" for k in w])
-
-
-def signal_names(vehicle: Vehicle) -> list[str]:
-    """Every signal of DESIGN.md's table, in output order (CSV columns, FMU outputs)."""
-    w = vehicle.wheel_names
-    names = ["x", "y", "phi", "vx", "vy", "r"]
-    names += [f"delta_{k}" for k in w]
-    names += [f"omega_w_{k}" for k in w]
-    names += [f"omega_s_{k}" for k in w]
-    names += [f"s_{k}" for k in w]
-    names += [f"alpha_{k}" for k in w]
-    names += [f"Fx_{k}" for k in w]
-    names += [f"Fy_{k}" for k in w]
-    names += [f"F_N_{k}" for k in w]
-    names += ["P_s", "P_alpha", "P_t", "W_s", "W_alpha", "W_t", "W_tw"]
-    names += wheel_wear_names(vehicle)
-    return names
-
-
-WHEEL_POWERS = ("P_s", "P_alpha", "P_t")  # per wheel: P_s_ij, ... [W]
-WHEEL_WORK = ("W_s", "W_alpha", "W_t", "W_tw")  # per wheel: W_s_ij, ... [J]
-
-
-def wheel_wear_names(vehicle: Vehicle) -> list[str]:
-    """The per-wheel wear signals, in output order: ``P_s_ij, P_alpha_ij, P_t_ij`` (each
-    for every wheel), then ``W_s_ij, W_alpha_ij, W_t_ij, W_tw_ij``. Summed over the wheels
-    they are the totals ``P_s`` ... ``W_tw``."""
-    w = vehicle.wheel_names
-    return [f"{q}_{k}" for q in WHEEL_POWERS + WHEEL_WORK for k in w]
-
-
-def input_names(vehicle: Vehicle) -> list[str]:
-    w = vehicle.wheel_names
-    return [f"omega_w_{k}" for k in w] + [f"omega_s_{k}" for k in w]
+__all__ = ["Plant", "PlantError", "PlantSnapshot"]
 
 
 @dataclass(frozen=True)
@@ -143,7 +102,7 @@ class Plant:
         nw = self.nw
         y = np.zeros(lay.state_size(nw))
         ini = self._initial
-        for i, k in enumerate(["x", "y", "phi", "vx", "vy", "r"]):
+        for i, k in enumerate(BODY_FIELDS):
             y[i] = float(ini.get(k, 0.0))
         w = self.vehicle.wheel_names
         for j, k in enumerate(w):

@@ -178,7 +178,7 @@ def test_model_description_is_the_variable_table(fmu2):
     outputs = {u.variable.name for u in md.outputs}
     assert outputs == {v.name for v in table if v.causality == "output"}
     # every plant signal is an output; the actual rates carry _act_ (the inputs own the names)
-    from msagv.plant.stepping import signal_names
+    from msagv.plant.signals import signal_names
 
     assert [v.key for v in table if v.role == "output"] == signal_names(default_vehicle())
     assert got["omega_w_act_11"].causality == "output"

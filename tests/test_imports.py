@@ -266,3 +266,24 @@ def test_the_wheel_installs_one_top_level_package(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], cwd=user, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]
+
+
+def test_the_error_list_does_not_load_the_fmu_exporter():
+    """msagv.errors names the FMU host's error; the host reads the FMU's configuration
+    file name from fmu_build.variables, not from the exporter (fmu_build.slave), so
+    pythonfmu is loaded only by the commands that build an FMU."""
+    code = ("import sys, msagv.errors, msagv.fmu_build.host\n"
+            "print('pythonfmu' in sys.modules)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "False"
+
+
+def test_the_slave_carries_the_fmu_configuration_names():
+    """The slave runs inside the FMU without the package, so it carries the configuration
+    file's name and format: they must be the variable table's."""
+    from msagv.fmu_build import slave, variables
+
+    assert (slave.CONFIG_FILE, slave.CONFIG_FORMAT) == (variables.CONFIG_FILE,
+                                                        variables.CONFIG_FORMAT)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from msagv.plant import load_vehicle
-from msagv.plant.stepping import input_names, signal_names
+from msagv.plant.signals import input_names, signal_names
 
 import reference_model as ref  # tests/ is not a package: pytest puts it on sys.path
 from helpers import THREE_AXLE_TOML, run_msagv

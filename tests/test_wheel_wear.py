@@ -10,7 +10,7 @@ import pytest
 from msagv.plant import Plant, default_vehicle, n_axle_vehicle, vehicle_from_dict
 from msagv.plant import dynamics as dyn
 from msagv.plant import layout as lay
-from msagv.plant.stepping import WHEEL_POWERS, WHEEL_WORK, signal_names, wheel_wear_names
+from msagv.plant.signals import WHEEL_POWERS, WHEEL_WORK, signal_names, wheel_wear_names
 
 
 def _vehicle(n, **plant_opts):
