@@ -257,42 +257,50 @@ class HorizonOCP:
     def __init__(self, model, settings: MPCSettings, options: AcadosOptions = AcadosOptions()):
         Acados.check_supported(settings)
         acados = _import_acados()
-        from acados.acados_template import AcadosModel, AcadosOcp, AcadosOcpSolver
-
         self.settings, self.options = settings, options
         nw = model.n_wheels
         self.nw, self.nz = nw, 2 * nw
         self.nx6 = lay.x0_size(nw)  # the prediction state
-        nx = self.nx6 + self.nz + 3  # + the last step's wear powers [kW]
-        nu = self.nz
-        Np = settings.N_p
-        self.N, self.nx, self.nu = Np, nx, nu
-        # the first step of each block
-        starts, k = [], 0
-        for b in settings.blocks:
-            starts.append(k)
-            k += b
-        self.starts = starts
-        L = settings.effective_L
-        self.linear = any(v > 0 for v in L[3:])
+        self.nx = self.nx6 + self.nz + 3  # + the last step's wear powers [kW]
+        self.nu = self.nz
+        self.N = settings.N_p
+        self.starts = [int(k) for k in np.cumsum((0,) + settings.blocks[:-1])]  # blocks' first steps
+        self.linear = any(v > 0 for v in settings.effective_L[3:])
+        s, u, p, f, y, ye = self._export_model(model)
+        self.ny = int(y.shape[0])
+        self._weights(settings)
+        lower, upper, _ = model.box()
+        self.box_lo, self.box_hi = lower[:self.nu].copy(), upper[:self.nu].copy()
+        key = self._key(model, settings, options, acados)
+        ocp = self._ocp(f"msagv_{key[:16]}", s, u, p, f, y, ye)
+        self.traj_fn = self._trajectory_function(model, s, u, p, f)
+        self._build(ocp, cache_dir() / key)
+        self._set_constant_data()
 
-        s = ca.SX.sym("s", nx)
+    # ---- the model, the OCP, the build (acados' examples: export the model, set up the
+    # ---- OCP from it, cache the generated solver apart) ----
+    def _export_model(self, model):
+        """The symbolic stage: state ``s``, control ``u``, parameter ``p`` (the reference
+        row), discrete dynamics ``f`` and the least-squares residuals ``y`` (stages) and
+        ``ye`` (terminal), from the prediction's mirror (module docstring)."""
+        nx6, nu = self.nx6, self.nu
+        s = ca.SX.sym("s", self.nx)
         u = ca.SX.sym("u", nu)
         p = ca.SX.sym("p", lay.N_REF)
-        zc = s[self.nx6:self.nx6 + nu]
-        wp = s[self.nx6 + nu:]
+        zc = s[nx6:nx6 + nu]
+        wp = s[nx6 + nu:]
         znew = zc + u
         X = [None] * 3
         X[lay.POSE_X], X[lay.POSE_Y], X[lay.POSE_PHI] = s[lay.X0_X], s[lay.X0_Y], s[lay.X0_PHI]
         V = [s[lay.X0_VX], s[lay.X0_VY], s[lay.X0_R]]
-        delta = [s[lay.X0_DELTA + j] for j in range(nw)]
+        delta = [s[lay.X0_DELTA + j] for j in range(self.nw)]
         refk = [p[i] for i in range(lay.N_REF)]
         X1, V1, delta1, wear, _ = symbolic_step(X, V, delta, refk, znew, 0, model.P, model.S,
-                                                model.wx, model.wy, eps=options.eps_w)
-        nxt = [None] * self.nx6
+                                                model.wx, model.wy, eps=self.options.eps_w)
+        nxt = [None] * nx6
         nxt[lay.X0_X], nxt[lay.X0_Y], nxt[lay.X0_PHI] = X1[lay.POSE_X], X1[lay.POSE_Y], X1[lay.POSE_PHI]
         nxt[lay.X0_VX], nxt[lay.X0_VY], nxt[lay.X0_R] = V1
-        for j in range(nw):
+        for j in range(self.nw):
             nxt[lay.X0_DELTA + j] = delta1[j]
         pw = [None] * 3
         for i in (lay.WEAR_S, lay.WEAR_ALPHA, lay.WEAR_T):
@@ -302,10 +310,15 @@ class HorizonOCP:
                          _wrap(s[lay.X0_PHI] - p[lay.REF_PHI]))
         ye = [err, wp] + ([ca.sqrt(wp)] if self.linear else [])
         y = ca.vertcat(*ye, u, znew)
-        self.ny = int(y.shape[0])
+        return s, u, p, f, y, ca.vertcat(*ye)
 
-        # weights: J = sum_k |y_k|^2_W (acados: 1/2 |.|^2_W, hence the 2); stage k weighs
-        # the pose reached and the wear of the step before it (none at k = 0: given)
+    def _weights(self, settings: MPCSettings) -> None:
+        """``W`` per stage and ``W_e``: J = sum_k |y_k|^2_W (acados: 1/2 |.|^2_W, hence the
+        2); stage k weighs the pose reached and the wear of the step before it (none at
+        k = 0: given); the smoothing at every step (nonzero only at block starts), the
+        ridge once per block."""
+        nw, nu, Np = self.nw, self.nu, self.N
+        L = settings.effective_L
         Q = np.asarray(settings.Q, float)
         Rr = np.asarray(settings.R, float)
         smooth = np.r_[np.full(nw, Rr[lay.R_DW]), np.full(nw, Rr[lay.R_DD])]
@@ -315,21 +328,22 @@ class HorizonOCP:
         self.W = []
         for k in range(Np):
             w = [wq if k > 0 else np.zeros_like(wq), smooth,
-                 ridge if k in starts else np.zeros(nu)]
+                 ridge if k in self.starts else np.zeros(nu)]
             self.W.append(2.0 * np.diag(np.concatenate(w)))
         self.W_e = 2.0 * np.diag(wq)
+        self._n_terminal = len(wq)
 
-        lower, upper, _ = model.box()
-        self.box_lo, self.box_hi = lower[:nu].copy(), upper[:nu].copy()
+    def _ocp(self, name: str, s, u, p, f, y, ye):
+        """The acados OCP of the exported model: cost, bounds, solver options."""
+        from acados.acados_template import AcadosModel, AcadosOcp
 
-        key = self._key(model, settings, options, acados)
-        name = f"msagv_{key[:16]}"
+        nu, nx6, Np, options = self.nu, self.nx6, self.N, self.options
         am = AcadosModel()
         am.name = name
         am.x, am.u, am.p = s, u, p
         am.disc_dyn_expr = f
         am.cost_y_expr = y
-        am.cost_y_expr_e = ca.vertcat(*ye)
+        am.cost_y_expr_e = ye
         ocp = AcadosOcp()
         ocp.model = am
         ocp.dims.N = Np
@@ -342,16 +356,16 @@ class HorizonOCP:
         ocp.cost.W = self.W[1]
         ocp.cost.W_e = self.W_e
         ocp.cost.yref = np.zeros(self.ny)
-        ocp.cost.yref_e = np.zeros(len(wq))
-        big = 2.0 * np.maximum(np.abs(self.box_lo), np.abs(self.box_hi))
-        ocp.constraints.x0 = np.zeros(nx)
+        ocp.cost.yref_e = np.zeros(self._n_terminal)
+        self._big = 2.0 * np.maximum(np.abs(self.box_lo), np.abs(self.box_hi))
+        ocp.constraints.x0 = np.zeros(self.nx)
         ocp.constraints.idxbu = np.arange(nu)
-        ocp.constraints.lbu = -big
-        ocp.constraints.ubu = big
-        ocp.constraints.idxbx = np.arange(self.nx6, self.nx6 + nu)
+        ocp.constraints.lbu = -self._big
+        ocp.constraints.ubu = self._big
+        ocp.constraints.idxbx = np.arange(nx6, nx6 + nu)
         ocp.constraints.lbx = self.box_lo
         ocp.constraints.ubx = self.box_hi
-        ocp.constraints.idxbx_e = np.arange(self.nx6, self.nx6 + nu)
+        ocp.constraints.idxbx_e = np.arange(nx6, nx6 + nu)
         ocp.constraints.lbx_e = self.box_lo
         ocp.constraints.ubx_e = self.box_hi
         so = ocp.solver_options
@@ -366,9 +380,13 @@ class HorizonOCP:
         so.ext_fun_compile_flags = options.compile_flags
         if options.cond_N is not None:
             so.qp_solver_cond_N = options.cond_N
-        # the state trajectory of a decision vector (the warm start as the linearisation
-        # point), compiled to C beside the solver
-        x0 = ca.SX.sym("x0", nx)
+        return ocp
+
+    def _trajectory_function(self, model, s, u, p, f):
+        """The state trajectory of a decision vector (the warm start as the linearisation
+        point), as a CasADi function compiled to C beside the solver."""
+        nu, nx6, Np = self.nu, self.nx6, self.N
+        x0 = ca.SX.sym("x0", self.nx)
         ref = ca.SX.sym("ref", Np + 1, lay.N_REF)
         z = ca.SX.sym("z", model.dim)
         Fs = ca.Function("f", [s, u, p], [f])
@@ -376,12 +394,18 @@ class HorizonOCP:
         cur = x0
         for k in range(Np):
             b = int(model.block[k])
-            uk = z[b * nu:(b + 1) * nu] - cur[self.nx6:self.nx6 + nu] if k in starts \
+            uk = z[b * nu:(b + 1) * nu] - cur[nx6:nx6 + nu] if k in self.starts \
                 else ca.DM.zeros(nu)
             cur = Fs(cur, uk, ref[k, :].T)
             traj.append(cur)
-        self.traj_fn = ca.Function("msagv_traj", [x0, ref, z], [ca.horzcat(*traj)]).expand()
-        d = cache_dir() / key
+        return ca.Function("msagv_traj", [x0, ref, z], [ca.horzcat(*traj)]).expand()
+
+    def _build(self, ocp, d: Path) -> None:
+        """Generate and compile the solver and the trajectory into ``d`` once per
+        configuration (cached; one build at a time, under a lock), then load them."""
+        from acados.acados_template import AcadosOcpSolver
+
+        name = ocp.model.name
         d.mkdir(parents=True, exist_ok=True)
         ocp.code_export_directory = str(d / "c_generated_code")
         json_file = str(d / "ocp.json")
@@ -412,16 +436,21 @@ class HorizonOCP:
         _LIVE.add(self)
         self.cache = d
         self._bind()
+        self._load_traj(d / "libtraj.so")
+
+    def _set_constant_data(self) -> None:
+        """What every solve shares: the weights per stage, the controls fixed to 0 inside
+        a block, the offset box at stages 1..N."""
+        Np, nu = self.N, self.nu
         for k in range(Np):
             self._cost_set(k, "W", self.W[k])
-            lim = np.zeros(nu) if k not in starts else big
+            lim = np.zeros(nu) if k not in self.starts else self._big
             self._con_set(k, "lbu", -lim)
             self._con_set(k, "ubu", lim)
         self._cost_set(Np, "W", self.W_e)
         for k in range(1, Np + 1):
             self._con_set(k, "lbx", self.box_lo)
             self._con_set(k, "ubx", self.box_hi)
-        self._load_traj(d / "libtraj.so")
 
     def _compile_traj(self, d: Path, log) -> None:
         cg = ca.CodeGenerator("traj.c", {"with_header": False})
