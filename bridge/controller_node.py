@@ -28,7 +28,7 @@ from typing import Callable
 import numpy as np
 
 from . import messages as M
-from .loss import LOST, LossTimer
+from .loss import LOST, STALE_MS, LossTimer
 from .ownership import CLAIM, CLAIM_REFRESH_S, CLAIM_RETRY_S, RELEASE, claim, params_replies, \
     source_info, source_zid
 from .plant_node import percentiles_ms
@@ -516,11 +516,11 @@ class PlantParams:
 def realtime_defaults(run_mode: str | None, deadline_ms: float | None,
                       max_age_ms: float | None) -> tuple[float | None, float | None]:
     """The solve budget and the command age bound against a plant of ``run_mode``: against
-    a realtime plant ``REALTIME_DEADLINE_MS`` and the plant's default staleness bound (50 ms)
-    unless given; in lockstep only what is given."""
+    a realtime plant ``REALTIME_DEADLINE_MS`` and the plant's default staleness bound
+    (:data:`bridge.loss.STALE_MS`) unless given; in lockstep only what is given."""
     if run_mode == "realtime":
         return (REALTIME_DEADLINE_MS if deadline_ms is None else deadline_ms,
-                50.0 if max_age_ms is None else max_age_ms)
+                STALE_MS if max_age_ms is None else max_age_ms)
     return deadline_ms, max_age_ms
 
 

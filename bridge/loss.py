@@ -32,6 +32,12 @@ from dataclasses import dataclass
 
 RUN, HOLD, SAFE = "run", "hold", "safe"
 
+STALE_MS = 50.0
+"""The realtime plant's default staleness bound [ms of vehicle time]: more than
+``STALE_MS / T`` consecutive periods without an answer put it in its safe behaviour
+(``msagv plant --stale-ms``), and a controller facing a realtime plant never sends a
+command for a state older than this (``msagv controller --max-age-ms``'s default)."""
+
 
 @dataclass
 class Decision:

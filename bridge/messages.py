@@ -21,6 +21,8 @@ from typing import Any, Mapping
 
 import msgpack
 
+from msagv.plant.interface import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
+
 VERSION = 1
 CONTENT_TYPE = "application/msgpack"
 
@@ -51,14 +53,14 @@ REASONS = (NOT_MSGPACK, NOT_A_MAP, VERSION_MISMATCH, MISSING_FIELD, EXTRA_FIELD,
 
 # field tables: name -> kind. kinds: "int" (>= 0), "float" (finite), "wheels" (2n finite
 # floats), "wheels+" (2n finite floats >= 0), "bool", "float+" (finite, >= 0), "str"
-STATE_REQUIRED = {"v": "int", "seq": "int", "t": "float", "x": "float", "y": "float",
-                  "phi": "float", "vx": "float", "vy": "float", "r": "float",
+# the state's field names are the plant interface's (msagv.plant.interface): the body's
+# BODY_FIELDS, the wear work WEAR_FIELDS, and the per-wheel wear work WHEEL_WEAR_FIELDS
+# (arrays in the wheel order), sent only to peers that asked for it (docs/PROTOCOL.md,
+# "Per-wheel wear"), as a peer of the first version rejects them
+STATE_REQUIRED = {"v": "int", "seq": "int", "t": "float", **dict.fromkeys(BODY_FIELDS, "float"),
                   "delta": "wheels", "omega_w": "wheels+"}
-STATE_OPTIONAL = {"W_s": "float", "W_alpha": "float", "W_t": "float", "safe": "bool",
-                  "end": "bool", "W_s_ij": "wheels", "W_alpha_ij": "wheels", "W_t_ij": "wheels"}
-# the per-wheel wear work (arrays in the wheel order): sent only to peers that asked for it
-# (docs/PROTOCOL.md, "Per-wheel wear"), as a peer of the first version rejects them
-WHEEL_WEAR_FIELDS = ("W_s_ij", "W_alpha_ij", "W_t_ij")
+STATE_OPTIONAL = {**dict.fromkeys(WEAR_FIELDS, "float"), "safe": "bool", "end": "bool",
+                  **dict.fromkeys(WHEEL_WEAR_FIELDS, "wheels")}
 CMD_REQUIRED = {"v": "int", "seq": "int", "t": "float", "state_seq": "int",
                 "omega_w": "wheels+", "omega_s": "wheels"}
 CMD_OPTIONAL = {"solve_ms": "float+", "cost": "float"}
@@ -95,11 +97,11 @@ def encode_state(seq: int, state: Mapping[str, Any], *, safe: bool | None = None
     ``wheel_wear``: include the per-wheel wear work ``W_s_ij, W_alpha_ij, W_t_ij`` when the
     fields have them (False: leave them out, for a peer that does not know them)."""
     m = {"v": VERSION, "seq": int(seq), "t": float(state["t"])}
-    for k in ("x", "y", "phi", "vx", "vy", "r"):
+    for k in BODY_FIELDS:
         m[k] = float(state[k])
     m["delta"] = _floats(state["delta"])
     m["omega_w"] = _floats(state["omega_w"])
-    for k in ("W_s", "W_alpha", "W_t"):
+    for k in WEAR_FIELDS:
         if k in state:
             m[k] = float(state[k])
     if wheel_wear:

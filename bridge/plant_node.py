@@ -33,9 +33,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msagv.controller.metrics import percentiles
+from msagv.plant.interface import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
 
 from . import messages as M
-from .loss import SAFE, CommandWatch
+from .loss import SAFE, STALE_MS, CommandWatch
 from .ownership import (CLAIM, Ownership, decode_claim, encode_grant, source_info,
                         source_zid)
 from .presence import TokenSet
@@ -77,7 +78,7 @@ class PlantConfig:
     steps: int = 100
     timeout_s: float = 10.0
     wait_s: float = 60.0
-    stale_ms: float = 50.0
+    stale_ms: float = STALE_MS
     safe_decel: float = 2.0
     linger_s: float = 0.2
     resume_periods: int = 3
@@ -573,9 +574,8 @@ class PlantNode:
             "periods": (self.watch.summary() if self.cfg.run_mode == "realtime" else None),
             "ownership": self.ownership.summary(),
             "rejected": self.rej.summary(),
-            "final_state": {k: fs[k] for k in ("t", "x", "y", "phi", "vx", "vy", "r", "W_s",
-                                               "W_alpha", "W_t") + M.WHEEL_WEAR_FIELDS
-                            if k in fs},
+            "final_state": {k: fs[k] for k in ("t",) + BODY_FIELDS + WEAR_FIELDS
+                            + WHEEL_WEAR_FIELDS if k in fs},
         }
 
 

@@ -242,7 +242,3 @@ def secure_config(directory, identity: str) -> dict:
            "connect_private_key": key, "connect_certificate": cert,
            "verify_name_on_connect": True}
     return {"transport/link/tls": tls, "access_control": acl_config(manifest)}
-
-
-def identity_role(directory, identity: str) -> str:
-    return read_manifest(directory)["identities"][identity]["role"]

@@ -17,6 +17,7 @@ import sys
 import threading
 
 from msagv.bridge import messages as M
+from msagv.bridge.loss import STALE_MS
 from msagv.bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtime_priority,
                             setup_logging)
 
@@ -221,7 +222,7 @@ def controller_parser() -> argparse.ArgumentParser:
                          "(default 60; not needed with --vehicle)")
     ap.add_argument("--max-age-ms", type=float, metavar="MS",
                     help="never send a command for a state older than this (default: "
-                         "50 against a realtime plant, none in lockstep)")
+                         f"{STALE_MS:g} against a realtime plant, none in lockstep)")
     ap.add_argument("--on-plant-loss", choices=list(ON_PLANT_LOSS), default=d.on_plant_loss,
                     help="when the plant's token disappears: wait for it or exit 3 "
                          f"(default {d.on_plant_loss})")
