@@ -84,6 +84,7 @@ def bench_transport(seconds: float = 5.0, period: float = T) -> dict:
     from msagv.bridge.process import free_port
     from msagv.bridge.presence import Presence
     from msagv.bridge.session import Keys, SessionOptions, open_session
+    from msagv.bridge.zenoh_transport import ZenohTransport
 
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
@@ -114,7 +115,7 @@ def bench_transport(seconds: float = 5.0, period: float = T) -> dict:
             sub = s.declare_subscriber(k.cmd, on_cmd)
             pub = s.declare_publisher(k.state, express=True, priority=zenoh.Priority.REAL_TIME,
                                       congestion_control=zenoh.CongestionControl.BLOCK)
-            ctl = Presence(s, k.controller_token())
+            ctl = Presence(ZenohTransport(s, owns=False), k.controller_token())
             t_wait = time.monotonic()
             while not (ctl.present and pub.matching_status.matching):
                 if time.monotonic() - t_wait > 60 or child.poll() is not None:

@@ -10,6 +10,10 @@ the plant grants it, answers every ``state`` with a ``cmd`` naming the state it 
 ``msagv/{id}/alive/plant/{zid}`` is gone, and decides the plant is lost only after
 :class:`bridge.loss.LossTimer`'s confirmation time of its own running time.
 
+:class:`ControllerNode` is the process's logic; it talks to the bus only through a
+:class:`bridge.transport.Transport` (Zenoh in the process, :mod:`bridge.loopback` in the
+tests); :func:`serve` opens the Zenoh one unless given another.
+
 Determinism (lockstep): the MPC is warmed up (kernels compiled) and then reset, and it is
 reset again at every state with ``seq = 0`` (a new plant run), exactly as
 :func:`controller.loop.closed_loop` does, so a lockstep run over Zenoh gives the commands of
@@ -23,18 +27,20 @@ import logging
 import signal
 import threading
 import time
+from contextlib import nullcontext
 from typing import Callable
 
 import numpy as np
 
 from . import messages as M
 from .loss import LOST, STALE_MS, LossTimer
-from .ownership import CLAIM, CLAIM_REFRESH_S, CLAIM_RETRY_S, RELEASE, claim, params_replies, \
-    source_info, source_zid
+from .ownership import CLAIM_REFRESH_S, CLAIM_RETRY_S, RELEASE, claim, params_replies
 from .plant_node import percentiles_ms
 from .presence import Presence
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, freeze_heap
-from .session import Keys, SessionError, SessionOptions, open_session
+from .session import Keys, SessionError, SessionOptions
+from .transport import Sample, Transport
+from .zenoh_transport import ZenohTransport
 
 log = logging.getLogger("msagv.controller")
 
@@ -43,7 +49,6 @@ REALTIME_DEADLINE_MS = 7.0  # solve budget used against a realtime plant unless 
 
 FALLBACK_LOSS_S = 2.0  # s without a state before a plant known only by its states is gone
 LOSS_CONFIRM_S = 2.0  # s of running time without the plant before it is lost
-LOCAL = object()  # handle_state's source when a test feeds it directly: no binding check
 
 
 ON_PLANT_LOSS = ("wait", "exit")  # --on-plant-loss
@@ -88,16 +93,18 @@ class ControllerStats:
 
 
 class ControllerNode:
-    """The controller process's logic. ``session`` None: a test feeds :meth:`handle_state`
-    and reads :attr:`sent`."""
+    """The controller process's logic: :meth:`open` it on a transport, :meth:`run`,
+    :meth:`close`. Everything it does on the bus goes through that
+    :class:`bridge.transport.Transport`. ``plant_zid``: the identity of the plant whose
+    params it was built for (None: it binds to the one plant that answers its claim)."""
 
-    def __init__(self, mpc, keys: Keys, cfg: ControllerConfig, session=None, recorder=None,
+    def __init__(self, mpc, keys: Keys, cfg: ControllerConfig, recorder=None,
                  plant_zid: str | None = None, rebind: Callable[[], str] | None = None):
         self.mpc = mpc
         self.nw = mpc.vehicle.n_wheels
         self.keys = keys
         self.cfg = cfg
-        self.session = session
+        self.transport: Transport | None = None  # open()
         self.rec = recorder
         self.rej = M.Rejections(f"controller {keys.id}", log)
         self.stats = ControllerStats()
@@ -113,9 +120,8 @@ class ControllerNode:
         self._again = None  # a held state to answer although its seq was seen
         self._last_seq: int | None = None
         self._cmd_seq = 0
-        self.plant_present = session is None
-        self.plant_seen = session is None
-        self.sent: list[bytes] = []
+        self.plant_present = False
+        self.plant_seen = False
         self.exit_reason: str | None = None
         self._pub = None
         self._decls: list = []
@@ -123,33 +129,28 @@ class ControllerNode:
         # ownership: the plant session we are bound to, and whether it grants us the vehicle
         self.plant_zid = plant_zid
         self._rebind = rebind  # fetches the params again; returns the new plant's zid
-        self.granted = session is None
+        self.granted = False
         self.owner: str | None = None
-        self.zid: str | None = None
         self._claim_wake = threading.Event()
         self._closing = threading.Event()
         self._claimer: threading.Thread | None = None
         self.loss = LossTimer(LOSS_CONFIRM_S)
 
     # ---- transport ---------------------------------------------------------------------
-    def open(self) -> None:
-        import zenoh
-
-        s, k = self.session, self.keys
-        self.zid = str(s.zid())
+    def open(self, transport: Transport) -> None:
+        """Declare on ``transport`` the cmd publisher, the state and reference subscribers,
+        the token, and start claiming the vehicle."""
+        t, k = transport, self.keys
+        self.transport = t
         if self.plant_zid is not None:
             self._watch_plant(self.plant_zid)
-        self._pub = s.declare_publisher(k.cmd, express=True, priority=zenoh.Priority.REAL_TIME,
-                                        congestion_control=zenoh.CongestionControl.BLOCK,
-                                        encoding=zenoh.Encoding(M.CONTENT_TYPE))
-        self._decls.append(s.declare_subscriber(
-            k.state, lambda smp: self.handle_state(smp.payload.to_bytes(), time.perf_counter(),
-                                                   source=source_zid(smp))))
-        self._decls.append(s.declare_subscriber(
-            k.reference, lambda smp: self.handle_reference(smp.payload.to_bytes())))
+        self._pub = t.publisher(k.cmd)
+        self._decls.append(t.subscribe(k.state, self._on_state_sample))
+        self._decls.append(t.subscribe(k.reference,
+                                       lambda smp: self.handle_reference(smp.payload)))
         # the token, then the claim: a plant that grants us the vehicle finds our token and
         # our state subscriber declared
-        self._token = s.liveliness().declare_token(k.controller_token(self.zid))
+        self._token = t.declare_token(k.controller_token(t.id))
         self._claimer = threading.Thread(target=self._claim_loop, daemon=True,
                                          name=f"claim {k.id}")
         self._claimer.start()
@@ -157,7 +158,7 @@ class ControllerNode:
     def _watch_plant(self, zid: str) -> None:
         """Bind to the plant session ``zid``: its token is the plant's presence."""
         self.plant_zid = zid
-        self._plant_presence = Presence(self.session, self.keys.plant_token(zid),
+        self._plant_presence = Presence(self.transport, self.keys.plant_token(zid),
                                         self._on_plant_token)
         self._decls.append(self._plant_presence)
         log.info("bound to plant session %s", zid)
@@ -184,9 +185,16 @@ class ControllerNode:
         n = 0
         while not self._closing.is_set():
             bound = self.plant_zid
+            if bound is None and self._rebind is not None:
+                # between two plants (the next one's params not fetched yet): a claim now
+                # would make the next plant grant us the vehicle and publish its first
+                # state before we are bound to it, a state we would reject (not_bound)
+                self._claim_wake.wait(CLAIM_RETRY_S)
+                self._claim_wake.clear()
+                continue
             try:
-                replies = claim(self.session, self.keys, source_info(self._pub, n))
-            except Exception as e:  # the session is closing
+                replies = claim(self.transport, self.keys, n)
+            except Exception as e:  # the transport is closing
                 log.debug("claim failed: %s", e)
                 replies = []
             n += 1
@@ -220,7 +228,7 @@ class ControllerNode:
         elif was and not granted:
             log.warning("plant %s no longer grants vehicle %s to this controller (owner: %s): "
                         "not commanding", self.plant_zid, self.keys.id, owner or "nobody")
-        elif not granted and owner is not None and owner != self.zid:
+        elif not granted and owner is not None and owner != self.transport.id:
             log.debug("vehicle %s is owned by %s; waiting", self.keys.id, owner)
         if self.rec is not None and granted != was:
             self.rec.event("granted", granted=granted, owner=owner)
@@ -228,16 +236,16 @@ class ControllerNode:
     def close(self) -> None:
         self._closing.set()
         self._claim_wake.set()
-        if self.granted and self.session is not None and self._pub is not None:
+        if self.granted:
             try:  # hand the vehicle back at once (the plant also notices our token going)
-                claim(self.session, self.keys, source_info(self._pub, 0), RELEASE, timeout=0.3)
+                claim(self.transport, self.keys, 0, RELEASE, timeout=0.3)
             except Exception:
                 pass
             self.granted = False
         for obj in [self._token] + self._decls + [self._pub]:
             if obj is not None:
                 try:
-                    obj.close() if isinstance(obj, Presence) else obj.undeclare()
+                    obj.close()
                 except Exception:
                     pass
         self._token, self._decls, self._pub = None, [], None
@@ -287,15 +295,18 @@ class ControllerNode:
             self._on_plant_change(False, via="states")
 
     # ---- incoming ----------------------------------------------------------------------
-    def handle_state(self, payload: bytes, rx_perf: float, source=LOCAL) -> dict | None:
+    def _on_state_sample(self, sample: Sample) -> None:
+        self.handle_state(sample.payload, time.perf_counter(), sample.sender)
+
+    def handle_state(self, payload: bytes, rx_perf: float, sender: str | None) -> dict | None:
         """Validate a state; the newest valid one is solved next. Returns it, or None.
-        ``source``: the sending session's zid; a state not from the bound plant is
-        rejected as ``not_bound``."""
+        ``sender``: the sender's identity (None: the message carried none); a state not
+        from the bound plant is rejected as ``not_bound``."""
         key = self.keys.state
         try:
             st = M.decode_state(payload, self.nw)
-            if source is not LOCAL and (source is None or source != self.plant_zid):
-                who = source or "a session without source info"
+            if sender is None or sender != self.plant_zid:
+                who = sender or "a session without source info"
                 raise M.MessageError(M.NOT_BOUND, f"from {who}; bound to plant "
                                                   f"{self.plant_zid or '(none yet)'}")
         except M.MessageError as e:
@@ -307,8 +318,7 @@ class ControllerNode:
             self.rec.message("rx", key, payload)
         self._last_state_rx = time.monotonic()
         pres = self._plant_presence
-        if not self.plant_present and pres is not None and (
-                pres.generation == 0 or (source is not LOCAL and source == self.plant_zid)):
+        if not self.plant_present and pres is not None:
             # Zenoh did not deliver the plant's token to this session (seen in a mesh of
             # peers with gossip off: the token neither arrived nor answered a query), or
             # reported it gone while the plant (bound, by its session id) still sends its
@@ -450,10 +460,7 @@ class ControllerNode:
             return "not granted"
         payload = M.encode_cmd(self._cmd_seq, st["t"], seq, cmd.omega_w, cmd.omega_s,
                                solve_ms=cmd.solve_ms, cost=cmd.cost)
-        if self._pub is not None:
-            self._pub.put(payload, source_info=source_info(self._pub, self._cmd_seq))
-        else:
-            self.sent.append(payload)
+        self._pub.put(payload, self._cmd_seq)
         self._cmd_seq += 1
         if self.rec is not None:
             self.rec.message("tx", self.keys.cmd, payload)
@@ -524,8 +531,9 @@ def realtime_defaults(run_mode: str | None, deadline_ms: float | None,
     return deadline_ms, max_age_ms
 
 
-def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> tuple[dict, str]:
-    """The plant's params (validated) and the zid of the plant session that answered,
+def fetch_params(transport: Transport, keys: Keys, wait_s: float, stop: threading.Event
+                 ) -> tuple[dict, str]:
+    """The plant's params (validated) and the identity of the plant that answered,
     retrying until ``wait_s`` (0: forever). Answers from two or more different sessions are
     refused (a second plant, or a rogue, on the same vehicle id): nothing is bound, and the
     query is repeated."""
@@ -535,7 +543,7 @@ def fetch_params(session, keys: Keys, wait_s: float, stop: threading.Event) -> t
     while not stop.is_set():
         try:
             good: dict[str, dict] = {}
-            for zid, payload in params_replies(session, keys, timeout=1.0):
+            for zid, payload in params_replies(transport, keys, timeout=1.0):
                 try:
                     m = M.decode_params(payload)
                 except M.MessageError as e:
@@ -572,11 +580,59 @@ class SetupError(ValueError):
     scenario cannot use); nothing ran (exit 2)."""
 
 
+def _plant_params(transport: Transport, keys: Keys, wait_s: float, stop: threading.Event
+                  ) -> tuple[PlantParams, dict, str]:
+    """The params of the one plant that answers (:func:`fetch_params`), with its vehicle
+    built: ``(params, the raw params message, the plant's identity)``."""
+    from msagv.plant.vehicle import VehicleError, vehicle_from_dict
+
+    p, plant_zid = fetch_params(transport, keys, wait_s, stop)
+    try:
+        vehicle = vehicle_from_dict(p["vehicle"])
+    except VehicleError as e:
+        raise ControllerRunError(f"the plant's params: vehicle: {e}") from None
+    params = PlantParams(vehicle, p["period"], p["run_mode"])
+    log.info("plant params: %s, %d wheels, T = %g s, %s", vehicle.name, vehicle.n_wheels,
+             params.period, params.run_mode)
+    return params, p, plant_zid
+
+
+def _warm_up(mpc, on_signal_install: Callable[[], None] | None) -> float:
+    """Compile the MPC (then reset its warm start and RNG); returns the seconds it took.
+    SIGTERM acts at once meanwhile (compiling cannot be interrupted from Python); the
+    caller's handlers come back after."""
+    t0 = time.perf_counter()
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    mpc.warmup()
+    if on_signal_install is not None:
+        on_signal_install()
+    return time.perf_counter() - t0
+
+
+def _rebinder(transport: Transport, keys: Keys, p: dict, stop: threading.Event
+              ) -> Callable[[], str | None]:
+    """What the node calls after the loss of its plant: the identity of the plant that
+    answers the params next (None: stopped), or exit 3 if its params differ from ``p``."""
+
+    def rebind() -> str | None:
+        try:
+            q, zid = fetch_params(transport, keys, 0.0, stop)
+        except ControllerRunError:
+            return None  # stopped
+        if q != p:
+            raise ControllerRunError(
+                f"the plant now answering {keys.params} (session {zid}) has other params "
+                f"than the one this controller was built for; restart the controller")
+        return zid
+
+    return rebind
+
+
 def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object],
           cfg: ControllerConfig, *, fetch: bool = True, wait_s: float = 60.0,
           open_recorder: Callable[[object, PlantParams | None], object] | None = None,
-          stop: threading.Event | None = None, on_signal_install: Callable[[], None] | None = None
-          ) -> tuple[dict, int]:
+          stop: threading.Event | None = None, on_signal_install: Callable[[], None] | None = None,
+          transport: Transport | None = None) -> tuple[dict, int]:
     """Run the controller process: open the Zenoh session, fetch the plant's params (unless
     ``fetch`` is False: the caller's vehicle is used), build the MPC with
     ``make_mpc(params)``, warm it up, answer states until stopped, close everything.
@@ -586,7 +642,9 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
     with the summary). ``cfg.max_age_ms`` None takes :func:`realtime_defaults`' bound for
     the plant's run mode. ``on_signal_install`` installs the caller's signal handlers once
     the session is open, and again after the warm-up (compiling cannot be interrupted from
-    Python, so SIGTERM acts at once meanwhile). Returns ``(summary, exit code)``.
+    Python, so SIGTERM acts at once meanwhile). ``transport``: an open transport to run on
+    instead of the Zenoh session of ``opts`` (the caller closes it). Returns
+    ``(summary, exit code)``.
     """
     keys = Keys(opts.id)
     stop = stop or threading.Event()
@@ -595,22 +653,13 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
     rc = EXIT_OK
     summary: dict = {"role": "controller", "id": keys.id}
     try:
-        with open_session(opts, "controller") as session:
+        with (nullcontext(transport) if transport is not None
+              else ZenohTransport.open(opts, "controller")) as t:
             if on_signal_install is not None:
                 on_signal_install()
-            params = None
-            plant_zid = None
+            params = p = plant_zid = None
             if fetch:
-                p, plant_zid = fetch_params(session, keys, wait_s, stop)
-                from msagv.plant.vehicle import VehicleError, vehicle_from_dict
-
-                try:
-                    vehicle = vehicle_from_dict(p["vehicle"])
-                except VehicleError as e:
-                    raise ControllerRunError(f"the plant's params: vehicle: {e}") from None
-                params = PlantParams(vehicle, p["period"], p["run_mode"])
-                log.info("plant params: %s, %d wheels, T = %g s, %s", vehicle.name,
-                         vehicle.n_wheels, params.period, params.run_mode)
+                params, p, plant_zid = _plant_params(t, keys, wait_s, stop)
             try:
                 mpc = make_mpc(params)
             except ValueError as e:
@@ -619,38 +668,19 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
             if cfg.max_age_ms is None:
                 cfg = dataclasses.replace(cfg, max_age_ms=realtime_defaults(
                     params.run_mode if params else None, None, None)[1])
-            t0 = time.perf_counter()
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
-            mpc.warmup()  # compiles, then resets the warm start and the RNG
-            if on_signal_install is not None:
-                on_signal_install()
+            warm_s = _warm_up(mpc, on_signal_install)
             if stop.is_set():
                 return summary, EXIT_OK
             s = mpc.settings
-            log.info("MPC warm (%.2f s): %s %s, %s, seed %d", time.perf_counter() - t0,
-                     s.method, s.model, mpc.name, s.seed)
+            log.info("MPC warm (%.2f s): %s %s, %s, seed %d", warm_s, s.method, s.model,
+                     mpc.name, s.seed)
             if open_recorder is not None:
                 rec = open_recorder(mpc, params)
-            rebind = None
-            if fetch:
-                def rebind():
-                    """A new plant after the loss of ours: the same params, or exit 3."""
-                    try:
-                        q, zid = fetch_params(session, keys, 0.0, stop)
-                    except ControllerRunError:
-                        return None  # stopped
-                    if q != p:
-                        raise ControllerRunError(
-                            f"the plant now answering {keys.params} (session {zid}) has other "
-                            f"params than the one this controller was built for; restart the "
-                            f"controller")
-                    return zid
-
-            node = ControllerNode(mpc, keys, cfg, session=session, recorder=rec,
-                                  plant_zid=plant_zid, rebind=rebind)
+            node = ControllerNode(mpc, keys, cfg, recorder=rec, plant_zid=plant_zid,
+                                  rebind=_rebinder(t, keys, p, stop) if fetch else None)
             node.stop = stop
             freeze_heap()
-            node.open()
+            node.open(t)
             log.info("controller ready on %s", keys.state)
             try:
                 node.run()

@@ -1,13 +1,13 @@
 """Who drives the vehicle: one controller session owns it, and each controller is bound to
 one plant session (docs/PROTOCOL.md, "Ownership").
 
-Identity is the Zenoh session id (zid). The sender of a sample is the ``zid`` of the
-``source_info`` the sender attaches (the controller to every ``cmd`` and ``claim``, the
-plant to every ``state``); the sender of a reply is Zenoh's ``replier_id``; the holder of
-a liveliness token is the last chunk of its key (``alive/controller/{zid}``,
-``alive/plant/{zid}``). On a plain bus these are what the sender says (Zenoh's Python API
-can only attach the ids of its own session); ``--secure`` makes Zenoh check who may send
-what (:mod:`bridge.security`).
+Identity is the transport's (:class:`bridge.transport.Transport`: ``id``, a message's
+``sender``, a reply's ``sender``); over Zenoh it is the session id (zid), which the
+sender attaches to every ``cmd``, ``claim`` and ``state`` as ``source_info``, and a
+reply's sender is Zenoh's ``replier_id``. The holder of a liveliness token is the last
+chunk of its key (``alive/controller/{zid}``, ``alive/plant/{zid}``). On a plain bus these
+are what the sender says (Zenoh's Python API can only attach the ids of its own session);
+``--secure`` makes Zenoh check who may send what (:mod:`bridge.security`).
 
 * The plant (:class:`Ownership`) grants the vehicle to the first controller that claims
   it (a ``get`` on ``msagv/{id}/claim``), applies commands only from that session
@@ -62,21 +62,6 @@ def encode_grant(granted: bool, owner: str | None) -> bytes:
 
 def decode_grant(payload) -> dict:
     return M._fields(M.unpack(payload, MAX_CLAIM_BYTES), GRANT_REQUIRED, GRANT_OPTIONAL, None)
-
-
-def source_zid(sample_or_query) -> str | None:
-    """The zid in a sample's (or query's) ``source_info``; None if it carries none."""
-    si = getattr(sample_or_query, "source_info", None)
-    if si is None or si.source_id is None:
-        return None
-    return str(si.source_id.zid)
-
-
-def source_info(entity, sn: int):
-    """The ``source_info`` naming ``entity``'s session (a publisher's ``id``)."""
-    import zenoh
-
-    return zenoh.SourceInfo(entity.id, int(sn) & 0xFFFFFFFF)
 
 
 # ---- the plant's side ----------------------------------------------------------------------
@@ -172,36 +157,25 @@ class Ownership:
 
 
 # ---- the controller's side -----------------------------------------------------------------
-def claim(session, keys, src, action: str = CLAIM, timeout: float = 1.0
+def claim(transport, keys, sn: int, action: str = CLAIM, timeout: float = 1.0
           ) -> list[tuple[str, dict | None]]:
-    """Send a claim (or release) with ``source_info`` ``src``; returns ``[(replier zid,
-    grant or None if malformed)]`` for every plant that answered."""
-    import zenoh
-
+    """Send a claim (or release) as ``transport``'s identity with the sequence number
+    ``sn``; returns ``[(replier, grant or None if malformed)]`` for every plant that
+    answered (error replies and replies without the replier's identity are left out)."""
     out = []
-    for reply in session.get(keys.claim, payload=encode_claim(action), source_info=src,
-                             target=zenoh.QueryTarget.ALL,
-                             consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout):
-        if reply.ok is None or reply.replier_id is None:
+    for reply in transport.query(keys.claim, encode_claim(action), sn=sn, timeout=timeout):
+        if not reply.ok or reply.sender is None:
             continue
         try:
-            g = decode_grant(reply.ok.payload.to_bytes())
+            g = decode_grant(reply.payload)
         except M.MessageError:
             g = None
-        out.append((str(reply.replier_id.zid), g))
+        out.append((reply.sender, g))
     return out
 
 
-def params_replies(session, keys, timeout: float = 1.0) -> list[tuple[str | None, bytes]]:
-    """Every answer to a ``get`` on ``params``: ``[(replier zid, payload)]``."""
-    import zenoh
-
-    out = []
+def params_replies(transport, keys, timeout: float = 1.0) -> list[tuple[str | None, bytes]]:
+    """Every ok answer to a query on ``params``: ``[(replier, payload)]``."""
     # ?wheel_wear=1: this controller understands the per-wheel wear fields of the state
-    for reply in session.get(f"{keys.params}?wheel_wear=1", target=zenoh.QueryTarget.ALL,
-                             consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout):
-        if reply.ok is None:
-            continue
-        rid = reply.replier_id
-        out.append((None if rid is None else str(rid.zid), reply.ok.payload.to_bytes()))
-    return out
+    return [(r.sender, r.payload) for r in
+            transport.query(f"{keys.params}?wheel_wear=1", timeout=timeout) if r.ok]

@@ -1,5 +1,9 @@
 """``msagv plant``: the stepping plant (or a hosted FMU) as a Zenoh process.
 
+:class:`PlantNode` is the process's logic; it talks to the bus only through a
+:class:`bridge.transport.Transport` (Zenoh in the process, :mod:`bridge.loopback` in the
+tests); :func:`serve` opens the Zenoh one unless given another.
+
 Publishes ``msagv/{id}/state`` every control period, applies commands from
 ``msagv/{id}/cmd``, serves the vehicle description on the queryable ``msagv/{id}/params``
 and declares the liveliness token ``msagv/{id}/alive/plant``. Two stepping modes
@@ -28,6 +32,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,11 +42,12 @@ from msagv.plant.interface import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
 
 from . import messages as M
 from .loss import SAFE, STALE_MS, CommandWatch
-from .ownership import (CLAIM, Ownership, decode_claim, encode_grant, source_info,
-                        source_zid)
+from .ownership import CLAIM, Ownership, decode_claim, encode_grant
 from .presence import TokenSet
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_heap
-from .session import Keys, SessionError, SessionOptions, open_session
+from .session import Keys, SessionError, SessionOptions
+from .transport import Query, Sample, Transport
+from .zenoh_transport import ZenohTransport
 
 log = logging.getLogger("msagv.plant")
 
@@ -147,21 +153,17 @@ class PlantStats:
     pub_intervals_s: list = field(default_factory=list)
 
 
-LOCAL = object()  # handle_cmd's source when a test feeds it directly: no ownership check
-
-
 class PlantNode:
-    """The plant process's logic; transport through ``session`` (None: a test drives
-    :meth:`handle_cmd` and reads :attr:`published`)."""
+    """The plant process's logic: :meth:`open` it on a transport, :meth:`run`, :meth:`close`.
+    Everything it does on the bus goes through that :class:`bridge.transport.Transport`."""
 
-    def __init__(self, plant, keys: Keys, cfg: PlantConfig, session=None, recorder=None,
-                 reference_msg: dict | None = None):
+    def __init__(self, plant, keys: Keys, cfg: PlantConfig, recorder=None):
         self.plant = plant
         self.vehicle = plant.vehicle
         self.nw = self.vehicle.n_wheels
         self.keys = keys
         self.cfg = cfg
-        self.session = session
+        self.transport: Transport | None = None  # open()
         self.rec = recorder
         self.rej = M.Rejections(f"plant {keys.id}", log)
         self.stats = PlantStats()
@@ -178,7 +180,6 @@ class PlantNode:
         self.controller_present = False
         self._ctl_generation = 0
         self.safe = False
-        self.published: list[bytes] = []  # only without a session (tests)
         self.error: str | None = None
         self.final_state: dict | None = None
         self._params = M.encode_params(keys.id, self.vehicle.to_dict(), cfg.period, cfg.run_mode,
@@ -190,47 +191,41 @@ class PlantNode:
         self.ownership = Ownership(on_change=self._on_owner_change)
         self.watch = CommandWatch(cfg.max_missed, cfg.resume_periods, cfg.period)
         self._tokens: TokenSet | None = None
-        self.zid: str | None = None
         self._refused_logged = 0
         # the per-wheel wear fields go out when on, or (auto) when the newest params query
         # asked for them: a peer of the first protocol version rejects unknown fields
         self.wheel_wear = cfg.wheel_wear == "on"
 
     # ---- transport ---------------------------------------------------------------------
-    def open(self) -> None:
-        """Declare the publisher, subscribers, queryable, then the liveliness token (last:
-        a controller that sees the token finds everything else declared)."""
-        import zenoh
-
-        s, k = self.session, self.keys
-        self.zid = str(s.zid())
-        self._pub = s.declare_publisher(k.state, express=True, priority=zenoh.Priority.REAL_TIME,
-                                        congestion_control=zenoh.CongestionControl.BLOCK,
-                                        encoding=zenoh.Encoding(M.CONTENT_TYPE))
-        self._decls.append(s.declare_subscriber(k.cmd, self._on_cmd_sample))
-        self._decls.append(s.declare_queryable(k.params, self._on_params_query))
-        self._decls.append(s.declare_queryable(k.claim, self._on_claim_query))
+    def open(self, transport: Transport) -> None:
+        """Declare on ``transport`` the publisher, subscribers, queryables, then the
+        liveliness token (last: a controller that sees the token finds everything else
+        declared)."""
+        t, k = transport, self.keys
+        self.transport = t
+        self._pub = t.publisher(k.state)
+        self._decls.append(t.subscribe(k.cmd, self._on_cmd_sample))
+        self._decls.append(t.queryable(k.params, self._on_params_query))
+        self._decls.append(t.queryable(k.claim, self._on_claim_query))
         if self.rec is not None:
-            self._decls.append(s.declare_subscriber(k.reference, self._on_reference_sample))
-        self._tokens = TokenSet(s, k.alive_controller, self._on_token)
+            self._decls.append(t.subscribe(k.reference, self._on_reference_sample))
+        self._tokens = TokenSet(t, k.alive_controller, self._on_token)
         self._decls.append(self._tokens)
-        self._token = s.liveliness().declare_token(k.plant_token(self.zid))
+        self._token = t.declare_token(k.plant_token(t.id))
 
     def close(self) -> None:
+        """Undeclare everything :meth:`open` declared (the transport stays open)."""
         for obj in [self._token] + self._decls + [self._pub]:
             if obj is not None:
                 try:
-                    obj.close() if isinstance(obj, TokenSet) else obj.undeclare()
+                    obj.close()
                 except Exception:
                     pass
         self._token, self._decls, self._pub = None, [], None
 
-    def _on_params_query(self, query) -> None:
+    def _on_params_query(self, query: Query) -> None:
         if self.cfg.wheel_wear == "auto":
-            try:
-                asked = query.parameters.get(WHEEL_WEAR_PARAM) == "1"
-            except Exception:  # no parameters
-                asked = False
+            asked = query.parameters.get(WHEEL_WEAR_PARAM) == "1"
             if asked != self.wheel_wear:
                 self.wheel_wear = asked
                 log.info("per-wheel wear in the state: %s (asked by the params query)",
@@ -238,14 +233,14 @@ class PlantNode:
                 if self.rec is not None:
                     self.rec.event("wheel_wear", on=asked)
         try:
-            query.reply(self.keys.params, self._params, encoding=M.CONTENT_TYPE)
+            query.reply(self._params)
         except Exception as e:  # a vanished querier: nothing to do
             log.debug("params reply failed: %s", e)
 
-    def _on_claim_query(self, query) -> None:
-        zid = source_zid(query)
+    def _on_claim_query(self, query: Query) -> None:
+        zid = query.sender
         try:
-            action = decode_claim(query.payload.to_bytes() if query.payload is not None else b"")
+            action = decode_claim(query.payload if query.payload is not None else b"")
         except M.MessageError as e:
             self.rej.add(e, self.keys.claim)
             action = None
@@ -261,7 +256,7 @@ class PlantNode:
                     log.warning("claim of vehicle %s by %s refused: owned by %s (%d refused)",
                                 self.keys.id, zid or "a session without source info", owner, n)
         try:
-            query.reply(self.keys.claim, encode_grant(granted, owner), encoding=M.CONTENT_TYPE)
+            query.reply(encode_grant(granted, owner))
         except Exception as e:
             log.debug("claim reply failed: %s", e)
 
@@ -280,12 +275,11 @@ class PlantNode:
 
     def _update_presence(self) -> None:
         owner = self.ownership.owner
-        present = owner is not None and (self._tokens is None or self._tokens.present(owner))
-        self._on_ctl_change(present)
+        self._on_ctl_change(self._tokens is not None and self._tokens.present(owner))
 
-    def _on_reference_sample(self, sample) -> None:
+    def _on_reference_sample(self, sample: Sample) -> None:
         if self.rec is not None:
-            self.rec.message("rx", self.keys.reference, sample.payload.to_bytes())
+            self.rec.message("rx", self.keys.reference, sample.payload)
 
     def _on_ctl_change(self, present: bool) -> None:
         """The owner's presence (its token) changed."""
@@ -306,24 +300,23 @@ class PlantNode:
                 self.rec.event("controller_alive", present=present)
         self._ctl_event.set()
 
-    def _on_cmd_sample(self, sample) -> None:
-        self.handle_cmd(sample.payload.to_bytes(), time.perf_counter(), time.time(),
-                        source=source_zid(sample))
+    def _on_cmd_sample(self, sample: Sample) -> None:
+        self.handle_cmd(sample.payload, time.perf_counter(), time.time(), sample.sender)
 
     # ---- commands ----------------------------------------------------------------------
-    def handle_cmd(self, payload: bytes, rx_perf: float, rx_wall: float | None = None,
-                   source=LOCAL) -> dict | None:
+    def handle_cmd(self, payload: bytes, rx_perf: float, rx_wall: float | None,
+                   sender: str | None) -> dict | None:
         """Validate one command; the newest valid one is kept for the next step. Returns
         the decoded command, or None if rejected or ignored (stale, duplicate, or an answer
-        to the end state: after_end). ``source``: the sending session's zid (None: the
-        sample named none); a command not from the owner is rejected as ``not_owner``."""
+        to the end state: after_end). ``sender``: the sender's identity (None: the message
+        carried none); a command not from the owner is rejected as ``not_owner``."""
         key = self.keys.cmd
         try:
             c = M.decode_cmd(payload, self.nw)
-            if source is not LOCAL and not self.ownership.accepts(source):
-                self.ownership.violation(source)
+            if not self.ownership.accepts(sender):
+                self.ownership.violation(sender)
                 owner = self.ownership.owner
-                raise M.MessageError(M.NOT_OWNER, f"from {source or 'a session without source info'}"
+                raise M.MessageError(M.NOT_OWNER, f"from {sender or 'a session without source info'}"
                                                   f"; the vehicle is owned by {owner or 'nobody'}")
             with self._lock:
                 newest_pub = self.seq
@@ -384,10 +377,7 @@ class PlantNode:
             self._pub_perf[seq] = now
             while len(self._pub_perf) > 4096:
                 self._pub_perf.popitem(last=False)
-        if self._pub is not None:
-            self._pub.put(payload, source_info=source_info(self._pub, seq))
-        else:
-            self.published.append(payload)
+        self._pub.put(payload, seq)
         if self.rec is not None:
             self.rec.message("tx", self.keys.state, payload)
         if end:
@@ -408,8 +398,7 @@ class PlantNode:
         t0 = time.monotonic()
         waited_msg = False
         while not self.stop.is_set():
-            matched = self._pub is None or self._pub.matching_status.matching
-            if self.controller_present and matched:
+            if self.controller_present and self._pub.matching:
                 return
             if not waited_msg and time.monotonic() - t0 > 1.0:
                 log.info("waiting for a controller on %s (up to %s)", self.keys.cmd,
@@ -443,8 +432,7 @@ class PlantNode:
             if self._ctl_generation != gen and self.controller_present:
                 gen = self._ctl_generation
                 m0 = time.monotonic()
-                while (self._pub is not None and not self._pub.matching_status.matching
-                       and time.monotonic() - m0 < 1.0):
+                while not self._pub.matching and time.monotonic() - m0 < 1.0:
                     time.sleep(0.005)
                 log.info("controller (re)appeared: sending state %d again", k)
                 self.publish_state(k)
@@ -580,12 +568,14 @@ class PlantNode:
 
 
 # ---- the process ------------------------------------------------------------------------
-def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, recorder=None,
-          signals: StopOnSignal | None = None) -> tuple[dict, int]:
+def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport | None = None,
+          recorder=None, signals: StopOnSignal | None = None) -> tuple[dict, int]:
     """Run the plant process: open the Zenoh session, serve one run, close everything.
 
     ``plant``: any object with the plant interface (:class:`plant.interface.PlantInterface`),
-    built by the caller; ``recorder``: an open :class:`bridge.recording.Recorder` or None
+    built by the caller; ``opts``: the vehicle id and the session options; ``transport``:
+    an open transport to run on instead of the Zenoh session of ``opts`` (the caller
+    closes it); ``recorder``: an open :class:`bridge.recording.Recorder` or None
     (closed here, with the summary); ``signals``: the installed SIGINT/SIGTERM handler
     whose event ends the run (the summary then names the signal).
     Returns ``(summary, exit code)``: 0 done or stopped, 2 the session could not open,
@@ -596,12 +586,12 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, recorder=None,
         node.stop = signals.event
     rc = EXIT_OK
     try:
-        with open_session(opts, "plant") as session:
-            node.session = session
+        with (nullcontext(transport) if transport is not None
+              else ZenohTransport.open(opts, "plant")) as t:
             if hasattr(plant, "warmup"):
                 plant.warmup()  # the integrator compiled before the real-time clock starts
             freeze_heap()
-            node.open()
+            node.open(t)
             log.info("%s plant ready: %s, %d steps of %g s", cfg.run_mode, plant.vehicle.name,
                      cfg.steps, cfg.period)
             try:

@@ -1,4 +1,5 @@
-"""Presence of the other side, from its liveliness token.
+"""Presence of the other side, from its liveliness token (through a
+:class:`bridge.transport.Transport`: ``watch_tokens`` and ``tokens``).
 
 A liveliness subscriber reports a token's appearance (PUT) and disappearance (DELETE; for
 a killed process after the transport lease). A process restarted quickly declares a new
@@ -32,12 +33,12 @@ POLL_S = 0.5  # s, reconciliation query period
 class Presence:
     """``present`` is True while a liveliness token matching ``key`` exists.
 
-    ``on_change(present)`` is called (from a zenoh or helper thread) on every change;
-    ``generation`` counts appearances, ``losses`` disappearances.
+    ``on_change(present)`` is called (from the transport's or a helper thread) on every
+    change; ``generation`` counts appearances, ``losses`` disappearances.
     """
 
-    def __init__(self, session, key: str, on_change: Callable[[bool], None] | None = None):
-        self.session = session
+    def __init__(self, transport, key: str, on_change: Callable[[bool], None] | None = None):
+        self.transport = transport
         self.key = key
         self.on_change = on_change
         self.present = False
@@ -49,31 +50,27 @@ class Presence:
         self._closed = False
         self._verifying = 0
         self._stop = threading.Event()
-        self._sub = session.liveliness().declare_subscriber(key, self._on_sample, history=True)
+        self._sub = transport.watch_tokens(key, self._on_token)
         self._poller = threading.Thread(target=self._poll, daemon=True,
                                         name=f"presence {key}")
         self._poller.start()
 
-    def _on_sample(self, sample) -> None:
-        import zenoh
-
+    def _on_token(self, key: str, present: bool) -> None:
         with self._lock:
             self._epoch += 1
             epoch = self._epoch
-        log.debug("presence %s: %s %s (epoch %d)", self.key, sample.kind, sample.key_expr, epoch)
-        if sample.kind == zenoh.SampleKind.PUT:
+        log.debug("presence %s: %s %s (epoch %d)", self.key, "PUT" if present else "DELETE",
+                  key, epoch)
+        if present:
             self._set(True, epoch)
         else:
             threading.Thread(target=self._verify, args=(epoch,), daemon=True).start()
 
     def _query(self) -> bool:
         try:
-            for reply in self.session.liveliness().get(self.key, timeout=0.3):
-                if reply.ok is not None:
-                    return True
-        except Exception:  # the session is closing
+            return bool(self.transport.tokens(self.key, timeout=0.3))
+        except Exception:  # the transport is closing
             return False
-        return False
 
     def _poll(self) -> None:
         while not self._stop.wait(POLL_S):
@@ -136,25 +133,25 @@ class Presence:
             self._closed = True
         self._stop.set()
         try:
-            self._sub.undeclare()
+            self._sub.close()
         except Exception:
             pass
 
 
 class TokenSet:
-    """The sessions holding a token under ``prefix/*``: the last chunk of a token's key is
-    the holder's Zenoh id (``msagv/{id}/alive/controller/{zid}``), so a node can tell its
+    """The endpoints holding a token under ``prefix/*``: the last chunk of a token's key is
+    the holder's identity (``msagv/{id}/alive/controller/{zid}``), so a node can tell its
     peer's token from anyone else's (docs/PROTOCOL.md, "Ownership").
 
-    One liveliness subscriber on ``prefix/*`` (with history) and a reconciling query every
+    One token watch on ``prefix/*`` (with history) and a reconciling query every
     ``POLL_S``, as :class:`Presence`; a DELETE (or a token missing from the query) is
     confirmed by querying that token for up to ``VERIFY_S``. ``on_change(zid, present)`` is
-    called from a zenoh or helper thread.
+    called from the transport's or a helper thread.
     """
 
-    def __init__(self, session, prefix: str,
+    def __init__(self, transport, prefix: str,
                  on_change: Callable[[str, bool], None] | None = None):
-        self.session = session
+        self.transport = transport
         self.prefix = prefix
         self.on_change = on_change
         self._present: set[str] = set()
@@ -163,8 +160,7 @@ class TokenSet:
         self._lock = threading.Lock()
         self._closed = False
         self._stop = threading.Event()
-        self._sub = session.liveliness().declare_subscriber(f"{prefix}/*", self._on_sample,
-                                                            history=True)
+        self._sub = transport.watch_tokens(f"{prefix}/*", self._on_token)
         self._poller = threading.Thread(target=self._poll, daemon=True,
                                         name=f"tokens {prefix}")
         self._poller.start()
@@ -190,30 +186,23 @@ class TokenSet:
             self._epoch[zid] = e
             return e
 
-    def _on_sample(self, sample) -> None:
-        import zenoh
-
-        zid = self._zid(sample.key_expr)
+    def _on_token(self, key: str, present: bool) -> None:
+        zid = self._zid(key)
         if zid is None:
             return
         epoch = self._bump(zid)
-        if sample.kind == zenoh.SampleKind.PUT:
+        if present:
             self._set(zid, True, epoch)
         else:
             threading.Thread(target=self._verify, args=(zid, epoch), daemon=True).start()
 
     def _query(self, key: str) -> set[str] | None:
-        """The holders found by a liveliness query on ``key`` (None: the session closed)."""
-        found = set()
+        """The holders found by a token query on ``key`` (None: the transport closed)."""
         try:
-            for reply in self.session.liveliness().get(key, timeout=0.3):
-                if reply.ok is not None:
-                    z = self._zid(reply.ok.key_expr)
-                    if z is not None:
-                        found.add(z)
+            keys = self.transport.tokens(key, timeout=0.3)
         except Exception:
             return None
-        return found
+        return {z for z in map(self._zid, keys) if z is not None}
 
     def _poll(self) -> None:
         while not self._stop.wait(POLL_S):
@@ -272,6 +261,6 @@ class TokenSet:
             self._closed = True
         self._stop.set()
         try:
-            self._sub.undeclare()
+            self._sub.close()
         except Exception:
             pass

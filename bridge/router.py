@@ -13,7 +13,8 @@ import sys
 import threading
 
 from .process import EXIT_OK, EXIT_USAGE
-from .session import ROUTER_PORT, SessionError, SessionOptions, open_session
+from .session import ROUTER_PORT, SessionError, SessionOptions
+from .zenoh_transport import ZenohTransport
 
 log = logging.getLogger("msagv.router")
 
@@ -21,9 +22,9 @@ log = logging.getLogger("msagv.router")
 def serve(opts: SessionOptions, stop: threading.Event) -> int:
     """Route until ``stop`` is set; returns the exit code (2: the session cannot open)."""
     try:
-        with open_session(opts, "router") as session:
+        with ZenohTransport.open(opts, "router") as t:
             eps = opts.listen or [f"tcp/127.0.0.1:{ROUTER_PORT}"]
-            log.info("router %s listening on %s", session.zid(), ", ".join(eps))
+            log.info("router %s listening on %s", t.id, ", ".join(eps))
             print(f"msagv router: listening on {', '.join(eps)}", file=sys.stderr, flush=True)
             while not stop.wait(0.2):
                 pass

@@ -204,3 +204,96 @@ def assert_commands_within_bounds(mpc, vehicle) -> None:
         assert np.all(nxt >= lim.delta_min - 1e-12) and np.all(nxt <= lim.delta_max + 1e-12)
         assert np.all(mpc.z >= mpc.horizon.lower) and np.all(mpc.z <= mpc.horizon.upper)
         assert math.isfinite(cmd.cost)
+
+
+# ---- the bridge's nodes over the loopback bus ------------------------------------------------
+def wait_until(pred, timeout: float, what: str) -> None:
+    """Poll ``pred()`` until true; AssertionError naming ``what`` after ``timeout`` s (for
+    what a node's helper threads do: the claim loop, a token's confirmation)."""
+    t0 = time.monotonic()
+    while not pred():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.002)
+
+
+class Running:
+    """``with Running(node):`` runs ``node.run()`` in a thread, stopped and joined at exit."""
+
+    def __init__(self, node):
+        import threading
+
+        self.node = node
+        self.result: dict | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True, name="node under test")
+
+    def _run(self) -> None:
+        self.result = self.node.run()
+
+    def __enter__(self) -> "Running":
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.node.stop.set()
+        self.thread.join(10)
+        assert not self.thread.is_alive(), "the node's loop did not stop"
+
+
+class LoopbackPlant:
+    """A plant's endpoint on a :class:`bridge.loopback.LoopbackBus`, for the controller's
+    tests: it answers claims with a real :class:`bridge.ownership.Ownership` (only while
+    ``granting``), declares its token ``alive/plant/{id}`` (``token``), publishes states as
+    the plant does (its identity and ``sn = seq``) and keeps the commands it receives."""
+
+    def __init__(self, bus, vid: str = "t0", id: str = "p1", token: bool = True,
+                 granting: bool = True):
+        from msagv.bridge.ownership import Ownership
+        from msagv.bridge.session import Keys
+
+        self.keys = Keys(vid)
+        self.t = bus.endpoint(id)
+        self.ownership = Ownership()
+        self.granting = granting
+        self.claims = 0  # claims answered
+        self.cmds: list = []  # the samples received on cmd
+        self.t.subscribe(self.keys.cmd, self.cmds.append)
+        self._claims = self.t.queryable(self.keys.claim, self._on_claim)
+        self.token = self.t.declare_token(self.keys.plant_token(id)) if token else None
+        self.pub = self.t.publisher(self.keys.state)
+
+    def _on_claim(self, q) -> None:
+        from msagv.bridge.ownership import decode_claim, encode_grant
+
+        if self.granting:
+            granted, owner = self.ownership.claim(q.sender, decode_claim(q.payload))
+        else:
+            granted, owner = False, None
+        self.claims += 1
+        q.reply(encode_grant(granted, owner))
+
+    def publish(self, seq: int, payload: bytes) -> None:
+        self.pub.put(payload, seq)
+
+    def exchange(self, seq: int, payload: bytes, timeout: float = 10.0) -> dict:
+        """Publish state ``seq`` and wait for the command answering it (lockstep)."""
+        from msagv.bridge import messages as M
+
+        n = len(self.cmds)
+        self.publish(seq, payload)
+        wait_until(lambda: any(M.decode_cmd(s.payload, 4)["state_seq"] == seq
+                               for s in self.cmds[n:]), timeout, f"the answer to state {seq}")
+        return next(M.decode_cmd(s.payload, 4) for s in self.cmds[n:]
+                    if M.decode_cmd(s.payload, 4)["state_seq"] == seq)
+
+    def stop_answering_claims(self) -> None:
+        """Close the claim queryable right after a claim was answered (the controller's
+        next claim is CLAIM_REFRESH_S away, so none is in flight)."""
+        n = self.claims
+        wait_until(lambda: self.claims > n, 5.0, "a claim")
+        time.sleep(0.02)
+        self._claims.close()
+
+    def leave(self) -> None:
+        """The plant's endpoint leaves the bus (its token disappears, its queryable goes)."""
+        self.t.close()

@@ -1,10 +1,12 @@
-"""The bridge's logic without processes: the plant and controller nodes fed directly,
-session configuration, recordings and the report (docs/PROTOCOL.md)."""
+"""The bridge's logic without processes: the plant and controller nodes on the loopback bus
+(every ownership and binding check runs), session configuration, recordings and the report
+(docs/PROTOCOL.md)."""
 
 from __future__ import annotations
 
 import json
 import time
+from types import SimpleNamespace
 
 import msgpack
 import numpy as np
@@ -12,13 +14,17 @@ import pytest
 
 from msagv.bridge import faults
 from msagv.bridge import messages as M
-from msagv.bridge.controller_node import ControllerConfig, ControllerNode
+from msagv.bridge.controller_node import FALLBACK_LOSS_S, ControllerConfig, ControllerNode
+from msagv.bridge.loopback import LoopbackBus
+from msagv.bridge.ownership import claim
 from msagv.bridge.plant_node import PlantConfig, PlantNode
 from msagv.bridge.recording import Recorder, RecordingError, read_recording
 from msagv.bridge.session import Keys, SessionError, SessionOptions, check_id, make_config
 from msagv.plant import Plant, default_vehicle
+from helpers import LoopbackPlant, Running, wait_until
 
 T = 0.01
+K = Keys("t0")
 
 
 @pytest.fixture(scope="module")
@@ -27,11 +33,37 @@ def vehicle():
 
 
 @pytest.fixture
-def plant_node(vehicle):
-    p = Plant(vehicle, initial={"vx": 4.0})
-    node = PlantNode(p, Keys("t0"), PlantConfig(run_mode="lockstep", steps=10))
-    node.publish_state(0)
-    return node
+def bus():
+    b = LoopbackBus()
+    yield b
+    assert not b.errors, b.errors  # no callback of a node raised
+
+
+@pytest.fixture
+def plant_node(vehicle, bus):
+    """A lockstep plant on the bus as ``p1``, state 0 published."""
+    node = PlantNode(Plant(vehicle, initial={"vx": 4.0}), K,
+                     PlantConfig(run_mode="lockstep", steps=10))
+    node.open(bus.endpoint("p1"))
+    try:
+        yield node
+    finally:
+        node.close()
+
+
+@pytest.fixture
+def owner(bus, plant_node):
+    """The controller endpoint ``c1`` that owns ``plant_node`` (token declared, claim
+    granted over the bus); it keeps the states it receives and publishes commands."""
+    c = bus.endpoint("c1")
+    states: list = []
+    c.subscribe(K.state, states.append)
+    token = c.declare_token(K.controller_token("c1"))
+    assert claim(c, K, 0) == [("p1", {"v": M.VERSION, "granted": True, "owner": "c1"})]
+    plant_node.publish_state(0)
+    pub = c.publisher(K.cmd)
+    return SimpleNamespace(endpoint=c, states=states, token=token,
+                           send=lambda payload, sn=0: pub.put(payload, sn))
 
 
 def _cmd(seq, state_seq, w=8.0, s=0.0, t=None, nw=4, **kw):
@@ -40,24 +72,25 @@ def _cmd(seq, state_seq, w=8.0, s=0.0, t=None, nw=4, **kw):
 
 
 # ---- plant node ---------------------------------------------------------------------------
-def test_plant_state_has_t_seq_times_T(plant_node):
-    m = M.decode_state(plant_node.published[-1], 4)
+def test_plant_state_has_t_seq_times_T(plant_node, owner):
+    sample = owner.states[-1]
+    m = M.decode_state(sample.payload, 4)
     assert m["seq"] == 0 and m["t"] == 0.0 and m["vx"] == 4.0 and "safe" not in m
+    assert sample.sender == "p1" and sample.sn == 0  # the plant's identity, sn = seq
 
 
-def test_plant_accepts_the_answer_to_its_state(plant_node):
-    c = plant_node.handle_cmd(_cmd(0, 0), time.perf_counter())
-    assert c is not None and plant_node.stats.accepted == 1
-    assert plant_node._newest.state_seq == 0
+def test_plant_accepts_the_answer_to_its_state(plant_node, owner):
+    owner.send(_cmd(0, 0))
+    assert plant_node.stats.accepted == 1 and plant_node._newest.state_seq == 0
 
 
-def test_every_malformed_command_is_counted_and_changes_nothing(plant_node):
+def test_every_malformed_command_is_counted_and_changes_nothing(plant_node, owner):
     node = plant_node
     before_y = node.plant.state_vector
     before_u = [u.copy() for u in node.plant.inputs]
     cases = faults.cmd_cases(4)
-    for payload, reason in cases:
-        assert node.handle_cmd(payload, time.perf_counter()) is None
+    for i, (payload, reason) in enumerate(cases):
+        owner.send(payload, i)
     assert node.rej.total == len(cases)
     expected: dict[str, int] = {}
     for _, r in cases:
@@ -69,30 +102,32 @@ def test_every_malformed_command_is_counted_and_changes_nothing(plant_node):
         np.testing.assert_array_equal(u, b)
 
 
-def test_unknown_state_and_t_mismatch(plant_node):
+def test_unknown_state_and_t_mismatch(plant_node, owner):
     node = plant_node
-    assert node.handle_cmd(_cmd(0, 1), time.perf_counter()) is None  # state 1 not published
-    assert node.handle_cmd(_cmd(0, 0, t=0.5), time.perf_counter()) is None
+    owner.send(_cmd(0, 1))  # state 1 not published
+    owner.send(_cmd(0, 0, t=0.5))
     assert node.rej.summary()["by_reason"] == {M.UNKNOWN_STATE: 1, M.T_MISMATCH: 1}
+    assert node.stats.accepted == 0
 
 
-def test_stale_and_duplicate_commands_are_ignored_not_applied(plant_node):
+def test_stale_and_duplicate_commands_are_ignored_not_applied(plant_node, owner):
     node = plant_node
     node.publish_state(1)
     node.publish_state(2)
-    assert node.handle_cmd(_cmd(0, 2, w=5.0), time.perf_counter()) is not None
-    assert node.handle_cmd(_cmd(1, 1, w=6.0), time.perf_counter()) is None  # older
-    assert node.handle_cmd(_cmd(2, 2, w=7.0), time.perf_counter()) is None  # same state
+    owner.send(_cmd(0, 2, w=5.0), 0)
+    owner.send(_cmd(1, 1, w=6.0), 1)  # older
+    owner.send(_cmd(2, 2, w=7.0), 2)  # same state
     assert node._newest.omega_w == [5.0] * 4
+    assert node.stats.accepted == 1
     assert node.stats.stale == 1 and node.stats.duplicate == 1 and node.rej.total == 0
 
 
-def test_plant_summary_counts_lost_commands(plant_node):
+def test_plant_summary_counts_lost_commands(plant_node, owner):
     node = plant_node
     for k in range(1, 5):
         node.publish_state(k)
-    node.handle_cmd(_cmd(0, 1), time.perf_counter())
-    node.handle_cmd(_cmd(1, 3), time.perf_counter())
+    owner.send(_cmd(0, 1), 0)
+    owner.send(_cmd(1, 3), 1)
     s = node.summary()
     assert s["commands"]["lost"] == 2  # states 0 and 2 (4 is the newest, not yet due)
     assert s["commands"]["accepted"] == 2
@@ -121,10 +156,28 @@ def mpc(vehicle):
 
 
 @pytest.fixture
-def ctl(mpc):
-    mpc.reset()
-    mpc.set_reference(__import__("msagv.controller.reference", fromlist=["x"]).case1_curve(15.0))
-    return ControllerNode(mpc, Keys("t0"), ControllerConfig())
+def make_ctl(mpc, bus):
+    """``make_ctl(cfg, token=, granting=)`` -> (controller ``c1`` bound to the plant ``p1``,
+    the :class:`helpers.LoopbackPlant` ``p1``), the controller opened on the bus and its
+    plant present (its token, or its answers to the claims); granted if ``granting``."""
+    from msagv.controller.reference import case1_curve
+
+    nodes = []
+
+    def make(cfg=None, token=True, granting=True):
+        mpc.reset()
+        mpc.set_reference(case1_curve(15.0))
+        plant = LoopbackPlant(bus, token=token, granting=granting)
+        node = ControllerNode(mpc, K, cfg or ControllerConfig(), plant_zid="p1")
+        nodes.append(node)
+        node.open(bus.endpoint("c1"))
+        wait_until(lambda: node.plant_present and (node.granted or not granting), 5.0,
+                   "the plant's presence and grant")
+        return node, plant
+
+    yield make
+    for n in nodes:
+        n.close()
 
 
 def _state_payload(seq, vehicle, **kw):
@@ -138,107 +191,174 @@ def _state_payload(seq, vehicle, **kw):
     return M.encode_state(seq, st, **kw)
 
 
-def test_controller_answers_with_the_state_it_answers(ctl, vehicle):
-    st = ctl.handle_state(_state_payload(0, vehicle), time.perf_counter())
-    assert ctl.step(st, time.perf_counter()) == "sent"
-    c = M.decode_cmd(ctl.sent[-1], 4)
+def test_controller_answers_with_the_state_it_answers(make_ctl, vehicle):
+    ctl, plant = make_ctl()
+    with Running(ctl):
+        c = plant.exchange(0, _state_payload(0, vehicle))
     assert c["state_seq"] == 0 and c["t"] == 0.0 and c["seq"] == 0 and c["solve_ms"] > 0
     assert all(w >= 0 for w in c["omega_w"])
+    assert plant.cmds[-1].sender == "c1" and plant.cmds[-1].sn == 0  # its identity, sn = seq
 
 
-def test_controller_same_seed_same_commands_after_a_new_run(ctl, vehicle):
+def test_controller_same_seed_same_commands_after_a_new_run(make_ctl, vehicle):
+    ctl, plant = make_ctl()
     out = []
-    for _ in range(2):
-        for k in range(3):
-            st = M.decode_state(_state_payload(k, vehicle), 4)
-            ctl.step(st, time.perf_counter())
-        out.append([M.decode_cmd(b, 4)["omega_w"] for b in ctl.sent[-3:]])
+    with Running(ctl):
+        for _ in range(2):
+            out.append([plant.exchange(k, _state_payload(k, vehicle))["omega_w"]
+                        for k in range(3)])
     assert out[0] == out[1]  # seq 0 reset the warm start and the random stream
     assert ctl.stats.new_runs == 2
 
 
-def test_controller_ignores_duplicates_and_does_not_answer_the_end(ctl, vehicle):
+def test_controller_ignores_duplicates_and_does_not_answer_the_end(make_ctl, vehicle):
+    ctl, plant = make_ctl()
     st = M.decode_state(_state_payload(0, vehicle), 4)
     assert ctl.step(st, time.perf_counter()) == "sent"
     assert ctl.step(st, time.perf_counter()) == "duplicate"
     end = M.decode_state(_state_payload(1, vehicle, end=True), 4)
     assert ctl.step(end, time.perf_counter()) == "end"
-    assert len(ctl.sent) == 1
+    assert len(plant.cmds) == 1
 
 
-def test_controller_never_commands_a_plant_that_is_gone(ctl, vehicle):
-    ctl.plant_present = False
-    assert ctl.handle_state(_state_payload(0, vehicle), time.perf_counter()) is None
-    assert ctl.stats.ignored_no_plant == 1 and not ctl.sent
+def test_controller_never_commands_a_plant_that_is_gone(make_ctl, vehicle, bus):
+    ctl, plant = make_ctl()
+    plant.publish(0, _state_payload(0, vehicle))
+    assert ctl._pending is not None
+    plant.leave()  # its token goes; not believed at once: the plant answered just now
+    wait_until(lambda: ctl._fallback, 5.0, "the token's loss")
+    assert ctl.plant_present
+    ctl.check_fallback_loss(time.monotonic() + FALLBACK_LOSS_S + 0.1)  # then its silence
+    assert not ctl.plant_present and ctl._pending is None
+    st = M.decode_state(_state_payload(0, vehicle), 4)
+    assert ctl.step(st, time.perf_counter()) == "no plant"
+    bus.endpoint("rogue").publisher(K.state).put(_state_payload(1, vehicle), 1)
+    assert not ctl.plant_present and ctl.rej.summary()["by_reason"] == {M.NOT_BOUND: 1}
+    assert ctl.stats.ignored_no_plant == 1 and not plant.cmds
 
 
-def test_controller_falls_back_to_states_when_the_plants_token_never_shows(ctl, vehicle):
+def test_controller_falls_back_to_states_when_the_plants_token_never_shows(make_ctl, vehicle):
     # zenoh now and then does not deliver a token to a session in a mesh of peers: the
-    # plant's states are then the evidence of its presence, their silence of its loss
-    from types import SimpleNamespace
-
-    from msagv.bridge.controller_node import FALLBACK_LOSS_S
-
-    ctl.plant_present, ctl.plant_seen = False, False
-    ctl._plant_presence = SimpleNamespace(generation=0)
-    st = ctl.handle_state(_state_payload(0, vehicle), time.perf_counter())
-    assert st is not None and ctl.plant_present and ctl.plant_seen and ctl._fallback
-    assert ctl.step(st, time.perf_counter()) == "sent"
+    # plant's states (and its answers to the claims) are then the evidence of its
+    # presence, their silence of its loss
+    ctl, plant = make_ctl(token=False)
+    assert ctl.plant_present and ctl._fallback and ctl._plant_presence.generation == 0
+    assert ctl.step(M.decode_state(_state_payload(0, vehicle), 4), time.perf_counter()) == "sent"
+    plant.stop_answering_claims()
     now = time.monotonic()
     ctl.check_fallback_loss(now)
-    assert ctl.plant_present  # states are fresh
+    assert ctl.plant_present  # it answered a claim just now
     ctl.check_fallback_loss(now + FALLBACK_LOSS_S + 0.1)
     assert not ctl.plant_present  # silence: gone, never commanded again until a state comes
+    plant.publish(1, _state_payload(1, vehicle))  # a state of the bound plant: present again
+    assert ctl.plant_present and ctl._fallback and ctl._pending[0]["seq"] == 1
     # once the token is seen, liveliness decides again
-    ctl._plant_presence.generation = 1
-    ctl._on_plant_change(True)
+    plant.token = plant.t.declare_token(K.plant_token("p1"))
+    assert ctl._plant_presence.generation == 1
     assert ctl.plant_present and not ctl._fallback
     ctl.check_fallback_loss(now + 100.0)
     assert ctl.plant_present
 
 
-def test_controller_answers_a_state_that_came_just_before_the_plants_token(ctl, vehicle):
-    # state and liveliness travel on different paths: a new plant's state 0 can arrive
-    # before its token; it is held, answered once the token is seen, dropped if it goes
-    ctl.plant_present = False
-    ctl.handle_state(_state_payload(0, vehicle), time.perf_counter())
-    ctl._on_plant_change(True)
-    st, rx = ctl._pending
-    assert st["seq"] == 0 and ctl.step(st, rx) == "sent"
-    ctl._on_plant_change(False)
-    ctl.handle_state(_state_payload(1, vehicle), time.perf_counter())
-    ctl._on_plant_change(False)
-    ctl._on_plant_change(True)
-    assert ctl._pending is None or ctl._pending[0]["seq"] == 1
-    ctl._on_plant_change(False)
-    assert ctl._pending is None and ctl._held is None
-
-
-def test_controller_does_not_send_a_stale_command(mpc, vehicle):
-    node = ControllerNode(mpc, Keys("t0"), ControllerConfig(max_age_ms=1.0))
+def test_controller_answers_a_state_solved_before_the_grant_once_granted(make_ctl, vehicle):
+    # the plant publishes its first state as it grants: the state can be solved before the
+    # grant's reply arrives; it is held, answered once granted, dropped if the plant goes
+    ctl, plant = make_ctl(granting=False)
     st = M.decode_state(_state_payload(0, vehicle), 4)
-    assert node.step(st, time.perf_counter() - 0.5) == "stale"
-    assert not node.sent and node.stats.dropped_stale == 1
+    assert ctl.step(st, time.perf_counter()) == "not granted" and ctl.stats.not_granted == 1
+    assert ctl._held is not None and not plant.cmds
+    plant.granting = True
+    wait_until(lambda: ctl.granted, 5.0, "the grant")  # the next claim, CLAIM_RETRY_S later
+    st0, rx = ctl._pending
+    assert st0["seq"] == 0 and ctl.step(st0, rx) == "sent"
+    c = M.decode_cmd(plant.cmds[-1].payload, 4)
+    assert c["state_seq"] == 0 and ctl.stats.not_granted == 1
 
 
-def test_controller_rejects_malformed_states_and_references(ctl):
+def test_controller_drops_a_held_state_when_the_plant_goes(make_ctl, vehicle):
+    ctl, plant = make_ctl(granting=False)
+    assert ctl.step(M.decode_state(_state_payload(0, vehicle), 4),
+                    time.perf_counter()) == "not granted"
+    assert ctl._held is not None
+    plant.leave()
+    wait_until(lambda: ctl._fallback, 5.0, "the token's loss")
+    ctl.check_fallback_loss(time.monotonic() + FALLBACK_LOSS_S + 0.1)
+    assert not ctl.plant_present and ctl._held is None and ctl._pending is None
+    assert not plant.cmds
+
+
+def test_controller_does_not_send_a_stale_command(make_ctl, vehicle):
+    ctl, plant = make_ctl(ControllerConfig(max_age_ms=1.0))
+    st = M.decode_state(_state_payload(0, vehicle), 4)
+    assert ctl.step(st, time.perf_counter() - 0.5) == "stale"
+    assert not plant.cmds and ctl.stats.dropped_stale == 1
+
+
+def test_controller_rejects_malformed_states_and_references(make_ctl, bus):
+    ctl, plant = make_ctl()
+    tool = bus.endpoint("tool").publisher(K.reference)
     cases = faults.state_cases(4) + faults.reference_cases()
-    for p, _ in faults.state_cases(4):
-        assert ctl.handle_state(p, time.perf_counter()) is None
-    for p, _ in faults.reference_cases():
-        assert ctl.handle_reference(p) is None
-    assert ctl.rej.total == len(cases)
+    for i, (p, _) in enumerate(faults.state_cases(4)):
+        plant.publish(i, p)  # from the bound plant: only the payload is wrong
+    for i, (p, _) in enumerate(faults.reference_cases()):
+        tool.put(p, i)
+    expected: dict[str, int] = {}
+    for _, r in cases:
+        expected[r] = expected.get(r, 0) + 1
+    assert ctl.rej.summary()["by_reason"] == expected
     assert ctl._pending is None and ctl._pending_ref is None
 
 
-def test_controller_takes_a_new_reference_relative_to_the_next_state(ctl, vehicle):
+def test_controller_takes_a_new_reference_relative_to_the_next_state(make_ctl, vehicle, bus):
+    ctl, plant = make_ctl()
     t = np.linspace(0, 5, 51)
-    assert ctl.handle_reference(M.encode_reference(t, t, 0 * t, 0 * t, name="line",
-                                                   relative=True))
+    bus.endpoint("tool").publisher(K.reference).put(
+        M.encode_reference(t, t, 0 * t, 0 * t, name="line", relative=True), 0)
+    assert ctl._pending_ref is not None
     st = M.decode_state(_state_payload(7, vehicle), 4)
     ctl.step(st, time.perf_counter())
     ref = ctl.mpc.reference
     assert ref.name == "line" and ref.t[0] == pytest.approx(0.07) and ctl.stats.references == 1
+
+
+def test_both_nodes_over_the_loopback_bus_give_the_in_process_loops_commands(vehicle, mpc, bus):
+    """The plant and controller nodes, each on its own endpoint, run a lockstep run: the
+    commands on the bus are those of the in-process loop (controller.loop.closed_loop) with
+    the same MPC, reference and initial state, and the plant ends where that loop ends."""
+    from msagv.controller.loop import closed_loop
+    from msagv.controller.reference import case1_curve
+
+    ref = case1_curve(15.0)
+    steps = 15
+    want = {}
+    mpc.set_reference(ref)
+    log = closed_loop(Plant(vehicle, initial=ref.initial_state(vehicle)), mpc, ref, steps * T,
+                      on_step=lambda k, st, c: want.__setitem__(k, c.omega_w.tolist()))
+    watch = bus.endpoint("watch")
+    got: dict[int, list] = {}
+    watch.subscribe(K.cmd, lambda s: got.setdefault(*(lambda c: (c["state_seq"], c["omega_w"]))(
+        M.decode_cmd(s.payload, 4))))
+    pn = PlantNode(Plant(vehicle, initial=ref.initial_state(vehicle)), K,
+                   PlantConfig(run_mode="lockstep", steps=steps, timeout_s=30.0, linger_s=0.0))
+    cn = ControllerNode(mpc, K, ControllerConfig(exit_at_end=True), plant_zid="p1")
+    mpc.set_reference(ref)
+    pn.open(bus.endpoint("p1"))
+    cn.open(bus.endpoint("c1"))
+    try:
+        with Running(cn) as ctl_loop:
+            s = pn.run()
+            ctl_loop.thread.join(10)
+        assert ctl_loop.result["exit_reason"] == "end of run"
+    finally:
+        cn.close()
+        pn.close()
+    assert s["completed"] and s["commands"]["accepted"] == steps and s["rejected"]["total"] == 0
+    assert s["ownership"]["owner"] == "c1" and s["ownership"]["grants"] == 1
+    o = pn.ownership.summary()  # the controller released the vehicle as it closed
+    assert o["owner"] is None and o["releases"] == 1 and o["refused"] == 0
+    assert got == want
+    for k in ("x", "y", "phi", "vx", "vy", "r", "W_s", "W_alpha", "W_t"):
+        assert s["final_state"][k] == log.final_state[k], k
 
 
 # ---- session ------------------------------------------------------------------------------

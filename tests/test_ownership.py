@@ -19,7 +19,7 @@ import pytest
 from msagv.bridge import messages as M
 from msagv.bridge.loss import HOLD, LOST, PRESENT, RUN, SAFE, SUSPECT, CommandWatch, LossTimer
 from msagv.bridge.ownership import CLAIM, RELEASE, Ownership
-from helpers import ep, free_port, msagv
+from helpers import LoopbackPlant, ep, free_port, msagv, wait_until
 
 T = 0.01
 
@@ -114,46 +114,98 @@ def test_loss_timer_confirms_a_loss_only_after_running_time_and_restarts_after_a
     assert lt.update(5.8, False) == LOST
 
 
-# ---- the nodes -----------------------------------------------------------------------------
+# ---- the nodes, on the loopback bus ----------------------------------------------------------
 @pytest.fixture
-def plant_node():
+def bus():
+    from msagv.bridge.loopback import LoopbackBus
+
+    b = LoopbackBus()
+    yield b
+    assert not b.errors, b.errors
+
+
+@pytest.fixture
+def plant_node(bus):
+    """A realtime plant on the bus as ``p1``, state 0 published."""
     from msagv.bridge.plant_node import PlantConfig, PlantNode
     from msagv.bridge.session import Keys
     from msagv.plant import Plant, default_vehicle
 
     node = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), Keys("t0"),
                      PlantConfig(run_mode="realtime", steps=10))
+    node.open(bus.endpoint("p1"))
     node.publish_state(0)
-    return node
+    try:
+        yield node
+    finally:
+        node.close()
 
 
 def _cmd(state_seq, seq=0):
     return M.encode_cmd(seq, state_seq * T, state_seq, [8.0] * 4, [0.0] * 4, solve_ms=1.0)
 
 
-def test_plant_rejects_commands_not_from_its_owner(plant_node):
-    n = plant_node
-    assert n.handle_cmd(_cmd(0), time.perf_counter(), source="rogue") is None  # nobody owns
-    n.ownership.claim("ctl")
-    assert n.handle_cmd(_cmd(0), time.perf_counter(), source="rogue") is None
-    assert n.handle_cmd(_cmd(0), time.perf_counter(), source=None) is None
-    assert n.handle_cmd(M.pack({"v": 1}), time.perf_counter(), source="rogue") is None
+def test_plant_rejects_commands_not_from_its_owner(plant_node, bus):
+    from msagv.bridge.ownership import claim
+    from msagv.bridge.session import Keys
+
+    n, k = plant_node, Keys("t0")
+    rogue, ctl = bus.endpoint("rogue"), bus.endpoint("ctl")
+    rogue_cmd = rogue.publisher(k.cmd)
+    rogue_cmd.put(_cmd(0), 0)  # nobody owns the vehicle yet
+    assert claim(ctl, k, 0) == [("p1", {"v": M.VERSION, "granted": True, "owner": "ctl"})]
+    rogue_cmd.put(_cmd(0), 1)  # another session owns it: the rogue is banned
+    bus.inject(k.cmd, _cmd(0))  # a command without the sender's identity
+    rogue_cmd.put(M.pack({"v": 1}), 2)
     assert n._newest is None and n.stats.accepted == 0
-    assert n.handle_cmd(_cmd(0), time.perf_counter(), source="ctl") is not None
+    ctl.publisher(k.cmd).put(_cmd(0), 0)
+    assert n.stats.accepted == 1 and n._newest.state_seq == 0
     assert n.rej.summary()["by_reason"] == {M.NOT_OWNER: 3, M.MISSING_FIELD: 1}
+    # the rogue is never granted the vehicle, not even once the owner releases it
+    assert claim(rogue, k, 1) == [("p1", {"v": M.VERSION, "granted": False, "owner": "ctl"})]
+    claim(ctl, k, 1, RELEASE)
+    assert claim(rogue, k, 2) == [("p1", {"v": M.VERSION, "granted": False})]
+    assert n.ownership.summary() == {"owner": None, "grants": 1, "refused": 2, "releases": 1,
+                                     "losses": 0, "banned": 1}
 
 
-def test_plant_counts_a_command_that_arrives_after_its_step_as_late(plant_node):
-    n = plant_node
-    n.ownership.claim("ctl")
+def test_plant_counts_a_command_that_arrives_after_its_step_as_late(plant_node, bus):
+    from msagv.bridge.ownership import claim
+    from msagv.bridge.session import Keys
+
+    n, k = plant_node, Keys("t0")
+    ctl = bus.endpoint("ctl")
+    assert claim(ctl, k, 0)[0][1]["granted"]
+    pub = ctl.publisher(k.cmd)
     n._stepped = 0  # the plant took step 0 before the answer to state 0 arrived
     n.publish_state(1)
-    assert n.handle_cmd(_cmd(0), time.perf_counter(), source="ctl") is not None
-    assert n.handle_cmd(_cmd(1, 1), time.perf_counter(), source="ctl") is not None
+    pub.put(_cmd(0), 0)
+    pub.put(_cmd(1, 1), 1)
+    assert n.stats.accepted == 2
     assert n.stats.late == 1 and n.summary()["commands"]["late"] == 1
 
 
-def test_controller_rejects_states_not_from_its_plant():
+def test_the_plant_counts_only_its_owners_token_as_the_controllers_presence(plant_node, bus):
+    from msagv.bridge.ownership import claim
+    from msagv.bridge.session import Keys
+
+    n, k = plant_node, Keys("t0")
+    other = bus.endpoint("other")
+    tokens = [other.declare_token(k.controller_token("other")),  # not the owner's
+              other.declare_token("msagv/t0/alive/controller")]  # the first protocol's key
+    assert not n.controller_present
+    ctl = bus.endpoint("ctl")
+    assert claim(ctl, k, 0)[0][1]["granted"]
+    assert not n.controller_present  # granted, but its token is not there
+    tokens.append(ctl.declare_token(k.controller_token("ctl")))
+    assert n.controller_present
+    assert bus.vanish(k.controller_token("ctl")) == 1  # its lease expired
+    wait_until(lambda: not n.controller_present, 5.0, "the owner's loss")
+    assert n.ownership.owner is None and n.ownership.losses == 1
+    assert n.stats.controller_losses == 1
+
+
+def test_controller_rejects_states_not_from_its_plant(bus):
     from msagv.bridge.controller_node import ControllerConfig, ControllerNode
     from msagv.bridge.session import Keys
     from msagv.controller.models import MPCSettings
@@ -161,16 +213,66 @@ def test_controller_rejects_states_not_from_its_plant():
     from msagv.controller.reference import case1_curve
     from msagv.plant import default_vehicle
 
-    v = default_vehicle()
+    v, k = default_vehicle(), Keys("t0")
+    plant = LoopbackPlant(bus)  # p1
     node = ControllerNode(MPC(v, MPCSettings(iterations=3, chains=4), case1_curve(15.0)),
-                          Keys("t0"), ControllerConfig(), plant_zid="p1")
-    st = {"t": 0.0, "x": 0.0, "y": 0.0, "phi": 0.0, "vx": 4.0, "vy": 0.0, "r": 0.0,
-          "delta": [0.0] * 4, "omega_w": [8.0] * 4}
-    payload = M.encode_state(0, st)
-    assert node.handle_state(payload, time.perf_counter(), source="rogue") is None
-    assert node.handle_state(payload, time.perf_counter(), source=None) is None
-    assert node.handle_state(payload, time.perf_counter(), source="p1") is not None
-    assert node.rej.summary()["by_reason"] == {M.NOT_BOUND: 2}
+                          k, ControllerConfig(), plant_zid="p1")
+    node.open(bus.endpoint("c1"))
+    try:
+        st = {"t": 0.0, "x": 0.0, "y": 0.0, "phi": 0.0, "vx": 4.0, "vy": 0.0, "r": 0.0,
+              "delta": [0.0] * 4, "omega_w": [8.0] * 4}
+        payload = M.encode_state(0, st)
+        bus.endpoint("rogue").publisher(k.state).put(payload, 0)
+        bus.inject(k.state, payload)  # without the sender's identity
+        assert node._pending is None
+        plant.publish(0, payload)
+        assert node._pending is not None and node._pending[0]["seq"] == 0
+        assert node.rej.summary()["by_reason"] == {M.NOT_BOUND: 2}
+    finally:
+        node.close()
+
+
+def test_a_controller_between_two_plants_claims_only_once_bound_to_the_next(bus):
+    """After the loss of its plant the controller fetches the next plant's params; it does
+    not claim meanwhile, else that plant would grant it the vehicle and publish its first
+    state before the controller is bound to it (and so rejects it as not_bound)."""
+    from msagv.bridge.controller_node import ControllerConfig, ControllerNode
+    from msagv.bridge.ownership import CLAIM_RETRY_S
+    from msagv.bridge.session import Keys
+    from msagv.controller.models import MPCSettings
+    from msagv.controller.mpc import MPC
+    from msagv.controller.reference import case1_curve
+    from msagv.plant import default_vehicle
+
+    first = LoopbackPlant(bus, id="p1")
+    fetched = threading.Event()
+
+    def rebind():  # the params of the next plant, once the test lets them arrive
+        assert fetched.wait(10)
+        return "p2"
+
+    node = ControllerNode(MPC(default_vehicle(), MPCSettings(iterations=3, chains=4),
+                              case1_curve(15.0)), Keys("t0"), ControllerConfig(),
+                          plant_zid="p1", rebind=rebind)
+    node.open(bus.endpoint("c1"))
+    try:
+        wait_until(lambda: node.granted, 5.0, "the grant of p1")
+        first.leave()
+        lost = threading.Thread(target=node._plant_lost, daemon=True)
+        lost.start()
+        wait_until(lambda: node.plant_zid is None, 5.0, "the unbinding")
+        second = LoopbackPlant(bus, id="p2")  # the next plant comes up
+        n = second.claims
+        node._claim_wake.set()  # as a plant's token appearing wakes the claim loop
+        time.sleep(3 * CLAIM_RETRY_S)
+        assert second.claims == n and second.ownership.owner is None  # no claim while unbound
+        fetched.set()
+        lost.join(5)
+        wait_until(lambda: node.granted, 5.0, "the grant of p2")
+        assert node.plant_zid == "p2" and second.ownership.owner == "c1"
+    finally:
+        fetched.set()
+        node.close()
 
 
 # ---- processes: a rogue peer against the real-time plant -------------------------------------
@@ -223,14 +325,17 @@ class Rogue:
                 self.keys.controller_token(self.owner)))
 
     def _claim(self):
-        from msagv.bridge.ownership import claim, source_info
+        from msagv.bridge.ownership import claim
+        from msagv.bridge.zenoh_transport import ZenohTransport
+
+        bus = ZenohTransport(self.session, owns=False)
 
         n = 0
         while not self._stop.wait(0.05):
             if self.owner is None:
                 continue
             try:
-                for _, g in claim(self.session, self.keys, source_info(self.pub, n),
+                for _, g in claim(bus, self.keys, n,
                                   timeout=0.2):
                     if g is not None and g["granted"]:
                         self.granted += 1
@@ -348,13 +453,14 @@ def test_a_stalled_controller_carries_on_with_a_live_plant(procs):
 @pytest.mark.timeout(300)
 def test_a_controller_refuses_to_bind_when_two_plants_answer_its_params(procs):
     from msagv.bridge.ownership import params_replies
-    from msagv.bridge.session import Keys, SessionOptions, open_session
+    from msagv.bridge.session import Keys, SessionOptions
+    from msagv.bridge.zenoh_transport import ZenohTransport
 
     p1, p2 = free_port(), free_port()
     for name, port in (("plant1", p1), ("plant2", p2)):  # e.g. a rogue with a lighter vehicle
         procs.start(name, msagv("plant", "--listen", ep(port), "--mass", 1200 if port == p2
                                 else 12000, "--wait", 120, "-q"))
-    with open_session(SessionOptions(connect=[ep(p1), ep(p2)]), "tool") as s:
+    with ZenohTransport.open(SessionOptions(connect=[ep(p1), ep(p2)]), "tool") as s:
         t0 = time.monotonic()
         while len(params_replies(s, Keys("agv0"))) < 2:  # both plants are up
             assert time.monotonic() - t0 < 120, procs.err("plant2")

@@ -25,6 +25,7 @@ from msagv.bridge import messages as M
 from msagv.bridge.presence import Presence
 from msagv.bridge.recording import read_recording
 from msagv.bridge.session import Keys, SessionOptions, open_session
+from msagv.bridge.zenoh_transport import ZenohTransport
 from msagv.experiments.recorded import evaluate
 from helpers import ep, free_port, msagv
 
@@ -46,8 +47,9 @@ class Bus:
             self.session.declare_subscriber(self.keys.state, self._on_state),
             self.session.declare_subscriber(self.keys.cmd, self._on_cmd)]
         # any plant's and any controller's token (alive/plant/{zid}, alive/controller/{zid})
-        self.plant = Presence(self.session, self.keys.plant_token())
-        self.controller = Presence(self.session, self.keys.controller_token())
+        bus = ZenohTransport(self.session, owns=False)
+        self.plant = Presence(bus, self.keys.plant_token())
+        self.controller = Presence(bus, self.keys.controller_token())
 
     def _on_state(self, s):
         try:

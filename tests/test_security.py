@@ -194,12 +194,15 @@ class Peer:
             self.sent += 1
 
     def _claim(self):
-        from msagv.bridge.ownership import claim, source_info
+        from msagv.bridge.ownership import claim
+        from msagv.bridge.zenoh_transport import ZenohTransport
+
+        bus = ZenohTransport(self.session, owns=False)
 
         n = 0
         while not self._stop.wait(0.1):
             try:
-                for _, g in claim(self.session, self.keys, source_info(self.pub, n), timeout=0.3):
+                for _, g in claim(bus, self.keys, n, timeout=0.3):
                     if g is not None and g["granted"]:
                         self.granted += 1
             except Exception:
