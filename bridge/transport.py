@@ -39,8 +39,7 @@ hold a lock of its own while it publishes, queries or declares.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable, Mapping, Protocol, runtime_checkable
+from typing import Callable, Mapping, NamedTuple, Protocol, runtime_checkable
 
 
 class TransportError(ValueError):
@@ -48,9 +47,9 @@ class TransportError(ValueError):
     message says which)."""
 
 
-@dataclass(frozen=True)
-class Sample:
-    """A published message as a subscriber receives it."""
+class Sample(NamedTuple):
+    """A published message as a subscriber receives it (a named tuple: cheap to make at
+    every message)."""
 
     key: str
     payload: bytes
@@ -58,8 +57,7 @@ class Sample:
     sn: int | None = None  # the sequence number the publisher attached
 
 
-@dataclass(frozen=True)
-class Reply:
+class Reply(NamedTuple):
     """One answer to :meth:`Transport.query`: ``ok`` False for an error reply."""
 
     sender: str | None  # the replier's identity

@@ -39,11 +39,6 @@ def _sender(sample_or_query) -> str | None:
     return str(si.source_id.zid)
 
 
-def _sn(sample) -> int | None:
-    si = sample.source_info
-    return None if si is None else si.source_sn
-
-
 class _Declared:
     """A Zenoh declaration (subscriber, queryable, token) behind ``close()``."""
 
@@ -64,15 +59,11 @@ class ZenohPublisher:
 
         self._pub = pub
         self._source = zenoh.SourceInfo
+        self.entity = pub.id  # the Zenoh entity id named by the source info of every put
         self.key = key
 
-    @property
-    def entity(self):
-        """The publisher's Zenoh entity id (``source_info``'s ``source_id``)."""
-        return self._pub.id
-
     def put(self, payload: bytes, sn: int) -> None:
-        self._pub.put(payload, source_info=self._source(self._pub.id, int(sn) & _SN_MASK))
+        self._pub.put(payload, source_info=self._source(self.entity, int(sn) & _SN_MASK))
 
     @property
     def matching(self) -> bool:
@@ -112,13 +103,20 @@ class ZenohTransport:
             key, express=True, priority=zenoh.Priority.REAL_TIME,
             congestion_control=zenoh.CongestionControl.BLOCK,
             encoding=zenoh.Encoding(M.CONTENT_TYPE))
+        p = ZenohPublisher(pub, key)
         if self._entity is None:
-            self._entity = pub.id
-        return ZenohPublisher(pub, key)
+            self._entity = p.entity
+        return p
 
     def subscribe(self, key: str, callback: Callable[[Sample], None]) -> _Declared:
         def on_sample(s) -> None:
-            callback(Sample(str(s.key_expr), s.payload.to_bytes(), _sender(s), _sn(s)))
+            si = s.source_info
+            if si is None:
+                callback(Sample(str(s.key_expr), s.payload.to_bytes(), None, None))
+            else:
+                sid = si.source_id
+                callback(Sample(str(s.key_expr), s.payload.to_bytes(),
+                                None if sid is None else str(sid.zid), si.source_sn))
 
         return _Declared(self.session.declare_subscriber(key, on_sample))
 
