@@ -21,7 +21,7 @@ from typing import Any, Mapping
 
 import msgpack
 
-from msagv.plant.interface import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
+from msagv.plant.signals import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
 
 VERSION = 1
 CONTENT_TYPE = "application/msgpack"
@@ -53,7 +53,7 @@ REASONS = (NOT_MSGPACK, NOT_A_MAP, VERSION_MISMATCH, MISSING_FIELD, EXTRA_FIELD,
 
 # field tables: name -> kind. kinds: "int" (>= 0), "float" (finite), "wheels" (2n finite
 # floats), "wheels+" (2n finite floats >= 0), "bool", "float+" (finite, >= 0), "str"
-# the state's field names are the plant interface's (msagv.plant.interface): the body's
+# the state's field names are the plant's (msagv.plant.signals): the body's
 # BODY_FIELDS, the wear work WEAR_FIELDS, and the per-wheel wear work WHEEL_WEAR_FIELDS
 # (arrays in the wheel order), sent only to peers that asked for it (docs/PROTOCOL.md,
 # "Per-wheel wear"), as a peer of the first version rejects them

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from msagv.controller.metrics import percentiles
-from msagv.plant.interface import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
+from msagv.plant.signals import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
 
 from . import messages as M
 from .loss import SAFE, STALE_MS, CommandWatch
