@@ -18,7 +18,9 @@ def run_title(info: dict, how: str | None = None) -> str:
     if v:
         parts.append(f"{v.get('name')} ({v.get('axles')} axles, {v.get('mass_kg', 0) / 1000:g} t)")
     if info.get("method"):
-        solver = {"ipopt": ", IPOPT", "acados": ", acados RTI"}.get(info.get("solver"), "")
+        name = info.get("solver")
+        solver = ("" if name in (None, "sa") else
+                  ", " + {"ipopt": "IPOPT", "acados": "acados RTI"}.get(name, name))
         parts.append(f"{str(info['method']).upper()} ({info.get('model')}{solver})")
     if how:
         parts.append(how)

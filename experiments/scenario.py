@@ -103,7 +103,7 @@ class Scenario:
     duration: float | None = None
     after_end: str = "continue"
     settings: dict = field(default_factory=dict)
-    solver: str = "sa"
+    solver: str = "sa"  # controller.solvers.DEFAULT_SOLVER (not imported here: see its test)
     fmu: str | None = None
     fmu_map: str | None = None
     fmu_params: dict = field(default_factory=dict)

@@ -121,6 +121,8 @@ def _demo_scenario(a) -> dict:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from msagv.controller import solvers
+
     from .args import add_common_args
 
     ap = argparse.ArgumentParser(prog="msagv demo", description=__doc__.splitlines()[0])
@@ -132,9 +134,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--deadline-ms", type=float, default=7.0,
                     help="the controller's solve budget per period (default 7)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--solver", choices=["sa", "ipopt"], default="sa",
-                    help="the controller's solver (ipopt: the reference, too slow for 100 Hz "
-                         "here; use it with --run-mode lockstep)")
+    ap.add_argument("--solver", choices=list(solvers.SOLVERS), default=solvers.DEFAULT_SOLVER,
+                    help=f"the controller's solver (default {solvers.DEFAULT_SOLVER}; ipopt: "
+                         "the reference, too slow for 100 Hz here: use it with --run-mode "
+                         "lockstep; msagv controller --help lists them)")
     ap.add_argument("--plot", metavar="FILE", default="msagv-demo.png",
                     help="figure to write (default msagv-demo.png)")
     ap.add_argument("-o", "--out", metavar="DIR", help="keep the recordings in DIR")

@@ -93,3 +93,11 @@ def test_a_taken_or_malformed_solver_name_is_refused(monkeypatch):
     assert solvers.SOLVERS == before
     with pytest.raises(ValueError, match="expected one of"):
         MPC(default_vehicle(), MPCSettings(), solver="nope")
+
+
+def test_the_scenario_default_solver_is_the_tables():
+    """experiments.scenario does not import the controller at import time (every command
+    reads its options through it); its default solver must be the table's."""
+    from msagv.experiments.scenario import Scenario
+
+    assert Scenario().solver == solvers.DEFAULT_SOLVER
