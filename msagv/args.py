@@ -12,6 +12,7 @@ import dataclasses
 import math
 import os
 import sys
+import tempfile
 import traceback
 from pathlib import Path
 
@@ -61,10 +62,24 @@ PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif",
                  ".webp")
 
 
+def _cannot_create_in(directory: Path) -> str | None:
+    """None when a file can be created in ``directory``, else the system's reason. Tries it
+    for real (an anonymous temporary file, gone when closed): permission bits do not tell
+    the whole story (root, read-only mounts, /proc and /sys, full quotas)."""
+    try:
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as e:
+        return e.strerror or str(e)
+    return None
+
+
 def check_output(path, option: str, directory: bool = False, suffixes=None) -> None:
     """Refuse an output path that cannot be written, before any work is done: a missing
     or unwritable parent directory, a directory where a file is expected (or a file
-    where a directory is), an unknown file type. Creates nothing."""
+    where a directory is), an existing file that cannot be written, an unknown file type.
+    Writability is tried, not guessed from permission bits (:func:`_cannot_create_in`);
+    nothing is left behind."""
     if path is None:
         return
     p = Path(path)
@@ -79,16 +94,29 @@ def check_output(path, option: str, directory: bool = False, suffixes=None) -> N
             q = q.parent
         if not q.is_dir():
             raise OptionError(f"{option} {path}: {q} is not a directory")
-        if not os.access(q, os.W_OK | os.X_OK):
-            raise OptionError(f"{option} {path}: {q} is not writable")
+        why = _cannot_create_in(q)
+        if why:
+            raise OptionError(f"{option} {path}: cannot write in {q} ({why})")
         return
     if p.is_dir():
         raise OptionError(f"{option} {path}: is a directory, expected a file name")
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise OptionError(f"{option} {path}: directory {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
-        raise OptionError(f"{option} {path}: not writable")
+    if p.exists():
+        if p.is_file():  # opening for appending changes nothing
+            try:
+                with open(p, "ab"):
+                    pass
+            except OSError as e:
+                raise OptionError(f"{option} {path}: cannot be written "
+                                  f"({e.strerror or e})") from None
+        elif not os.access(p, os.W_OK):  # a device or a pipe: never opened to try
+            raise OptionError(f"{option} {path}: not writable")
+        return
+    why = _cannot_create_in(parent)
+    if why:
+        raise OptionError(f"{option} {path}: cannot write in {parent} ({why})")
 
 
 def parse_assignments(text: str | None, what: str = "--initial") -> dict[str, float]:

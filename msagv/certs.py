@@ -14,7 +14,7 @@ import argparse
 def main(argv: list[str]) -> int:
     from msagv.bridge.security import ROLES, SecurityError, create_certs, parse_extra
 
-    from .args import add_common_args, fail, note
+    from .args import OptionError, add_common_args, check_output, fail, note
 
     ap = argparse.ArgumentParser(
         prog="msagv certs",
@@ -34,9 +34,10 @@ def main(argv: list[str]) -> int:
     add_common_args(ap)
     a = ap.parse_args(argv)
     try:
+        check_output(a.dir, "DIR", directory=True)
         extras = [parse_extra(e) for e in a.extra]
         m = create_certs(a.dir, extras, a.san, a.days, a.force)
-    except (SecurityError, OSError) as e:
+    except (SecurityError, OptionError, OSError) as e:
         return fail("msagv certs", e, a)
     ids = ", ".join(f"{n} ({v['role']}, CN {v['cn']})" for n, v in m["identities"].items())
     note(a, f"msagv certs: {a.dir}: CA ca.pem; identities {ids}. Keep ca.key off the "

@@ -92,7 +92,8 @@ def main(argv: list[str]) -> int:
     try:
         if a.jobs is not None and a.jobs < 1:
             raise OptionError("--jobs must be >= 1")
-        check_output(a.out, "--out", directory=True)
+        # the default output directory too: nothing runs before it is known to be writable
+        check_output(a.out or Path("runs") / a.experiment, "--out", directory=True)
         check_output(a.json_out, "--json-out")
         methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
         masses = _masses_kg(a)
