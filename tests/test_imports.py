@@ -244,6 +244,9 @@ def test_the_wheel_installs_one_top_level_package(tmp_path):
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w",
                         str(tmp_path), str(src)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
+    # a clean build: no deprecation walls from our pyproject.toml (the license as a table,
+    # a data folder outside the packages)
+    assert "BuildBackendWarning" not in r.stdout + r.stderr, (r.stdout + r.stderr)[-3000:]
     whl, = tmp_path.glob("msagv-*.whl")
     with zipfile.ZipFile(whl) as z:
         tops = {n.split("/")[0] for n in z.namelist()}
