@@ -206,11 +206,12 @@ def rolling_wheels(vehicle, phi: float, vx: float, vy: float, r: float
     return delta, omega
 
 
-def wheel_speeds(reference: Reference, vehicle, t0: float, t1: float, dt: float = 0.01
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """``(times, speeds)``: the rim speed [m/s] every wheel needs to roll along the
-    reference between ``t0`` and ``t1``, shape (K, 2n) (the body's velocity plus the yaw
-    rate's share at each wheel, in B)."""
+def wheel_velocities(reference: Reference, vehicle, t0: float, t1: float, dt: float = 0.01
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(times, wx, wy)``: the velocity [m/s] every wheel needs to roll along the reference
+    between ``t0`` and ``t1``, in the body frame B (the body's velocity plus the yaw rate's
+    share at each wheel), each shape (K, 2n). Rolling along it takes a steering angle
+    ``atan2(wy, wx)`` and a rim speed ``hypot(wx, wy)``."""
     times = np.arange(t0, t1 + dt / 2, dt)
     R = reference.sample(times)
     c, s = np.cos(R[:, 2]), np.sin(R[:, 2])
@@ -218,6 +219,14 @@ def wheel_speeds(reference: Reference, vehicle, t0: float, t1: float, dt: float 
     r = R[:, 5:6]
     wx = ub[:, None] - r * np.asarray(vehicle.wheel_y)[None, :]
     wy = vb[:, None] + r * np.asarray(vehicle.wheel_x)[None, :]
+    return times, wx, wy
+
+
+def wheel_speeds(reference: Reference, vehicle, t0: float, t1: float, dt: float = 0.01
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``(times, speeds)``: the rim speed [m/s] every wheel needs to roll along the
+    reference between ``t0`` and ``t1``, shape (K, 2n) (:func:`wheel_velocities`)."""
+    times, wx, wy = wheel_velocities(reference, vehicle, t0, t1, dt)
     return times, np.hypot(wx, wy)
 
 
@@ -285,8 +294,44 @@ def from_samples(t, x, y, phi, name: str = "trajectory") -> Reference:
                      name=name)
 
 
+SEPARATORS = {";": "semicolons", "\t": "tabs", "|": "vertical bars", " ": "spaces"}
+MS_MIN_SPAN = 600.0  # s: a CSV read as seconds that lasts this long ...
+MS_MAX_SPEED = 0.1  # m/s: ... at this average speed or slower ...
+MS_PLAUSIBLE = (0.2, 50.0)  # m/s: ... but plausible read as milliseconds: t was in ms
+
+
+def _separator_problem(header_line: str) -> str | None:
+    """The separator a header uses when it is not a comma (``'t;x;y;phi'``), else None."""
+    for sep, name in SEPARATORS.items():
+        cols = [c.strip() for c in header_line.split(sep)]
+        if all(c in cols for c in ("t", "x", "y", "phi")):
+            return name
+    return None
+
+
+def check_time_unit(t, x, y, where: str = "trajectory") -> None:
+    """Refuse a ``t`` column that looks like milliseconds (``ReferenceError`` naming
+    ``where``): read as seconds the path lasts at least :data:`MS_MIN_SPAN` at a crawl
+    (:data:`MS_MAX_SPEED` or slower on average) while read as milliseconds its speed is a
+    vehicle's (:data:`MS_PLAUSIBLE`)."""
+    t, x, y = (np.asarray(a, dtype=float) for a in (t, x, y))
+    span = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    if span < MS_MIN_SPAN:
+        return
+    length = float(np.sum(np.hypot(np.diff(x), np.diff(y))))
+    v = length / span
+    if v <= MS_MAX_SPEED and MS_PLAUSIBLE[0] <= 1000.0 * v <= MS_PLAUSIBLE[1]:
+        raise ReferenceError(
+            f"{where}: t looks like milliseconds: read as seconds the path is {length:.1f} m "
+            f"in {span:.0f} s ({span / 3600:.1f} h at {3.6 * v:.3f} km/h), read as "
+            f"milliseconds it is {span / 1000:.1f} s at {3600 * v:.1f} km/h: give t in "
+            f"seconds")
+
+
 def from_csv(path: str | Path) -> Reference:
-    """Read a ``t,x,y,phi`` CSV (header required; phi in rad). Errors name the line."""
+    """Read a ``t,x,y,phi`` CSV (header required; comma-separated; t in s, phi in rad).
+    Errors name the line; a file separated by something else than commas is refused naming
+    the separator, a ``t`` in milliseconds naming the unit (:func:`check_time_unit`)."""
     path = Path(path)
     if not path.is_file():
         raise ReferenceError(f"{path}: no such file")
@@ -294,11 +339,17 @@ def from_csv(path: str | Path) -> Reference:
     with path.open(newline="") as f:
         rd = csv.reader(f)
         try:
-            header = [h.strip() for h in next(rd)]
+            raw = next(rd)
         except StopIteration:
             raise ReferenceError(f"{path}: empty file") from None
+        header = [h.strip() for h in raw]
         miss = [c for c in ("t", "x", "y", "phi") if c not in header]
         if miss:
+            sep = _separator_problem(",".join(raw))
+            if sep is not None:
+                raise ReferenceError(f"{path}:1: the columns are separated by {sep} "
+                                     f"('{','.join(raw).strip()}'): msagv reads comma-separated "
+                                     f"files (t,x,y,phi; decimal points, not commas)")
             raise ReferenceError(f"{path}:1: missing column(s) {', '.join(miss)}")
         idx = [header.index(c) for c in ("t", "x", "y", "phi")]
         for ln, row in enumerate(rd, start=2):
@@ -317,6 +368,7 @@ def from_csv(path: str | Path) -> Reference:
     if len(rows) < 3:
         raise ReferenceError(f"{path}: needs at least 3 rows")
     a = np.array(rows)
+    check_time_unit(a[:, 0], a[:, 1], a[:, 2], where=str(path))
     check_headings(a[:, 0], a[:, 1], a[:, 2], a[:, 3], where=str(path), lines=lines)
     return from_samples(a[:, 0], a[:, 1], a[:, 2], a[:, 3], name=path.stem)
 

@@ -8,9 +8,15 @@ prints on stderr and lists under ``warnings`` in its JSON. The cases (docs/SCENA
 * a reference faster than the wheels can roll (``omega_w_max * r_w``): refused; outer
   wheels that only exceed it in turns: warning;
 * a path whose lateral acceleration exceeds the tires' ``mu g``: warning;
+* a reference no wheel can roll along (every wheel would have to point outside its
+  steering range, e.g. driving backwards: the wheels cannot roll backwards,
+  ``omega_w >= 0``): refused, naming where on the path; some wheels outside their range
+  (a turn too tight for the steering limits): warning;
 * a run longer than the reference: warning (the reference continues at its last heading
   and speed, or the run stops at its end with ``after_end = "stop"``);
 * a trajectory whose first row is not at t = 0: warning;
+* a vehicle whose numbers no wheeled vehicle has (a unit slip: tonnes typed as kg,
+  millimetres as metres, ...; :func:`plant.vehicle.plausibility_warnings`): warning;
 * solves longer than the control period (more than 5 % of them): warning (after the run).
 
 Headings that jump or look like degrees are refused when a trajectory CSV is read
@@ -38,7 +44,7 @@ def reference_checks(vehicle, reference, duration: float, after_end: str = "cont
     """Warnings for running ``reference`` for ``duration`` s with ``vehicle``; raises
     :class:`ScenarioError` for a speed no wheel can reach.
     ``speed_option`` names the option or key the user set the speed with."""
-    from msagv.controller.reference import wheel_speeds
+    from msagv.controller.reference import wheel_velocities
 
     warnings = []
     t0 = float(reference.t[0])
@@ -48,8 +54,10 @@ def reference_checks(vehicle, reference, duration: float, after_end: str = "cont
                         f"until then the reference is its first row (a CSV's t is vehicle "
                         f"time from the start of the run)")
     t_last = min(duration, end) if after_end == "stop" else duration
-    times, speeds = wheel_speeds(reference, vehicle, 0.0, max(t_last, 0.01))
+    times, wx, wy = wheel_velocities(reference, vehicle, 0.0, max(t_last, 0.01))
+    speeds = np.hypot(wx, wy)
     R = reference.sample(times)
+    warnings += steering_checks(vehicle, reference, times, wx, wy, R)
     body = np.hypot(R[:, 3], R[:, 4])
     limit = vehicle.limits.omega_w_max * vehicle.wheel_radius
     if body.max() > limit * (1 + 1e-9):
@@ -86,6 +94,53 @@ def reference_checks(vehicle, reference, duration: float, after_end: str = "cont
                 f"{end:g} s): after it the reference continues straight on at its last "
                 f"heading and speed (after_end continue; 'stop' ends the run there)")
     return warnings
+
+
+STEER_TOLERANCE = math.radians(1.0)  # rad past a steering limit that still counts as within
+MOVING = 0.1  # m/s: a wheel slower than this is not asked to point anywhere
+
+
+def _where(times, R, k: int) -> str:
+    return f"t = {times[k]:.2f} s (x = {R[k, 0]:.1f} m, y = {R[k, 1]:.1f} m)"
+
+
+def steering_checks(vehicle, reference, times, wx, wy, R) -> list[str]:
+    """The steering angle each wheel needs to roll along the reference, ``atan2(wy, wx)``
+    in the body frame, against its range ``[delta_min, delta_max]`` (the wheels never roll
+    backwards: ``omega_w >= 0``). When no wheel that has to move can point where it must
+    (driving backwards, or crabbing past every wheel's range) the reference cannot be
+    driven: :class:`ScenarioError`, naming where. Some wheels past their range (a turn too
+    tight for the limits): a warning naming the worst wheel and where."""
+    lim = vehicle.limits
+    angle = np.arctan2(wy, wx)
+    moving = np.hypot(wx, wy) > MOVING
+    excess = np.maximum(angle - lim.delta_max, lim.delta_min - angle)
+    out = moving & (excess > STEER_TOLERANCE)
+    rng = (f"[{math.degrees(lim.delta_min):.0f}, {math.degrees(lim.delta_max):.0f}] deg")
+    blocked = moving.any(axis=1) & np.all(out | ~moving, axis=1)
+    if blocked.any():
+        k = int(np.argmax(blocked))
+        share = float(np.mean(blocked)) * 100.0
+        c, s = math.cos(R[k, 2]), math.sin(R[k, 2])
+        beta = math.degrees(math.atan2(-s * R[k, 3] + c * R[k, 4], c * R[k, 3] + s * R[k, 4]))
+        how = (f"drives the vehicle backwards (its velocity {abs(beta):.0f} deg from its "
+               f"heading; the wheels cannot roll backwards, omega_w >= 0)" if abs(beta) > 90.0
+               else f"moves the vehicle at {abs(beta):.0f} deg to its heading")
+        raise ScenarioError(
+            f"{reference.name}: the reference {how} from {_where(times, R, k)}, over "
+            f"{share:.0f} % of the run: every wheel would have to steer outside its range "
+            f"{rng}, so {vehicle.name} cannot drive it (turn the vehicle round in the path, "
+            f"or keep the heading within {math.degrees(lim.delta_max):.0f} deg of the "
+            f"direction of travel)")
+    if not out.any():
+        return []
+    k, w = np.unravel_index(int(np.argmax(np.where(out, excess, -np.inf))), out.shape)
+    share = float(np.mean(out.any(axis=1))) * 100.0
+    backwards = " (that is, rolling backwards)" if abs(angle[k, w]) > math.pi / 2 else ""
+    return [f"wheel {vehicle.wheel_names[w]} would have to steer to "
+            f"{math.degrees(angle[k, w]):.0f} deg{backwards} at {_where(times, R, k)}, outside "
+            f"its range {rng}; some wheel is past its range over {share:.0f} % of the run: "
+            f"expect tracking errors there (a turn too tight for the steering limits)"]
 
 
 def solve_time_warnings(solve_ms, period: float) -> list[str]:
