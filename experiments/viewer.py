@@ -12,6 +12,7 @@ What is logged (timeline ``sim_time``, the vehicle time of each state):
 ``errors/e_x_cm``, ``e_y_cm``, ``e_lat_cm``, ``e_phi_deg``   tracking errors (scalars)
 ``wear/power/ij``           each wheel's wear power [kW] (mean over the period:
                             the change of ``W_s_ij + W_alpha_ij + W_t_ij`` over T)
+``wear/axle/i``             each axle's (its two wheels'), shown with the total
 ``wear/power/total``        the vehicle's [kW] (from ``W_s + W_alpha + W_t``)
 ==========================  =========================================================
 
@@ -26,10 +27,13 @@ recording).
 
 from __future__ import annotations
 
+import atexit
 import logging
 import math
 import queue
+import socket
 import threading
+import time
 import urllib.parse
 from pathlib import Path
 from typing import Any
@@ -62,9 +66,92 @@ def require_rerun():
     return rerun
 
 
-def web_url(web_port: int, grpc_uri: str) -> str:
+LOOPBACK = "127.0.0.1"  # where a served view listens unless told otherwise
+
+
+def shown_host(host: str) -> str:
+    """The host to put in an address: ``host``, or this machine's name when ``host`` is
+    every interface (0.0.0.0, ::)."""
+    return socket.gethostname() if host in ("0.0.0.0", "::", "") else host
+
+
+def web_url(web_port: int, grpc_uri: str, host: str = LOOPBACK) -> str:
     """The address of the served web viewer showing the recording at ``grpc_uri``."""
-    return f"http://127.0.0.1:{web_port}/?url={urllib.parse.quote(grpc_uri, safe='')}"
+    h = shown_host(host)
+    h = f"[{h}]" if ":" in h else h
+    return f"http://{h}:{web_port}/?url={urllib.parse.quote(grpc_uri, safe='')}"
+
+
+def _rerun_binary() -> Path:
+    """The rerun command-line program the rerun-sdk wheel ships (package ``rerun_cli``)."""
+    try:
+        import rerun_cli
+    except ImportError:
+        raise ViewerError("the web viewer needs rerun-sdk's command-line program "
+                          "(package rerun_cli): pip install 'msagv[viewer]'") from None
+    base = Path(rerun_cli.__file__).parent
+    for p in (base / "Rerun.app" / "Contents" / "MacOS" / "Rerun", base / "rerun",
+              base / "rerun.exe"):
+        if p.is_file():
+            return p
+    raise ViewerError(f"rerun-sdk's command-line program is missing from {base}")
+
+
+class WebViewer:
+    """Rerun's web viewer (HTML and wasm) served over HTTP on ``host:port`` by the rerun
+    program of the rerun-sdk wheel, opening the recording at ``grpc_uri``; stopped by
+    :meth:`close` (by its process id).
+
+    Why a process of its own: rerun-sdk's ``serve_web_viewer`` listens on every interface
+    (0.0.0.0) with no way to choose; ``rerun --serve-web --bind HOST`` listens where it is
+    told. Its output (a first-run notice about Rerun's usage statistics, its log) goes to
+    a file, read when it fails to start."""
+
+    def __init__(self, host: str, port: int, grpc_uri: str, timeout: float = 30.0):
+        import subprocess
+        import tempfile
+
+        self.host, self.port = host, int(port)
+        self._out = tempfile.TemporaryFile(mode="w+")
+        args = [str(_rerun_binary()), "--serve-web", "--bind", host,
+                "--web-viewer-port", str(self.port), grpc_uri]
+        try:
+            self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=self._out,
+                                         stderr=subprocess.STDOUT)
+        except OSError as e:
+            raise ViewerError(f"the web viewer could not start: {e}") from None
+        atexit.register(self.close)
+        probe = "127.0.0.1" if host in ("0.0.0.0", "") else ("::1" if host == "::" else host)
+        t_end = time.monotonic() + timeout
+        while True:
+            if self.proc.poll() is not None:
+                self._out.seek(0)
+                lines = [ln.strip() for ln in self._out.read().splitlines() if ln.strip()]
+                why = lines[-1] if lines else f"exit code {self.proc.returncode}"
+                self.close()
+                raise ViewerError(f"the web viewer could not listen on {host}:{port}: {why}")
+            try:
+                with socket.create_connection((probe, self.port), timeout=0.5):
+                    break
+            except OSError:
+                pass
+            if time.monotonic() > t_end:
+                self.close()
+                raise ViewerError(f"the web viewer did not listen on {host}:{port} within "
+                                  f"{timeout:g} s")
+            time.sleep(0.1)
+
+    def close(self) -> None:
+        p = getattr(self, "proc", None)
+        if p is not None and p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(5)
+            except Exception:  # noqa: BLE001 - still there: kill it
+                p.kill()
+                p.wait(5)
+        atexit.unregister(self.close)
+        self._out.close()
 
 
 def wheel_colour(p_kw: float, scale_kw: float) -> list[int]:
@@ -79,14 +166,16 @@ class RunView:
     ``vehicle``: a :class:`plant.vehicle.Vehicle`; ``reference``: a
     :class:`controller.reference.Reference` (None: no reference path or errors).
     ``save``: an ``.rrd`` file to write; ``serve``: serve the web viewer (``web_port``) and
-    the data (``grpc_port``, on 127.0.0.1); ``stream``: log into this
+    the data (``grpc_port``), both on ``host`` (default loopback: this machine only;
+    :class:`WebViewer`); ``stream``: log into this
     :class:`rerun.RecordingStream` instead (no sinks are set). ``power_scale_kw``: the wear
     power shown as the hottest wheel colour (None: the running peak, at least 0.05 kW).
     """
 
     def __init__(self, vehicle, reference=None, *, save: str | Path | None = None,
                  serve: bool = False, web_port: int = WEB_PORT, grpc_port: int = GRPC_PORT,
-                 stream=None, name: str = "msagv", power_scale_kw: float | None = None):
+                 host: str = LOOPBACK, stream=None, name: str = "msagv",
+                 power_scale_kw: float | None = None):
         rr = require_rerun()
         self.rr = rr
         if stream is None and not save and not serve:
@@ -96,17 +185,23 @@ class RunView:
         self.vehicle = vehicle
         self.reference = reference
         self.url: str | None = None
+        self.host = host
+        self.listening: list[str] = []  # host:port of each socket the view serves
+        self.web: WebViewer | None = None
         if stream is None:
             stream = rr.RecordingStream("msagv", recording_id=None)
             sinks = []
             if save is not None:
                 sinks.append(rr.FileSink(str(save)))
             if serve:
-                server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=int(grpc_port))
+                server = rr.GrpcServerSink(bind_ip=host, port=int(grpc_port))
                 sinks.append(server)
-                rr.serve_web_viewer(web_port=int(web_port), open_browser=False,
-                                    connect_to=server.uri)
-                self.url = web_url(int(web_port), server.uri)
+                h = shown_host(host)
+                uri = f"rerun+http://{f'[{h}]' if ':' in h else h}:{int(grpc_port)}/proxy"
+                self.web = WebViewer(host, int(web_port), uri)
+                self.url = web_url(int(web_port), uri, host)
+                self.listening = [f"{host}:{int(web_port)} (viewer)",
+                                  f"{host}:{int(grpc_port)} (data)"]
             stream.set_sinks(*sinks, default_blueprint=self._blueprint())
             stream.send_recording_name(name)
         else:
@@ -133,6 +228,9 @@ class RunView:
         """The layout: the 3D scene (its camera behind and above the vehicle's start
         ``at``, following the body), the errors and the wear powers over time."""
         rrb = self.rr.blueprint
+        # the curves start near 0 at the left (a run starts on its reference, wear power from
+        # 0): the top left corner is where a legend covers least
+        legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=True)
         eye = None
         if at is not None:
             x0, y0 = at
@@ -143,8 +241,14 @@ class RunView:
             rrb.Horizontal(
                 rrb.Spatial3DView(origin="/", name="vehicle", contents=["/world/**", "/vehicle/**"],
                                   eye_controls=eye),
-                rrb.Vertical(rrb.TimeSeriesView(origin="/errors", name="tracking errors"),
-                             rrb.TimeSeriesView(origin="/wear", name="wear power [kW]")),
+                rrb.Vertical(
+                    rrb.TimeSeriesView(origin="/errors", name="tracking errors",
+                                       plot_legend=legend),
+                    # per axle and the total: readable at 8 axles (16 wheels' lines are
+                    # not); each wheel's series stays logged under /wear/power/ij
+                    rrb.TimeSeriesView(origin="/wear", name="wear power [kW]",
+                                       contents=["/wear/axle/**", "/wear/power/total"],
+                                       plot_legend=legend)),
                 column_shares=[3, 2]),
             collapse_panels=True)
 
@@ -187,6 +291,9 @@ class RunView:
                 colors=[colour], fill_mode="solid"))
             if p_wheel is not None:
                 rec.log(f"wear/power/{name}", rr.Scalars(p_wheel[k]))
+        if p_wheel is not None:
+            for i in range(len(self._wheels) // 2):
+                rec.log(f"wear/axle/{i + 1}", rr.Scalars(p_wheel[2 * i] + p_wheel[2 * i + 1]))
         p_total = self._total_power(st)
         if p_total is not None:
             rec.log("wear/power/total", rr.Scalars(p_total))
@@ -255,6 +362,8 @@ class RunView:
             self.rec.disconnect()
         except Exception:  # already gone
             pass
+        if self.web is not None:
+            self.web.close()
 
 
 # ---- a running plant: a sink beside the recorder ------------------------------------------

@@ -2,10 +2,12 @@
 ``msagv report``: the Rerun view of :mod:`experiments.viewer`.
 
 ``--view`` serves Rerun's web viewer (from the rerun-sdk wheel, no internet) on
-``--view-port`` (default 9090; the data on 127.0.0.1, port 9876, or ``--view-port`` + 1)
-and prints its address; ``--view-save FILE.rrd`` writes the same recording to a file
-(``rerun FILE.rrd`` or ``msagv``-free tools open it). A command that served a view keeps
-serving after its run until Ctrl-C (``msagv plant``: while the plant runs).
+``--view-port`` (default 9090; the data on port 9876, or ``--view-port`` + 1), both on
+loopback (127.0.0.1: this machine only) unless ``--view-host`` says otherwise (with a
+warning: the view has no authentication), and prints its address and where it listens;
+``--view-save FILE.rrd`` writes the same recording to a file (``rerun FILE.rrd`` or
+``msagv``-free tools open it). A command that served a view keeps serving after its run
+until Ctrl-C (``msagv plant``: while the plant runs).
 """
 
 from __future__ import annotations
@@ -28,15 +30,31 @@ def add_view_args(ap: argparse.ArgumentParser, serve_flag: bool = True) -> None:
     ap.add_argument("--view-port", type=int, metavar="PORT",
                     help="the web viewer's port (default 9090; the data on PORT + 1, "
                          "default 9876)")
+    ap.add_argument("--view-host", metavar="ADDRESS",
+                    help="the address the served view listens on (default 127.0.0.1: this "
+                         "machine only; 0.0.0.0: every interface, with a warning: anyone who "
+                         "reaches the machine sees the view)")
 
 
 def check_view_args(a) -> bool:
     """Refuse bad view options before any work; True when a view is asked for."""
     want = bool(getattr(a, "view", False) or a.view_save)
+    serve = bool(getattr(a, "view", False))
+    if not serve:
+        for opt, v in (("--view-port", a.view_port), ("--view-host", a.view_host)):
+            if v is not None:
+                raise OptionError(f"{opt} applies to a served view (--view; msagv view serves "
+                                  f"unless --no-serve)")
     if not want:
-        if a.view_port is not None:
-            raise OptionError("--view-port needs --view")
         return False
+    if a.view_host is not None:
+        import ipaddress
+
+        try:
+            ipaddress.ip_address(a.view_host)
+        except ValueError:
+            raise OptionError(f"--view-host: expected an IP address (127.0.0.1, 0.0.0.0, "
+                              f"::1, ...), got '{a.view_host}'") from None
     check_output(a.view_save, "--view-save", suffixes=(".rrd",))
     if a.view_port is not None and not 1024 <= a.view_port <= 65534:
         raise OptionError(f"--view-port must be 1024..65534, got {a.view_port}")
@@ -54,6 +72,8 @@ def view_kwargs(a) -> dict:
 
     serve = bool(getattr(a, "view", False))
     kw: dict = {"save": a.view_save, "serve": serve}
+    if serve and a.view_host is not None:
+        kw["host"] = a.view_host
     if a.view_port is not None:
         kw.update(web_port=a.view_port, grpc_port=a.view_port + 1)
     else:
@@ -61,9 +81,23 @@ def view_kwargs(a) -> dict:
     return kw
 
 
+def exposure_warning(view) -> list[str]:
+    """A warning when a served view listens beyond this machine (not on loopback)."""
+    import ipaddress
+
+    if view is None or not view.url or ipaddress.ip_address(view.host).is_loopback:
+        return []
+    return [f"--view-host {view.host}: the view listens on {', '.join(view.listening)}: "
+            f"anyone who can reach this machine there sees it (no authentication)"]
+
+
 def announce(view, prog: str) -> None:
     if view is not None and view.url:
-        print(f"{prog}: view at {view.url}", file=sys.stderr, flush=True)
+        from .args import warn
+
+        warn(prog, exposure_warning(view))
+        print(f"{prog}: view at {view.url} (listening on {', '.join(view.listening)})",
+              file=sys.stderr, flush=True)
 
 
 def serve_until_stopped(view, prog: str) -> None:
@@ -72,8 +106,8 @@ def serve_until_stopped(view, prog: str) -> None:
         return
     stop = threading.Event()
     old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
-    print(f"{prog}: serving the view at {view.url} (Ctrl-C to stop)", file=sys.stderr,
-          flush=True)
+    print(f"{prog}: serving the view at {view.url} (listening on "
+          f"{', '.join(view.listening)}; Ctrl-C to stop)", file=sys.stderr, flush=True)
     try:
         while not stop.wait(0.5):
             pass
@@ -108,6 +142,10 @@ def main(argv: list[str]) -> int:
             raise OptionError("--no-serve needs --view-save FILE.rrd")
         check_view_args(a)
         view, n = view_recording(a.recording, view_kwargs(a), a.run)
+        if a.view:
+            from .args import warn
+
+            warn(prog, exposure_warning(view))
     except (OptionError, RecordingError, ReportError, ViewerError, KeyError, TypeError,
             OSError) as e:
         return fail(prog, e, a)
