@@ -153,6 +153,8 @@ class MPCSettings:
             bad = f"adapt_up must be >= 1 and adapt_down in (0, 1], got {self.adapt_up}, {self.adapt_down}"
         elif self.threads < 1:
             bad = f"threads: must be >= 1, got {self.threads}"
+        elif not hasattr(self.seed, "__index__") or self.seed < 0:  # numpy's seeds are >= 0
+            bad = f"seed: must be an integer >= 0, got {self.seed!r}"
         elif self.deadline_ms is not None and not self.deadline_ms > 0:
             bad = f"deadline_ms: must be > 0, got {self.deadline_ms}"
         elif min(self.K_servo, self.offset_w_max, self.offset_d_max, self.sigma_w,

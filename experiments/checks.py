@@ -143,6 +143,18 @@ def steering_checks(vehicle, reference, times, wx, wy, R) -> list[str]:
             f"expect tracking errors there (a turn too tight for the steering limits)"]
 
 
+def initial_checks(vehicle, initial: dict) -> list[str]:
+    """A warning when the run starts faster than the wheels can roll (``--initial vx=...``,
+    ``u=...``): the vehicle starts sliding, whatever the controller does."""
+    v = math.hypot(float(initial.get("vx", 0.0)), float(initial.get("vy", 0.0)))
+    limit = vehicle.limits.omega_w_max * vehicle.wheel_radius
+    if v <= limit * (1 + 1e-9):
+        return []
+    return [f"initial: the vehicle starts at {v * KMH:.4g} km/h, faster than its wheels roll "
+            f"(omega_w_max x r_w = {limit * KMH:.1f} km/h): it starts sliding (vx, vy are "
+            f"m/s)"]
+
+
 def solve_time_warnings(solve_ms, period: float) -> list[str]:
     """A warning when at least 3 and more than 5 % of the solves took longer than the
     control period (an in-process run waits for them; a real vehicle, or a real-time plant,

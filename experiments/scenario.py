@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
-from .checks import ScenarioError, reference_checks
+from .checks import ScenarioError, initial_checks, reference_checks
 
 CASES = ("curve", "line", "lane", "turn", "random")  # paper Cases 1, 2; the study's paths
 AFTER_END = ("continue", "stop")  # past the reference's end: go on straight, or end the run
@@ -133,6 +133,9 @@ class Scenario:
                                 f"'{self.after_end}'")
         if not (math.isfinite(self.period) and self.period > 0):
             raise ScenarioError(f"period: must be > 0, got {self.period}")
+        if self.duration is not None and self.duration < self.period * (1 - 1e-9):
+            raise ScenarioError(f"duration: {self.duration:g} s is shorter than one control "
+                                f"period ({self.period:g} s)")
         if self.mass_kg is not None and not (math.isfinite(self.mass_kg) and self.mass_kg > 0):
             raise ScenarioError(f"mass: must be > 0 kg, got {self.mass_kg}")
         if self.axles is not None and not (isinstance(self.axles, int) and self.axles >= 1):
@@ -295,18 +298,35 @@ class Scenario:
             d = min(d, reference.end_time)
         return d
 
-    def check(self, vehicle, reference) -> list[str]:
-        """Warnings about running this scenario (:mod:`experiments.checks`); raises
-        :class:`ScenarioError` for a request no vehicle can meet."""
+    def check(self, vehicle, reference, initial: dict | None = None) -> list[str]:
+        """Warnings about running this scenario (:mod:`experiments.checks`) from
+        ``initial`` (the plant's initial state); raises :class:`ScenarioError` for a
+        request no vehicle can meet."""
+        from msagv.plant.vehicle import plausibility_warnings
+
         d = float(self.duration) if self.duration is not None else float(reference.duration)
-        return reference_checks(vehicle, reference, d, self.after_end)
+        where = "" if self.vehicle is None else f"{vehicle.name}: "
+        return ([where + w for w in plausibility_warnings(vehicle)]
+                + reference_checks(vehicle, reference, d, self.after_end)
+                + initial_checks(vehicle, initial or {}))
+
+    def preflight(self) -> list[str]:
+        """The checks of :meth:`build` without building a plant or a controller (cheap:
+        for many runs before any of them starts): raises for a request no vehicle can
+        meet, returns the warnings."""
+        self.check_solver()
+        vehicle = self.resolve_vehicle() if self.fmu is None else None
+        if vehicle is None:  # an FMU's vehicle is known once it is loaded
+            return []
+        ref, _ = self.reference()
+        return self.check(vehicle, ref)
 
     def build(self) -> Built:
         """Plant, controller and reference, ready to connect (close ``Built`` when done)."""
         self.check_solver()
         plant, vehicle, ref, initial = self.make_plant()
         try:
-            warnings = self.check(vehicle, ref)
+            warnings = self.check(vehicle, ref, initial)
             ctl = self.make_controller(vehicle, ref)
         except BaseException:
             close = getattr(plant, "close", None)

@@ -77,6 +77,48 @@ class PlantOptions:
 
 
 @dataclass(frozen=True)
+class TireWear:
+    """A tire's wear calibration, the optional ``[tire.wear]`` table (docs/WEAR.md).
+
+    Wear volume is taken proportional to the frictional work, ``V = k_a W`` (Archard's law;
+    for rubber Schallamach's and Grosch's abradability), with ``k_a`` the abradability in
+    mm^3/J: given as ``abradability``, or derived from a known life, ``reference_life_km``
+    on a duty that costs ``reference_work_per_km`` J per km per tire (the ``W_tw`` per km
+    ``msagv run`` reports for that duty), as ``k_a = V_usable / (life x work per km)``.
+
+    tread_width : mm. The tread's width in contact with the road.
+    usable_depth : mm. Tread depth from new to the replacement limit.
+    abradability : mm^3/J. ``k_a``; or None with the two reference keys.
+    reference_life_km : km. A known life of this tire on a reference duty.
+    reference_work_per_km : J/km. Wear work per km of one tire on that duty.
+    price : per tire, in any currency (the cost per km comes out in the same one).
+    """
+
+    tread_width: float
+    usable_depth: float
+    abradability: float | None = None
+    reference_life_km: float | None = None
+    reference_work_per_km: float | None = None
+    price: float | None = None
+
+    def usable_volume(self, wheel_radius: float) -> float:
+        """mm^3 of tread that may wear away: the tread band ``pi D w d`` round a tire of
+        outer diameter ``D = 2 r_w`` (a band thin against the radius)."""
+        return math.pi * 2000.0 * wheel_radius * self.tread_width * self.usable_depth
+
+    def k_a(self, wheel_radius: float) -> float:
+        """The abradability [mm^3/J]: given, or ``V_usable / (reference_life_km x
+        reference_work_per_km)``."""
+        if self.abradability is not None:
+            return self.abradability
+        return self.usable_volume(wheel_radius) / (self.reference_life_km
+                                                   * self.reference_work_per_km)
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+
+
+@dataclass(frozen=True)
 class Vehicle:
     """A multi-axle swerve-drive vehicle (any number of axles n >= 1).
 
@@ -96,6 +138,8 @@ class Vehicle:
     tire_dugoff: Dugoff
     limits: Limits
     plant: PlantOptions = field(default_factory=PlantOptions)
+    #: the tires' wear calibration ([tire.wear]); None: the wear is known in joules only
+    tire_wear: TireWear | None = None
 
     # ---- derived geometry -------------------------------------------------------------
     @property
@@ -141,6 +185,7 @@ class Vehicle:
                 "longitudinal": dataclasses.asdict(self.tire_longitudinal),
                 "lateral": dataclasses.asdict(self.tire_lateral),
                 "dugoff": dataclasses.asdict(self.tire_dugoff),
+                **({"wear": self.tire_wear.to_dict()} if self.tire_wear is not None else {}),
             },
             "limits": dataclasses.asdict(self.limits),
             "plant": dataclasses.asdict(self.plant),
@@ -167,6 +212,8 @@ _MF_KEYS = ("B", "C", "mu", "E")
 _DUGOFF_KEYS = ("C_s", "C_alpha", "mu")
 _LIMIT_KEYS = ("omega_s_min", "omega_s_max", "omega_w_max", "delta_min", "delta_max")
 _PLANT_KEYS = ("cg_height", "wheel_lag", "steer_lag", "combined_slip")
+_WEAR_KEYS = ("tread_width", "usable_depth", "abradability", "reference_life_km",
+              "reference_work_per_km", "price")
 
 
 def _number(d: Mapping[str, Any], key: str, path: str, *, positive: bool = False,
@@ -234,7 +281,7 @@ def vehicle_from_dict(d: Mapping[str, Any]) -> Vehicle:
     tire = d["tire"]
     if not isinstance(tire, Mapping):
         raise VehicleError("tire: expected a table")
-    unknown = sorted(set(tire) - {"longitudinal", "lateral", "dugoff"})
+    unknown = sorted(set(tire) - {"longitudinal", "lateral", "dugoff", "wear"})
     if unknown:
         raise VehicleError(f"tire.{unknown[0]}: unknown key")
     mfs = {}
@@ -281,12 +328,144 @@ def vehicle_from_dict(d: Mapping[str, Any]) -> Vehicle:
     else:
         po = PlantOptions()
 
+    wear = _tire_wear(tire, wheel_radius) if "wear" in tire else None
     return Vehicle(
         name=name, mass=mass, yaw_inertia=yaw_inertia, wheel_radius=wheel_radius,
         axle_x=tuple(axle_x), half_track=half_track, steer_loss_kt=kt,
         tire_longitudinal=mfs["longitudinal"], tire_lateral=mfs["lateral"],
-        tire_dugoff=dug, limits=Limits(**lim), plant=po,
+        tire_dugoff=dug, limits=Limits(**lim), plant=po, tire_wear=wear,
     )
+
+
+def _tire_wear(tire: Mapping[str, Any], wheel_radius: float) -> TireWear:
+    """The ``[tire.wear]`` table, checked: the tread's width and usable depth, then the
+    abradability or a reference life with its duty's wear work per km (one or the other),
+    and an optional price."""
+    t = _table(tire, "wear", "tire.", _WEAR_KEYS)
+    p = "tire.wear."
+    width = _number(t, "tread_width", p, positive=True)
+    depth = _number(t, "usable_depth", p, positive=True)
+    if depth >= 1000.0 * wheel_radius:
+        raise VehicleError(f"{p}usable_depth: {depth:g} mm is not less than the wheel radius "
+                           f"({1000.0 * wheel_radius:g} mm); the depth is in mm")
+    given = {k for k in ("abradability", "reference_life_km", "reference_work_per_km") if k in t}
+    if "abradability" in given and len(given) > 1:
+        raise VehicleError(f"{p}abradability: give the abradability or a reference life "
+                           f"(reference_life_km with reference_work_per_km), not both")
+    if "abradability" in given:
+        kw = {"abradability": _number(t, "abradability", p, positive=True)}
+    elif given:
+        for k in ("reference_life_km", "reference_work_per_km"):
+            if k not in t:
+                raise VehicleError(f"{p}{k}: missing (a reference life needs "
+                                   f"reference_life_km [km] and reference_work_per_km [J/km], "
+                                   f"the wear work per km of one tire on that duty)")
+        kw = {k: _number(t, k, p, positive=True)
+              for k in ("reference_life_km", "reference_work_per_km")}
+    else:
+        raise VehicleError(f"{p}abradability: missing (give abradability [mm^3/J], or "
+                           f"reference_life_km [km] with reference_work_per_km [J/km])")
+    if "price" in t:
+        kw["price"] = _number(t, "price", p, nonneg=True)
+    return TireWear(tread_width=width, usable_depth=depth, **kw)
+
+
+# ---- plausibility (warnings, not errors: an unusual vehicle may be meant) ---------------
+# Ranges a wheeled vehicle's numbers fall in; outside them the likely cause is a unit slip
+# (tonnes typed as kg, millimetres as metres, rpm as rad/s, degrees as radians).
+PLAUSIBLE = {
+    "load_per_wheel_kg": 20.0,  # below: tonnes typed as kg?
+    "max_load_per_wheel_kg": 100000.0,  # above (100 t on one tire): grams typed as kg?
+    "wheel_radius_m": (0.03, 3.0),
+    "half_track_m": (0.1, 10.0),
+    "axle_x_m": 60.0,  # |x| of an axle from the centre of mass
+    "steer_loss_kt_m": 0.5,  # a lever arm within the contact patch (docs/VEHICLE.md 3.3)
+    "top_speed_kmh": 150.0,  # omega_w_max x r_w
+    "omega_s_rad_s": 10.0,  # 570 deg/s
+    "gyration_ratio": 4.0,  # radius of gyration against a box of the vehicle's size
+}
+
+
+def _unit_slip(value: float, lo: float, hi: float, unit: str) -> str:
+    """The unit slip that would bring ``value`` into [lo, hi], as a hint, or ''."""
+    for factor, name in ((1000.0, "milli"), (100.0, "centi")):
+        if lo <= value / factor <= hi:
+            return (f": {name}{unit}s typed as {unit}s? ({value:g} {name[0]}{unit[0]} is "
+                    f"{value / factor:g} {unit[0]})")
+    return ""
+
+
+def plausibility_warnings(v: Vehicle) -> list[str]:
+    """One line for each number of ``v`` that no wheeled vehicle has, naming the likely unit
+    slip: a load per wheel under 20 kg (tonnes typed as kg) or over 100 t, a wheel radius, half track or
+    axle position in millimetres, a steering lever arm ``k_t`` in millimetres, a top speed
+    ``omega_w_max x r_w`` over 150 km/h (rpm typed as rad/s), a steering rate over 10 rad/s
+    (degrees typed as radians), wheels of neighbouring axles that overlap, a yaw inertia
+    that does not fit the mass and the size (its radius of gyration more than 4 times off
+    a box's of the vehicle's size), a tread width or usable depth of a fraction of a mm.
+    The vehicle is used as given (these are warnings)."""
+    P = PLAUSIBLE
+    out = []
+    per_wheel = v.mass / v.n_wheels
+    if per_wheel < P["load_per_wheel_kg"]:
+        out.append(f"mass: {v.mass:g} kg is {per_wheel:.3g} kg per wheel on {v.n_wheels} "
+                   f"wheels: tonnes typed as kg? ({v.mass:g} t is {1000 * v.mass:g} kg)")
+    elif per_wheel > P["max_load_per_wheel_kg"]:
+        out.append(f"mass: {v.mass:g} kg is {per_wheel / 1000:.4g} t per wheel on "
+                   f"{v.n_wheels} wheels, more than any tire carries: grams typed as kg? "
+                   f"({v.mass:g} g is {v.mass / 1000:g} kg)")
+    lo, hi = P["wheel_radius_m"]
+    if not lo <= v.wheel_radius <= hi:
+        out.append(f"wheel_radius: {v.wheel_radius:g} m is outside the {lo:g}-{hi:g} m of "
+                   f"wheels" + _unit_slip(v.wheel_radius, lo, hi, "metre"))
+    lo, hi = P["half_track_m"]
+    if not lo <= v.half_track <= hi:
+        out.append(f"half_track: {v.half_track:g} m (a track of {2 * v.half_track:g} m) is "
+                   f"outside {lo:g}-{hi:g} m" + _unit_slip(v.half_track, lo, hi, "metre"))
+    far = max(abs(x) for x in v.axle_x)
+    if far > P["axle_x_m"]:
+        out.append(f"axle_x: an axle {far:g} m from the centre of mass"
+                   + _unit_slip(far, 0.0, P["axle_x_m"], "metre"))
+    if v.steer_loss_kt > P["steer_loss_kt_m"]:
+        out.append(f"steer_loss_kt: {v.steer_loss_kt:g} m is longer than a tire's contact "
+                   f"patch (a lever arm of a few cm)"
+                   + _unit_slip(v.steer_loss_kt, 0.0, P["steer_loss_kt_m"], "metre"))
+    top = v.limits.omega_w_max * v.wheel_radius * 3.6
+    if top > P["top_speed_kmh"] and lo <= v.wheel_radius <= hi:
+        rpm = v.limits.omega_w_max * 2 * math.pi / 60
+        out.append(f"limits.omega_w_max: {v.limits.omega_w_max:g} rad/s x r_w "
+                   f"{v.wheel_radius:g} m is {top:.0f} km/h: rpm typed as rad/s? "
+                   f"({v.limits.omega_w_max:g} rpm is {rpm:.3g} rad/s)")
+    fast = max(abs(v.limits.omega_s_min), abs(v.limits.omega_s_max))
+    if fast > P["omega_s_rad_s"]:
+        out.append(f"limits.omega_s_max: steering at {fast:g} rad/s ({math.degrees(fast):.0f} "
+                   f"deg/s): degrees per second typed as rad/s? ({fast:g} deg/s is "
+                   f"{math.radians(fast):.3g} rad/s)")
+    tw = v.tire_wear
+    if tw is not None and tw.tread_width < 5.0:
+        out.append(f"tire.wear.tread_width: {tw.tread_width:g} mm: metres typed as mm? "
+                   f"({tw.tread_width:g} m is {1000 * tw.tread_width:g} mm)")
+    if tw is not None and tw.usable_depth < 0.5:
+        out.append(f"tire.wear.usable_depth: {tw.usable_depth:g} mm: centimetres or metres "
+                   f"typed as mm? (a tread is a few mm to a few cm deep)")
+    gaps = np.diff(-np.asarray(v.axle_x))
+    if gaps.size and 2 * v.wheel_radius > gaps.min() and v.wheel_radius <= P["wheel_radius_m"][1]:
+        i = int(np.argmin(gaps))
+        out.append(f"wheel_radius: wheels {2 * v.wheel_radius:g} m across on axles {i + 1} and "
+                   f"{i + 2}, {gaps[i]:g} m apart, overlap")
+    length = (max(v.axle_x) - min(v.axle_x)) + 2 * v.wheel_radius
+    width = 2 * v.half_track + 2 * 0.2  # the wheels' own width outside the track
+    k_box = math.sqrt((length ** 2 + width ** 2) / 12.0)
+    k = math.sqrt(v.yaw_inertia / v.mass)
+    ratio = P["gyration_ratio"]
+    # (after a mass or a size already named, a mismatch is its consequence: not repeated)
+    if not out and not k_box / ratio <= k <= ratio * k_box:
+        box = v.mass * (length ** 2 + width ** 2) / 12.0
+        out.append(f"yaw_inertia: {v.yaw_inertia:g} kg m^2 with a mass of {v.mass:g} kg is a "
+                   f"radius of gyration of {k:.3g} m on a vehicle about {length:.3g} m x "
+                   f"{width:.3g} m (a box of that mass and size: {k_box:.2g} m, "
+                   f"{box:.3g} kg m^2): check the mass and yaw_inertia units")
+    return out
 
 
 def load_vehicle(path: str | Path | None = None) -> Vehicle:
