@@ -128,10 +128,21 @@ class RunLog:
         return {k: np.asarray(getattr(self, k)) for k in
                 ("t", "pose", "ref", "omega_w", "omega_s", "W", "solve_ms", "cost")}
 
+    def distance(self) -> float:
+        """The distance the body travelled [m]: along the logged poses to the final state's
+        (the last row's if the run was cut short)."""
+        from .metrics import path_length
+
+        xy = [p[:2] for p in self.pose]
+        fs = self.final_state
+        if not self.interrupted and "x" in fs and "y" in fs:
+            xy.append((fs["x"], fs["y"]))
+        return path_length(xy)
+
     def metrics(self) -> dict:
         W0 = self.W[0] if self.W else (0.0, 0.0, 0.0)
         return compute_metrics(np.asarray(self.pose), np.asarray(self.ref), W0, self.W_final,
-                               self.solve_ms)
+                               self.solve_ms, distance_m=self.distance())
 
     def columns(self) -> tuple[list[str], np.ndarray]:
         """``(names, data)`` of the per-step log: ``t``, the pose and the reference's pose,

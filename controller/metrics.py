@@ -14,7 +14,10 @@ import numpy as np
 from msagv.plant.signals import WEAR_FIELDS
 
 METRIC_KEYS = ["W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar",
-               "Omega", "e_lat_rms_cm", "e_lat_max_cm", "solve_ms", "steps"]
+               "Omega", "e_lat_rms_cm", "e_lat_max_cm", "solve_ms", "steps", "distance_m",
+               "W_tw_per_km"]
+MIN_DISTANCE_M = 1.0  # m: a run that moved less gives no per-km figures (None)
+WEAR_ROUNDING_J = 1e-6  # J: wear work above minus this is the integrator's rounding of 0
 
 
 def wrap_angle(a):
@@ -63,21 +66,45 @@ def percentiles(values, scale: float = 1.0, count: bool = False) -> dict:
     return out
 
 
-def compute_metrics(pose, ref_pose, W_start, W_end, solve_ms=()) -> dict:
+def path_length(xy) -> float:
+    """The length [m] of the polyline through the points ``xy`` (N, >= 2 columns x, y)."""
+    xy = np.asarray(xy, dtype=float)
+    if xy.ndim != 2 or len(xy) < 2:
+        return 0.0
+    return float(np.sum(np.hypot(np.diff(xy[:, 0]), np.diff(xy[:, 1]))))
+
+
+def work_per_km(work_J, distance_m) -> float | None:
+    """Wear work per kilometre driven [J/km]: ``work_J / (distance_m / 1000)``; None when
+    the work is unknown or the vehicle moved less than :data:`MIN_DISTANCE_M` (no
+    figure rather than a huge one). The study's and the case tables' per-km column."""
+    if work_J is None or distance_m is None or not distance_m >= MIN_DISTANCE_M:
+        return None
+    return float(work_J) / (float(distance_m) / 1000.0)
+
+
+def compute_metrics(pose, ref_pose, W_start, W_end, solve_ms=(), distance_m=None) -> dict:
     """All metrics of a run.
 
     ``pose``/``ref_pose``: (N, 3) at the control instants; ``W_start``/``W_end``: the
     plant's integrated wear work (W_s, W_alpha, W_t) at the start and end (eq. 28-30 are
     the sampled sums of the powers; the plant integrates the powers exactly, which is
-    their limit). ``solve_ms``: solve times for the percentiles.
+    their limit). ``solve_ms``: solve times for the percentiles. ``distance_m``: the
+    distance the body travelled [m] (default: along ``pose``); with it ``W_tw_per_km``,
+    the wear work per km driven [J/km] (:func:`work_per_km`).
     """
     W = np.asarray(W_end, dtype=float) - np.asarray(W_start, dtype=float)
+    # Dormand-Prince's 5th-order weights are not all positive, so the integral of a wear
+    # power that is (nearly) zero can come out a hair below zero: that is zero
+    W = np.where((W < 0) & (W > -WEAR_ROUNDING_J), 0.0, W)
     out = {"W_s": float(W[0]), "W_alpha": float(W[1]), "W_t": float(W[2])}
     out["W_tw"] = out["W_s"] + out["W_alpha"] + out["W_t"]  # eq. (31)
     out.update(tracking_errors(pose, ref_pose))
     out["Omega"] = omega_index(out["W_tw"], out["e_bar"])
     out["solve_ms"] = percentiles(solve_ms)
     out["steps"] = int(len(pose))
+    out["distance_m"] = float(path_length(pose) if distance_m is None else distance_m)
+    out["W_tw_per_km"] = work_per_km(out["W_tw"], out["distance_m"])
     return {k: out[k] for k in METRIC_KEYS}
 
 
@@ -136,3 +163,112 @@ def format_wheel_wear(wear: dict | None) -> list[str]:
     axles = ", ".join(f"{i}: {a['W_tw']:.4g}{share(a['W_tw'])}" for i, a in wear["axles"].items())
     wheels = ", ".join(f"{k}: {w['W_tw']:.4g}" for k, w in wear["wheels"].items())
     return [f"  per axle   W_tw [J] {axles}", f"  per wheel  W_tw [J] {wheels}"]
+
+
+# ---- per kilometre and tire life (docs/WEAR.md) -------------------------------------------
+def _life(E_per_km: float, k_a: float, V_usable: float, band_mm2: float, price):
+    """One tire's figures at ``E_per_km`` J/km: tread loss per 1000 km [mm], life [km]
+    (None: it does not wear), cost per km (None without a price)."""
+    vol_per_km = k_a * E_per_km  # mm^3/km, Archard: V = k_a W
+    loss = 1000.0 * vol_per_km / band_mm2  # mm per 1000 km
+    life = V_usable / vol_per_km if vol_per_km > 0 else None
+    cost = None if price is None else (price / life if life else 0.0)
+    return {"tread_loss_mm_per_1000km": loss, "life_km": life, "cost_per_km": cost}
+
+
+def wear_per_km(wear: dict | None, distance_m: float, calibration=None,
+                wheel_radius: float | None = None, price: float | None = None) -> dict | None:
+    """A run's ``wear`` block (:func:`wear_by_wheel`) with what a fleet engineer budgets in:
+    ``distance_m``, the distance the body travelled, and ``per_km``: for each wheel, axle
+    and the whole vehicle the wear work per km driven ``W_tw_per_km`` [J/km]; with a tire
+    wear ``calibration`` (:class:`plant.vehicle.TireWear`, ``wheel_radius`` [m]) also each
+    tire's tread loss per 1000 km [mm], projected life [km] and, with ``price`` per tire,
+    cost per km, by Archard's law ``V = k_a W`` (docs/WEAR.md):
+
+    * tread loss per km = ``k_a E / (pi D w)``, E the tire's J/km, D = 2 r_w, w the
+      tread's width;
+    * life = usable depth / tread loss per km = ``V_usable / (k_a E)``;
+    * cost per km = price / life.
+
+    An axle's J/km and cost per km are its two tires' sums, its life the shorter and its
+    tread loss the faster; the vehicle's likewise over every tire (its life: the first tire
+    to reach its limit; its cost per km: each tire replaced at its own life). Without a
+    calibration only the J/km; below :data:`MIN_DISTANCE_M` driven, ``per_km`` is None.
+    ``calibration`` in the result says where ``k_a`` came from (None: uncalibrated)."""
+    if wear is None:
+        return None
+    out = dict(wear, distance_m=float(distance_m), per_km=None, calibration=None)
+    if work_per_km(1.0, distance_m) is None:
+        return out
+    cal = None
+    if calibration is not None:
+        k_a = calibration.k_a(wheel_radius)
+        V = calibration.usable_volume(wheel_radius)
+        band = math.pi * 2000.0 * wheel_radius * calibration.tread_width  # mm^2 per mm depth
+        src = ("abradability" if calibration.abradability is not None else
+               f"reference life {calibration.reference_life_km:g} km at "
+               f"{calibration.reference_work_per_km:g} J/km per tire")
+        cal = {"abradability_mm3_per_J": k_a, "from": src,
+               "tread_width_mm": calibration.tread_width,
+               "usable_depth_mm": calibration.usable_depth, "usable_volume_mm3": V,
+               "price_per_tire": price}
+    wheels = {}
+    for k, w in wear["wheels"].items():
+        e = {"W_tw_per_km": work_per_km(w["W_tw"], distance_m)}
+        if cal is not None:
+            e.update(_life(e["W_tw_per_km"], k_a, V, band, price))
+        wheels[k] = e
+
+    def group(keys) -> dict:
+        es = [wheels[k] for k in keys]
+        g = {"W_tw_per_km": sum(e["W_tw_per_km"] for e in es)}
+        if cal is not None:
+            lives = [e["life_km"] for e in es if e["life_km"] is not None]
+            g.update({"tread_loss_mm_per_1000km": max(e["tread_loss_mm_per_1000km"] for e in es),
+                      "life_km": min(lives) if lives else None,
+                      "cost_per_km": None if price is None else sum(e["cost_per_km"] for e in es)})
+        return g
+
+    names = list(wheels)
+    axles = {a: group(names[2 * i:2 * i + 2]) for i, a in enumerate(wear["axles"])}
+    vehicle = group(names)
+    if cal is not None:
+        lives = {k: e["life_km"] for k, e in wheels.items() if e["life_km"] is not None}
+        vehicle["first_worn"] = min(lives, key=lives.get) if lives else None
+    out["per_km"] = {"wheels": wheels, "axles": axles, "vehicle": vehicle}
+    out["calibration"] = cal
+    return out
+
+
+def format_per_km(wear: dict | None) -> list[str]:
+    """Lines for a run's table: the wear work per km per axle, and with a calibration each
+    axle's tire life, tread loss and cost per km (docs/WEAR.md)."""
+    if not wear or wear.get("per_km") is None:
+        if wear and "distance_m" in wear:
+            return [f"  per km     n/a (the vehicle moved {wear['distance_m']:.2f} m, less than "
+                    f"{MIN_DISTANCE_M:g} m)"]
+        return []
+    pk, d = wear["per_km"], wear["distance_m"]
+    ax = ", ".join(f"{a}: {e['W_tw_per_km']:.4g}" for a, e in pk["axles"].items())
+    lines = [f"  per km     W_tw [J/km] {ax}; vehicle {pk['vehicle']['W_tw_per_km']:.4g} "
+             f"(over {d:.1f} m driven)"]
+    cal = wear.get("calibration")
+    if cal is None:
+        lines.append("  tire life  n/a: the vehicle file has no [tire.wear] calibration "
+                     "(docs/WEAR.md)")
+        return lines
+
+    def km(v):
+        return "no wear" if v is None else (f"{v:,.0f}" if v >= 100 else f"{v:.3g}")
+
+    v = pk["vehicle"]
+    life = ", ".join(f"{a}: {km(e['life_km'])}" for a, e in pk["axles"].items())
+    loss = ", ".join(f"{a}: {e['tread_loss_mm_per_1000km']:.3g}" for a, e in pk["axles"].items())
+    lines.append(f"  tire life  [km] {life}; first tire worn: {v['first_worn']} at "
+                 f"{km(v['life_km'])} km (k_a {cal['abradability_mm3_per_J']:.3g} mm^3/J, "
+                 f"from {cal['from']})")
+    lines.append(f"  tread loss [mm/1000 km] {loss}")
+    if v.get("cost_per_km") is not None:
+        lines.append(f"  tire cost  {v['cost_per_km']:.4g} per km (all tires, "
+                     f"{cal['price_per_tire']:g} per tire)")
+    return lines

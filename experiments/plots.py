@@ -67,7 +67,11 @@ def path_axes(ax, xs, ys, margin: float = 0.06) -> None:
     x0, x1, y0, y1 = xs.min(), xs.max(), ys.min(), ys.max()
     w, h = max(x1 - x0, 1e-3), max(y1 - y0, 1e-3)
     if h / w >= 0.2 and w / h >= 0.2:
+        # equal scales: the limits follow the data (plus the margin) and the aspect widens
+        # one of them; fixing both as well would make matplotlib ignore one, with a warning
         ax.set_aspect("equal", adjustable="datalim")
+        ax.margins(margin)
+        return
     else:
         h = max(h, 0.5)  # a straight line still shows +-0.25 m
         ym = 0.5 * (y0 + y1)
@@ -160,45 +164,76 @@ def plot_run(log, reference, path, title: str = "") -> None:
         plt.close(fig)
 
 
-def plot_wear(log, path, title: str = "") -> None:
-    """A report figure of the wear per wheel and per axle (1 x 2): each wheel's wear work
-    split into W_s, W_alpha, W_t [kJ] with each axle's total and share; each axle's wear
-    power over time [kW] (mean over each period). Needs the per-wheel wear work in the log
+def plot_wear(log, path, title: str = "", wear: dict | None = None) -> None:
+    """A report figure of the wear per wheel and per axle (2 x 1, readable up to 8 axles
+    and more): each wheel's wear work split into W_s, W_alpha, W_t [kJ], each axle's total
+    and share above its pair, and on the right axis the same per km driven [J/km]; with a
+    tire wear calibration each axle's projected tire life [km] under its share; below, each
+    axle's wear power over time [kW] (mean over each period). ``wear``: the run's wear block
+    with its per-km figures (:func:`controller.metrics.wear_per_km`; default the log's
+    per-wheel wear, without them). Needs the per-wheel wear work in the log
     (:meth:`controller.loop.RunLog.wheel_wear`); raises ValueError without it."""
     import numpy as np
 
-    wear = log.wheel_wear()
+    wear = wear if wear is not None else log.wheel_wear()
     if wear is None:
         raise ValueError("the log has no per-wheel wear work (W_s_ij, W_alpha_ij, W_t_ij)")
     plt = pyplot()
     wheels = list(wear["wheels"])
     axles = list(wear["axles"])
+    n = len(axles)
     comp = [("W_s", "W_s (slip)", "C0"), ("W_alpha", "W_alpha (slip angle)", "C1"),
             ("W_t", "W_t (steering)", "C2")]
     t = np.asarray(log.t, float)
     Wij = np.asarray(log.W_ij, float)  # (rows, 3, nw)
     total = sum(a["W_tw"] for a in wear["axles"].values())
+    per_km = wear.get("per_km")
+    calibrated = per_km is not None and wear.get("calibration") is not None
+    small = 7.5 if n <= 4 else 6.5  # the axle notes: narrower groups at many axles
     with style():
-        fig, (ax_w, ax_p) = plt.subplots(1, 2, figsize=(WIDTH, 3.4),
-                                         gridspec_kw={"width_ratios": [1.1, 1.0]})
-        x = np.arange(len(wheels)) + np.repeat(np.arange(len(axles)) * 0.6, 2)
+        fig, (ax_w, ax_p) = plt.subplots(2, 1, figsize=(WIDTH, 6.4),
+                                         gridspec_kw={"height_ratios": [1.25, 1.0]})
+        x = np.arange(len(wheels)) + np.repeat(np.arange(n) * 0.6, 2)
         bottom = np.zeros(len(wheels))
         for key, label, c in comp:
             h = np.array([wear["wheels"][k][key] for k in wheels]) / 1000.0
             ax_w.bar(x, h, 0.8, bottom=bottom, color=c, label=label)
             bottom += h
-        for i, a in enumerate(axles):
+        top = max(bottom.max(), 1e-9)
+        for i, a in enumerate(axles):  # one row of notes at one height: they never collide
             tw = wear["axles"][a]["W_tw"] / 1000.0
-            share = f" ({100.0 * wear['axles'][a]['W_tw'] / total:.0f} %)" if total > 0 else ""
-            ax_w.text(x[2 * i:2 * i + 2].mean(), max(bottom[2 * i:2 * i + 2]) * 1.02,
-                      f"axle {a}\n{tw:.3g} kJ{share}", ha="center", va="bottom", fontsize=8)
+            note = [f"axle {a}", f"{tw:.3g} kJ"]
+            if total > 0:
+                note.append(f"{100.0 * wear['axles'][a]['W_tw'] / total:.0f} %")
+            if calibrated:
+                life = per_km["axles"][a]["life_km"]
+                note.append("no wear" if life is None else
+                            f"{life:,.0f} km" if life >= 100 else f"{life:.3g} km")
+            ax_w.text(x[2 * i:2 * i + 2].mean(), top * 1.04, "\n".join(note), ha="center",
+                      va="bottom", fontsize=small, linespacing=1.1)
         ax_w.set_xticks(x, wheels)
+        if n > 5:
+            ax_w.tick_params(axis="x", labelsize=7)
+        ax_w.set_xlim(x[0] - 0.7, x[-1] + 0.7)
         ax_w.set_xlabel("wheel ij (axle i from the front, j = 1 left, 2 right)")
         ax_w.set_ylabel("wear work [kJ]")
-        ax_w.set_ylim(0, max(bottom.max(), 1e-9) * 1.55)  # room for the labels and legend
-        ax_w.legend(loc="upper center", ncol=3, fontsize=7, handlelength=1.0,
-                    columnspacing=0.8)
-        ax_w.set_title("wear work per wheel")
+        rows = 3 + (total > 0) + calibrated  # the legend's line and the notes' lines
+        ax_w.set_ylim(0, top * (1.12 + 0.12 * rows))
+        ax_w.legend(loc="upper left", ncol=3, fontsize=7, handlelength=1.0, columnspacing=0.8,
+                    frameon=False)
+        what = "wear work per wheel"
+        if per_km is not None:
+            km = wear["distance_m"] / 1000.0
+            sec = ax_w.secondary_yaxis("right", functions=(lambda v: v * 1000.0 / km,
+                                                           lambda v: v * km / 1000.0))
+            from matplotlib.ticker import EngFormatter
+
+            sec.yaxis.set_major_formatter(EngFormatter(sep=""))  # 200k, not 200000
+            sec.set_ylabel("per km driven [J/km]")
+            what += f" over {wear['distance_m']:.0f} m driven"
+            if calibrated:
+                what += "; notes: projected tire life of the axle's faster-wearing tire"
+        ax_w.set_title(what, fontsize=9)
         if len(t) > 1:
             per_wheel = Wij.sum(axis=1)  # W_tw_ij at each row
             P = np.diff(per_wheel, axis=0) / np.diff(t)[:, None] / 1000.0
@@ -208,10 +243,12 @@ def plot_wear(log, path, title: str = "") -> None:
                 series.append(pa)
                 ax_p.plot(t[:-1], pa, lw=1, label=f"axle {a}")
             robust_ylim(ax_p, t[:-1], series, "kW")
-            ax_p.legend(loc="best")
+            # beside the plot, never over the curves (one column up to 8 axles)
+            ax_p.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7.5,
+                        ncol=1 if n <= 10 else 2, frameon=False, handlelength=1.2)
         ax_p.set_xlabel("t [s]")
         ax_p.set_ylabel("wear power [kW]")
-        ax_p.set_title("wear power per axle (mean over each period)")
+        ax_p.set_title("wear power per axle (mean over each period)", fontsize=9)
         if title:
             fig.suptitle(title)
         fig.tight_layout()

@@ -97,7 +97,8 @@ def evaluate(path: str | Path, run_index: int = -1):
     header, records, summary, runs, run = load_run(path, run_index)
     reference = reference_from_message(header["reference"])
     log, solve, refs = log_from_run(run, reference)
-    m = compute_metrics(np.asarray(log.pose), np.asarray(log.ref), log.W[0], log.W_final, solve)
+    m = compute_metrics(np.asarray(log.pose), np.asarray(log.ref), log.W[0], log.W_final, solve,
+                        distance_m=log.distance())
     rows = len(log.t)
     answered = sum(1 for k in run.states if k in run.cmds and k < (run.end_seq or 1 << 62))
     # state -> command time as recorded (record times of one process; without the solve)

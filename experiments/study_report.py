@@ -34,7 +34,7 @@ import numpy as np
 from .tables import fmt, lower_front
 
 METRICS = ("W_tw", "W_s", "W_alpha", "W_t", "e_lat_rms_cm", "e_lat_max_cm", "e_phi_deg",
-           "e_bar", "Omega")
+           "e_bar", "Omega", "W_tw_per_km")  # W_tw_per_km: controller.metrics.work_per_km
 BOOTSTRAP = 2000
 TOLERANCES_CM = (1.0, 5.0)  # matched accuracy: lateral RMS tolerances (never below NTWO's)
 CLASS_ORDER = ("case1", "case2", "lane", "turn", "random", "load", "4-axle", "robust", "user")
@@ -199,7 +199,8 @@ def family_table(rows: list[dict]) -> list[dict]:
         out.append({"class": cls, "label": label, "family": rs[0]["family"],
                     "level": rs[0]["level"], "aware": rs[0]["aware"], "n": len(rs),
                     "e_lat_rms_cm": mean("e_lat_rms_cm"), "e_phi_deg": mean("e_phi_deg"),
-                    "W_tw": mean("W_tw"), "W_over_floor": mean("W_over_floor"),
+                    "W_tw": mean("W_tw"), "W_tw_per_km": mean("W_tw_per_km"),
+                    "W_over_floor": mean("W_over_floor"),
                     "W_above_floor": mean("W_above_floor"), "e_bar": mean("e_bar")})
     order = {c: i for i, c in enumerate(CLASS_ORDER)}
     fam = {f: i for i, f in enumerate(FAMILY_STYLE)}
@@ -244,12 +245,13 @@ def markdown(summary: dict, fam: list[dict], match: list[dict], runs: dict) -> s
                 (f"{_ratio_text(bf[f])} (n = {bf[f]['n']})" if f in bf and bf[f]["n"] else "")
                 for f in fams) + " |")
     L += ["\n## Families per scenario class (means over the class's scenarios)\n",
-          "| class | run | wear-aware | e_lat RMS (cm) | e_phi RMS (deg) | W_tw (J) | W_tw / floor | above floor (J) |",
-          "|---|---|---|---:|---:|---:|---:|---:|"]
+          "| class | run | wear-aware | e_lat RMS (cm) | e_phi RMS (deg) | W_tw (J) | W_tw per km (J/km) | W_tw / floor | above floor (J) |",
+          "|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for d in fam:
         L.append(f"| {d['class']} | {d['label']} | {'yes' if d['aware'] else ''} | "
                  f"{_f(d['e_lat_rms_cm'], 2)} | {_f(d['e_phi_deg'], 2)} | "
-                 f"{fmt('W_tw', d['W_tw'])} | {_f(d['W_over_floor'], 3)} | "
+                 f"{fmt('W_tw', d['W_tw'])} | {fmt('W_tw', d.get('W_tw_per_km'))} | "
+                 f"{_f(d['W_over_floor'], 3)} | "
                  f"{fmt('W_tw', d['W_above_floor'])} |")
     L += ["\n## Per scenario\n",
           "| scenario | NTWO's e_lat (cm) | e* (cm) | W floor (J) | W blind at e* (J) | best blind | W aware at e* (J) | best aware | ratio |",
