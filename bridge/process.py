@@ -19,12 +19,29 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_RUNTIME = 0, 1, 2, 3
 3 the run could not go on (no peer, a lockstep timeout, the peer lost with ``exit``)."""
 
 
+class LogStyle(logging.Formatter):
+    """The command line's one style: ``prog: [vid] message`` for information,
+    ``prog: warning: [vid] message`` (``error``, ``debug``) for the rest."""
+
+    def __init__(self, prog: str, vid: str):
+        super().__init__()
+        self.prog, self.vid = prog, vid
+
+    def format(self, record: logging.LogRecord) -> str:
+        level = "" if record.levelno == logging.INFO else f"{record.levelname.lower()}: "
+        text = f"{self.prog}: {level}[{self.vid}] {record.getMessage()}"
+        if record.exc_info:
+            text += "\n" + self.formatException(record.exc_info)
+        return text
+
+
 def setup_logging(prog: str, vid: str, quiet: bool = False, verbose: bool = False) -> None:
-    """Log lines ``prog [vid] LEVEL: message`` on stderr; warnings only with ``quiet``,
-    debug with ``verbose``."""
+    """Log lines ``prog: [vid] message`` (warnings ``prog: warning: [vid] message``) on
+    stderr; warnings only with ``quiet``, debug with ``verbose``."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
-    logging.basicConfig(level=level, stream=sys.stderr,
-                        format=f"{prog} [{vid}] %(levelname)s: %(message)s", force=True)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(LogStyle(prog, vid))
+    logging.basicConfig(level=level, handlers=[handler], force=True)
     logging.getLogger("numba").setLevel(max(level, logging.INFO))
 
 

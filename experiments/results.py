@@ -51,9 +51,12 @@ def vehicle_info(vehicle, file: str | None = None) -> dict:
             "file": None if file is None else str(file)}
 
 
-def scenario_info(scenario, vehicle, reference, settings, duration: float) -> dict:
+def scenario_info(scenario, vehicle, reference, settings=None,
+                  duration: float | None = None) -> dict:
     """The ``scenario`` block of a run built from an :class:`experiments.scenario.Scenario`
-    (``settings``: its :class:`controller.models.MPCSettings`)."""
+    (``settings``: its :class:`controller.models.MPCSettings`; None where the producer has
+    no controller, a plant process: method, model and seed null). A plant process records
+    it in its recording's header, so ``msagv report`` names what was run."""
     case = None if scenario.trajectory else CASE_NAMES.get(scenario.case, scenario.case or "curve")
     speed = speed_value(scenario.speed)
     if speed is None and case is not None:
@@ -61,8 +64,11 @@ def scenario_info(scenario, vehicle, reference, settings, duration: float) -> di
     vfile = scenario.vehicle if isinstance(scenario.vehicle, (str, Path)) else None
     return {"case": case, "trajectory": scenario.trajectory, "reference": reference.name,
             "speed_kmh": speed, "vehicle": vehicle_info(vehicle, vfile),
-            "method": settings.method, "model": settings.model, "solver": scenario.solver,
-            "seed": settings.seed, "duration_s": float(duration), "period_s": scenario.period,
+            "method": getattr(settings, "method", None), "model": getattr(settings, "model", None),
+            "solver": scenario.solver if settings is not None else None,
+            "seed": getattr(settings, "seed", None),
+            "duration_s": None if duration is None else float(duration),
+            "period_s": scenario.period,
             "after_end": scenario.after_end,
             "plant": f"fmu {Path(scenario.fmu).name}" if scenario.fmu else "native",
             "initial": "rest" if scenario.from_rest else "reference"}
@@ -96,3 +102,17 @@ def spec_info(spec: dict, duration: float | None = None) -> dict:
             else float(duration if duration is not None else rs.duration),
             "period_s": PERIOD, "after_end": sc.after_end, "plant": "native",
             "initial": "reference", "label": rs.label, "group": rs.group}
+
+
+def partial_run(res: dict) -> tuple[float, float] | None:
+    """``(ran, whole)`` [s] of a stored experiment run that covered only part of its
+    reference (``--duration`` shorter than the path), None for a whole run: such a row is
+    not comparable with the paper's, which are for the whole path."""
+    spec = res.get("spec") or {}
+    if spec.get("duration") is None:
+        return None
+    from .runs import RunSpec
+
+    whole = float(RunSpec.from_dict(spec).scenario().reference()[0].duration)
+    ran = float(res.get("duration") or spec["duration"])
+    return (ran, whole) if ran < whole - 1e-6 else None

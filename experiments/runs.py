@@ -201,7 +201,9 @@ def execute(spec_d: dict, key: str) -> dict:
             res["log_csv"] = (Path(td) / "log.csv").read_text()
         m = log.metrics()
         res["metrics"] = m
-        res["warnings"] = list(built.warnings)
+        # the controller's solve-time warnings too: they reach the user through the result
+        # (once, counted), not through a worker's stderr
+        res["warnings"] = list(built.warnings) + list(mpc.budget()["warnings"])
         res["duration"] = duration
         res["log"] = f"runs/{key}.csv"
     except Exception as e:  # noqa: BLE001 - stored and reported, never hidden
@@ -237,6 +239,14 @@ def _worker_init() -> None:
         numba.set_num_threads(1)
     except Exception:  # noqa: BLE001 - numba missing or already configured
         pass
+    if "distributed" in sys.modules:  # a Dask worker's warnings travel in the result
+        from distributed import get_worker  # (execute), not on its stderr
+
+        try:
+            get_worker()
+        except ValueError:  # not in a worker
+            return
+        logging.getLogger("msagv").setLevel(logging.ERROR)
 
 
 def load_result(out_dir: Path, key: str) -> dict | None:
@@ -277,6 +287,8 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
             todo[k] = s
     reused = len(results)
     order = sorted(todo, key=lambda k: -todo[k].estimated_steps())
+    for k in order:  # a run no vehicle can drive is refused before any run starts
+        todo[k].scenario().preflight()
     jobs = max(1, int(jobs or os.cpu_count() or 1))
     bar = None
     if progress and order:

@@ -200,7 +200,12 @@ def report_case(experiment: str, results: list[dict], out: Path, run_summary: di
               "case3": f"Case 3 (curve, {results[0]['spec']['speed_kmh']:g} km/h, {vname})"
               if results else "Case 3"}
     title = titles[experiment]
-    md = [f"# {title}\n", markdown_table(rows), "\n## Against the paper (paper rows in italics)\n",
+    partial = [r for r in rows if r.get("partial")]
+    caveat = (f"\n**Partial runs**: {len(partial)} of {len(rows)} rows ran only part of the path "
+              f"(--duration; marked 'ran of whole s'); the paper's numbers are for the whole "
+              f"path, so these rows are not comparable with them.\n" if partial else "")
+    md = [f"# {title}\n", caveat, markdown_table(rows),
+          "\n## Against the paper (paper rows in italics)\n", caveat,
           markdown_table(rows, paper), "\n## Targets\n", targets_markdown(targets)]
     (out / "table.md").write_text("\n".join(md))
     write_csv(rows, out / "table.csv")

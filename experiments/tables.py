@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .results import partial_run
+
 COLUMNS = ("Omega", "W_tw", "W_alpha", "W_s", "W_t", "e_bar", "e_x_cm", "e_y_cm", "e_phi_deg")
 HEADERS = {"Omega": "Omega", "W_tw": "W_tw (J)", "W_alpha": "W_alpha (J)", "W_s": "W_s (J)",
            "W_t": "W_t (J)", "e_bar": "e_bar", "e_x_cm": "e_x (cm)", "e_y_cm": "e_y (cm)",
@@ -50,7 +52,7 @@ def table_rows(results: list[dict]) -> list[dict]:
                      "metrics": {c: m.get(c) for c in COLUMNS}, "best": [], "second": [],
                      "status": r["status"], "error": r.get("error"), "key": r["key"],
                      "wall_s": r.get("wall_s"), "steps": m.get("steps"),
-                     "solve_ms": m.get("solve_ms")})
+                     "solve_ms": m.get("solve_ms"), "partial": partial_run(r)})
     groups: dict[str, list[dict]] = {}
     for row in rows:
         groups.setdefault(row["group"], []).append(row)
@@ -91,6 +93,8 @@ def markdown_table(rows: list[dict], paper: dict | None = None) -> str:
                 s = f"<u>{s}</u>"
             cells.append(s)
         name = row["method"] if row["status"] == "ok" else f"{row['method']} (failed)"
+        if row.get("partial"):  # --duration: only part of the path
+            name += f" ({row['partial'][0]:g} of {row['partial'][1]:.0f} s)"
         lines.append(f"| {g} | {name} | " + " | ".join(cells) + " |")
         if paper is not None and (row["group"], row["method"]) in paper:
             p = paper[(row["group"], row["method"])]

@@ -8,12 +8,17 @@ Argument parsing lives only here and in the commands of this package; the parts 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import functools
+import logging
 import math
 import os
+import re
 import sys
 import tempfile
 import traceback
+import warnings
 from pathlib import Path
 
 from msagv.bridge.session import DEFAULT_ID, DEFAULT_LEASE_MS, SessionOptions, check_id
@@ -46,10 +51,129 @@ def fail(prog: str, err: BaseException | str, a=None, code: int = 2) -> int:
     return code
 
 
+# ---- warnings: one style, each once with a count -------------------------------------------
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+_LEAD = re.compile(r"^[^:]{1,40}: ")  # a short leading name: 'TWO 15 km/h: ', 'agv-3axle: '
+
+
+def warning_kind(text: str) -> str:
+    """What makes two warnings the same: their text with the numbers and a short leading
+    name (a run's label, a vehicle's name) taken out (``'solve p99 11.6 ms ...'`` and
+    ``'TWO 15 km/h: solve p99 12.1 ms ...'`` are one kind)."""
+    return _NUMBER.sub("#", _LEAD.sub("", str(text), count=1))
+
+
+class WarningPrinter:
+    """Every warning of one command in one style, ``PROG: warning: text`` on stderr: the
+    first of each kind (:func:`warning_kind`) at once, the repeats only counted; at the end
+    (:meth:`finish`) one line for each kind that came more than once, with its count.
+
+    It takes the command's own warnings (:func:`warn`), the records of the ``msagv``
+    loggers at WARNING and above (:meth:`handler`; below that only with ``verbose``, as
+    ``PROG: text``), and Python's warnings (:meth:`showwarning`): ours in the same style,
+    third parties' (matplotlib, numba, dask, ...) only with ``verbose``."""
+
+    def __init__(self, prog: str, verbose: bool = False):
+        self.prog = prog
+        self.verbose = verbose
+        self.counts: dict[str, int] = {}
+        self.first: dict[str, str] = {}
+
+    def __call__(self, text: str, prog: str | None = None) -> None:
+        key = warning_kind(text)
+        n = self.counts.get(key, 0)
+        self.counts[key] = n + 1
+        if n == 0:
+            self.first[key] = str(text)
+            print(f"{prog or self.prog}: warning: {text}", file=sys.stderr, flush=True)
+
+    def finish(self) -> None:
+        for key, n in self.counts.items():
+            if n > 1:
+                print(f"{self.prog}: warning: the warning \"{self.first[key]}\" (above) came "
+                      f"{n} times in all (the same but for its numbers or the run it names)",
+                      file=sys.stderr, flush=True)
+        self.counts.clear()
+
+    def handler(self) -> logging.Handler:
+        printer = self
+
+        class _Handler(logging.Handler):
+            def emit(self, record: logging.LogRecord) -> None:
+                try:
+                    msg = record.getMessage()
+                except Exception:  # noqa: BLE001 - a malformed record is not worth a crash
+                    return
+                if record.levelno >= logging.WARNING:
+                    printer(msg)
+                elif printer.verbose:
+                    print(f"{printer.prog}: {msg}", file=sys.stderr, flush=True)
+
+        return _Handler(logging.DEBUG)
+
+    def showwarning(self, message, category, filename, lineno, file=None, line=None) -> None:
+        f = Path(str(filename)).resolve()
+        if any(f.is_relative_to(d) for d in _package_dirs()):
+            self(str(message))
+        elif self.verbose:
+            where = Path(str(filename)).parent.name or "python"
+            self(f"{where} ({category.__name__}): {message}")
+
+
+@functools.lru_cache(maxsize=1)
+def _package_dirs() -> tuple[Path, ...]:
+    """The folders of msagv and its subpackages (installed from several top-level folders)."""
+    import importlib.util
+
+    dirs = [Path(__file__).resolve().parent]
+    for name in ("plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks"):
+        spec = importlib.util.find_spec(f"msagv.{name}")
+        if spec is not None and spec.submodule_search_locations:
+            dirs += [Path(d).resolve() for d in spec.submodule_search_locations]
+    return tuple(dirs)
+
+
+_PRINTERS: list[WarningPrinter] = []  # the running commands' printers (innermost last)
+
+
+@contextlib.contextmanager
+def warning_style(prog: str, verbose: bool = False, logs: bool = True):
+    """Run a command with one :class:`WarningPrinter`: :func:`warn`, the ``msagv``
+    loggers (with ``logs``; the Zenoh processes configure their own logging) and Python's
+    warnings go through it; its counts are printed at the end."""
+    printer = WarningPrinter(prog, verbose)
+    lg = logging.getLogger("msagv")
+    old = (lg.level, lg.propagate, warnings.showwarning)
+    h = None
+    if logs:
+        h = printer.handler()
+        lg.addHandler(h)
+        lg.setLevel(logging.DEBUG if verbose else logging.WARNING)
+        lg.propagate = False
+    warnings.showwarning = printer.showwarning
+    _PRINTERS.append(printer)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")  # each warning once per place
+            yield printer
+    finally:
+        _PRINTERS.remove(printer)
+        warnings.showwarning = old[2]
+        if h is not None:
+            lg.removeHandler(h)
+            lg.setLevel(old[0])
+            lg.propagate = old[1]
+        printer.finish()
+
+
 def warn(prog: str, warnings, a=None) -> None:
-    """Each warning as one line on stderr (``-q`` does not hide warnings)."""
+    """Each warning as one line on stderr, ``PROG: warning: text`` (``-q`` does not hide
+    warnings); within a command each kind once, counted (:class:`WarningPrinter`)."""
     for w in warnings:
-        print(f"{prog}: warning: {w}", file=sys.stderr)
+        if _PRINTERS:
+            _PRINTERS[-1](w, prog)
+        else:
+            print(f"{prog}: warning: {w}", file=sys.stderr)
 
 
 def note(a, text: str) -> None:
@@ -117,6 +241,20 @@ def check_output(path, option: str, directory: bool = False, suffixes=None) -> N
     why = _cannot_create_in(parent)
     if why:
         raise OptionError(f"{option} {path}: cannot write in {parent} ({why})")
+
+
+def check_distinct(*outputs) -> None:
+    """Refuse two output options naming the same file (``("--log", path), ("--json-out",
+    path), ...``; None: not given): the second would overwrite the first."""
+    seen: dict[Path, str] = {}
+    for option, path in outputs:
+        if path is None:
+            continue
+        key = Path(path).absolute().resolve()
+        if key in seen:
+            raise OptionError(f"{option} {path}: the same file as {seen[key]} (one would "
+                              f"overwrite the other)")
+        seen[key] = option
 
 
 def parse_assignments(text: str | None, what: str = "--initial") -> dict[str, float]:
@@ -282,6 +420,36 @@ def scenario_from_args(a, default_case: str = "curve") -> Scenario:
     if merged["trajectory"] is None and merged["case"] is None:
         merged["case"] = default_case
     return Scenario(**merged)
+
+
+# ---- tire life ----------------------------------------------------------------------------
+def add_tire_price_arg(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--tire-price", type=float, metavar="PRICE",
+                    help="price of one tire (any currency): the cost per km of the tires, "
+                         "with the vehicle file's [tire.wear] calibration (overrides its "
+                         "price; docs/WEAR.md)")
+
+
+def check_tire_price(a, vehicle) -> None:
+    """Refuse ``--tire-price`` that is not a price, or that cannot be used: a cost per km
+    needs a tire life, which needs the vehicle's ``[tire.wear]`` calibration."""
+    price = getattr(a, "tire_price", None)
+    if price is None:
+        return
+    if not (math.isfinite(price) and price >= 0):
+        raise OptionError(f"--tire-price: must be a finite number >= 0, got {price:g}")
+    if vehicle.tire_wear is None:
+        raise OptionError(f"--tire-price: {vehicle.name} has no [tire.wear] calibration, so no "
+                          f"tire life and no cost per km (docs/WEAR.md: the abradability, or a "
+                          f"known life on a known duty)")
+
+
+def tire_price(a, vehicle) -> float | None:
+    """The price per tire: ``--tire-price``, else the vehicle file's ``[tire.wear] price``."""
+    price = getattr(a, "tire_price", None)
+    if price is not None:
+        return float(price)
+    return None if vehicle.tire_wear is None else vehicle.tire_wear.price
 
 
 # ---- the Zenoh session -------------------------------------------------------------------

@@ -29,6 +29,10 @@ COMMANDS = {
 }
 
 
+SUBCOMMANDS = {"fmu": ("build", "simulate"), "plant": ("replay",), "vehicle": ("show",)}
+PROCESSES = ("plant", "controller", "router")  # long-running, with their own logging
+
+
 def _usage() -> str:
     lines = ["usage: msagv COMMAND [options]   (msagv COMMAND --help for a command's options)",
              "       msagv --version", "",
@@ -96,8 +100,15 @@ def main(argv: list[str] | None = None) -> int:
     if cmd not in COMMANDS:
         print(f"msagv: unknown command '{cmd}'\n\n{_usage()}", file=sys.stderr)
         return 2
+    from .args import warning_style
+
+    sub = rest[0] if rest and rest[0] in SUBCOMMANDS.get(cmd, ()) else None
+    prog = f"msagv {cmd}" + (f" {sub}" if sub else "")
+    # the Zenoh processes log their own way (bridge.process.setup_logging)
+    logs = not (cmd in PROCESSES and sub is None)
     try:
-        return int(_dispatch(cmd, rest) or 0)
+        with warning_style(prog, verbose=bool({"-v", "--verbose"} & set(rest)), logs=logs):
+            return int(_dispatch(cmd, rest) or 0)
     except KeyboardInterrupt:
         print(f"msagv {cmd}: interrupted", file=sys.stderr)
         return 130
@@ -110,9 +121,9 @@ def main(argv: list[str] | None = None) -> int:
 
 # ---- msagv vehicle show -----------------------------------------------------------------
 def vehicle_main(argv: list[str]) -> int:
-    from msagv.plant.vehicle import VehicleError, load_vehicle
+    from msagv.plant.vehicle import VehicleError, load_vehicle, plausibility_warnings
 
-    from .args import add_common_args, fail
+    from .args import add_common_args, fail, warn
 
     ap = argparse.ArgumentParser(prog="msagv vehicle", description="Show a vehicle description.")
     ap.add_argument("action", choices=["show"])
@@ -124,9 +135,13 @@ def vehicle_main(argv: list[str]) -> int:
         v = load_vehicle(a.vehicle)
     except (VehicleError, FileNotFoundError) as e:
         return fail("msagv vehicle show", e, a)
+    warn("msagv vehicle show", plausibility_warnings(v))
     d = v.to_dict()
     d["derived"] = {"n_axles": v.n_axles, "n_wheels": v.n_wheels, "normal_load_N": v.normal_load,
                     "wheel_x": v.wheel_x.tolist(), "wheel_y": v.wheel_y.tolist()}
+    if v.tire_wear is not None:
+        d["derived"].update(abradability_mm3_per_J=v.tire_wear.k_a(v.wheel_radius),
+                            usable_tread_mm3=v.tire_wear.usable_volume(v.wheel_radius))
     if a.json:
         print(json.dumps(d, indent=2))
     else:
@@ -136,6 +151,10 @@ def vehicle_main(argv: list[str]) -> int:
         for part in ("longitudinal", "lateral", "dugoff"):
             print(f"  tire.{part}: {d['tire'][part]}")
         print(f"  limits: {d['limits']}")
+        tw = v.tire_wear
+        print(f"  tire.wear: {d['tire']['wear']} (k_a {tw.k_a(v.wheel_radius):.4g} mm^3/J, "
+              f"usable tread {tw.usable_volume(v.wheel_radius) / 1e6:.4g} dm^3 per tire)"
+              if tw is not None else "  tire.wear: none (no tire life; docs/WEAR.md)")
         print(f"  k_t = {v.steer_loss_kt:g} m; plant options: {d['plant']}")
     return 0
 

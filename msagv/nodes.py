@@ -137,7 +137,7 @@ def plant_main(argv: list[str]) -> int:
         want_view = check_view_args(a)
         scenario = scenario_from_args(a)
         plant, vehicle, ref, initial = scenario.make_plant()
-        for w in scenario.check(vehicle, ref):  # a speed no wheel reaches: exit 2
+        for w in scenario.check(vehicle, ref, initial):  # a speed no wheel reaches: exit 2
             log.warning("%s", w)
         duration = scenario.run_duration(ref)
         cfg = PlantConfig(run_mode=a.run_mode, period=a.period,
@@ -145,11 +145,16 @@ def plant_main(argv: list[str]) -> int:
                           timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
                           safe_decel=a.safe_decel, resume_periods=a.resume_periods,
                           wheel_wear=a.wheel_wear)
+        from msagv.experiments.results import scenario_info
+
         rec = open_recording(a, {
             "role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),
             "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
             "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
-            "fmu": a.fmu, "argv": list(argv)})
+            "fmu": a.fmu, "argv": list(argv),
+            # what was run, as msagv run --json says it: msagv report reads it from here
+            "scenario": dict(scenario_info(scenario, vehicle, ref, None, duration),
+                             period_s=cfg.period)})
         if want_view:  # beside the recorder: it only queues, a thread logs
             from msagv.experiments.viewer import RunView, Tee, ViewSink
 
@@ -272,12 +277,15 @@ def controller_main(argv: list[str]) -> int:
     def open_recorder(mpc, params):
         ref = mpc.reference
         try:
+            from msagv.experiments.results import scenario_info
+
             return open_recording(a, {
                 "role": "controller", "id": opts.id, "vehicle": mpc.vehicle.to_dict(),
                 "period": mpc.period, "run_mode": params.run_mode if params else None,
                 "reference": dict(ref.to_message(), name=ref.name),
                 "settings": dataclasses.asdict(mpc.settings), "solver": scenario.solver,
-                "argv": list(argv)})
+                "argv": list(argv),
+                "scenario": scenario_info(scenario, mpc.vehicle, ref, mpc.settings)})
         except OptionError as e:  # checked before start-up; gone since: control goes on
             log.error("%s; running without a recording", e)
             return None

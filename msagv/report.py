@@ -14,8 +14,10 @@ from pathlib import Path
 
 from msagv.plant.signals import WEAR_FIELDS
 
-from .args import PLOT_SUFFIXES, add_common_args, check_output, fail, warn
-from .view import add_view_args, check_view_args, serve_until_stopped, view_kwargs
+from .args import (PLOT_SUFFIXES, add_common_args, add_tire_price_arg, check_distinct,
+                   check_output, check_tire_price, fail, tire_price, warn)
+from .view import (add_view_args, check_view_args, exposure_warning, serve_until_stopped,
+                   view_kwargs)
 
 PROG = "msagv report"
 
@@ -35,17 +37,30 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--log", metavar="FILE", help="write the per-step log as CSV")
     ap.add_argument("--wear-plot", metavar="FILE",
                     help="write a figure of the wear per wheel and per axle")
+    add_tire_price_arg(ap)
     add_view_args(ap)  # --view, --view-save, --view-port: the run in Rerun (msagv view)
     add_common_args(ap)
     return ap
 
 
 def _recording_scenario(info: dict, header: dict, log, ref) -> dict:
-    """The result's ``scenario`` block from a recording's header (a plant's recording
-    knows no MPC settings; the speed and case come from the recorded command line)."""
+    """The result's ``scenario`` block from a recording's header: the block the process
+    wrote (``scenario``, as ``msagv run --json`` has it; a plant knows no MPC settings, a
+    controller's recording adds them), with the duration as recorded. A recording made
+    before the header carried it is labelled from its reference and recorded command line,
+    never guessed: a reference that is not one of the paper's cases is a trajectory."""
     from msagv.experiments.results import CASE_NAMES, DEFAULT_SPEED, speed_value, vehicle_info
     from msagv.plant.vehicle import vehicle_from_dict
 
+    period = header.get("period")
+    duration = None if period is None else len(log.t) * float(period)
+    st = header.get("settings") or {}
+    if isinstance(header.get("scenario"), dict):
+        sc = dict(header["scenario"], reference=ref.name, duration_s=duration)
+        if st:
+            sc.update(method=st.get("method"), model=st.get("model"), seed=st.get("seed"),
+                      solver=header.get("solver"))
+        return sc
     argv = [str(x) for x in header.get("argv") or []]
 
     def opt(name):
@@ -56,28 +71,27 @@ def _recording_scenario(info: dict, header: dict, log, ref) -> dict:
                 return x.split("=", 1)[1]
         return None
 
-    traj = opt("--trajectory")
-    case = None if traj else CASE_NAMES.get(opt("--case"), opt("--case") or "curve")
-    speed = speed_value(opt("--speed"))
+    case = {"case1-curve": "curve", "case2-line": "line"}.get(
+        (header.get("reference") or {}).get("name", ref.name))
+    traj = opt("--trajectory") if case is None else None
+    speed = speed_value(opt("--speed")) if case is not None else None
     if speed is None and case is not None:
-        speed = DEFAULT_SPEED[case]
+        speed = DEFAULT_SPEED[CASE_NAMES.get(case, case)]
     try:
         vehicle = vehicle_info(vehicle_from_dict(header["vehicle"]), opt("--vehicle"))
     except (KeyError, TypeError, ValueError):
         vehicle = None
-    st = header.get("settings") or {}
-    period = header.get("period")
     return {"case": case, "trajectory": traj, "reference": ref.name, "speed_kmh": speed,
             "vehicle": vehicle, "method": st.get("method"), "model": st.get("model"),
             "solver": header.get("solver"), "seed": st.get("seed"),
-            "duration_s": None if period is None else len(log.t) * float(period),
-            "period_s": period, "after_end": None,
+            "duration_s": duration, "period_s": period, "after_end": None,
             "plant": f"fmu {header['fmu']}" if header.get("fmu") else None,
             "initial": None}
 
 
 def main(argv: list[str]) -> int:
     from msagv.bridge.recording import RecordingError, read_recording
+    from msagv.controller.metrics import wear_per_km
     from msagv.experiments.recorded import ReportError, evaluate
 
     from .args import OptionError
@@ -89,13 +103,25 @@ def main(argv: list[str]) -> int:
         check_output(a.wear_plot, "--wear-plot", suffixes=PLOT_SUFFIXES)
         check_output(a.log, "--log")
         check_output(a.json_out, "--json-out")
+        check_distinct(("the recording", a.recording), ("--plot", a.plot), ("--log", a.log),
+                       ("--json-out", a.json_out), ("--wear-plot", a.wear_plot),
+                       ("--view-save", a.view_save))
         m, info, log, ref = evaluate(a.recording, a.run)
         header = read_recording(a.recording)[0]
+        vehicle = _vehicle(header)
+        if vehicle is not None:
+            check_tire_price(a, vehicle)
+        elif a.tire_price is not None:
+            raise OptionError("--tire-price: the recording does not say which vehicle it is")
     except (RecordingError, ReportError, OptionError, KeyError, TypeError) as e:
         return fail(PROG, e, a)
     m, warnings = _measured(m, info, log, a)
     scenario = _recording_scenario(info, header, log, ref)
-    doc = _write_outputs(a, m, info, log, ref, scenario, warnings)
+    wear = log.wheel_wear()  # None: the plant did not send the per-wheel fields
+    if vehicle is not None:
+        wear = wear_per_km(wear, log.distance(), vehicle.tire_wear, vehicle.wheel_radius,
+                           tire_price(a, vehicle))
+    doc = _write_outputs(a, m, info, log, ref, scenario, warnings, wear)
     view = None
     if want_view:
         from msagv.experiments.viewer import ViewerError, view_recording
@@ -104,12 +130,13 @@ def main(argv: list[str]) -> int:
             view, _ = view_recording(a.recording, view_kwargs(a), a.run)
         except (ViewerError, OSError) as e:
             return fail(PROG, f"--view: {e}", a)
+        warn(PROG, exposure_warning(view))
     if a.json_out:
         Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
         print(json.dumps(doc))
     else:
-        _print(a, m, info, log, ref)
+        _print(a, m, info, wear, ref)
     if view is not None:
         if a.view:
             serve_until_stopped(view, PROG)
@@ -142,11 +169,20 @@ def _measured(m: dict, info: dict, log, a) -> tuple[dict, list[str]]:
     return m, warnings
 
 
-def _write_outputs(a, m, info, log, ref, scenario, warnings) -> dict:
+def _vehicle(header: dict):
+    """The recorded vehicle (None when the header has none we can read)."""
+    from msagv.plant.vehicle import VehicleError, vehicle_from_dict
+
+    try:
+        return vehicle_from_dict(header["vehicle"])
+    except (KeyError, TypeError, VehicleError):
+        return None
+
+
+def _write_outputs(a, m, info, log, ref, scenario, warnings, wear) -> dict:
     """The result document; the per-step log and the figures the options ask for."""
     from msagv.experiments.results import result
 
-    wear = log.wheel_wear()  # None: the plant did not send the per-wheel fields
     doc = result("report", scenario, m, warnings, completed=info["ended"], recording=info,
                  wear=wear)
     if a.log:
@@ -159,16 +195,17 @@ def _write_outputs(a, m, info, log, ref, scenario, warnings) -> dict:
     if a.wear_plot and wear is not None:
         from msagv.experiments.plots import plot_wear, run_title
 
-        plot_wear(log, a.wear_plot, title=run_title(scenario, f"{info['role']} recording"))
+        plot_wear(log, a.wear_plot, title=run_title(scenario, f"{info['role']} recording"),
+                  wear=wear)
     return doc
 
 
-def _print(a, m, info, log, ref) -> None:
-    from msagv.controller.metrics import format_table, format_wheel_wear
+def _print(a, m, info, wear, ref) -> None:
+    from msagv.controller.metrics import format_per_km, format_table, format_wheel_wear
 
     print(format_table(m, f"{ref.name}: {info['recording']} ({info['role']}, "
                           f"{info['run_mode']}, run {info['run']} of {info['runs']})"))
-    print("\n".join(format_wheel_wear(log.wheel_wear())))
+    print("\n".join(format_wheel_wear(wear) + format_per_km(wear)))
     lat = info["latency_ms"]
     print(f"  answered   {info['answered']} of {info['steps']} states; rejected messages "
           f"{info['rejected']}")

@@ -15,7 +15,8 @@ import sys
 from pathlib import Path
 
 from .args import (PLOT_SUFFIXES, OptionError, add_case_args, add_common_args, add_fmu_args,
-                   add_mpc_args, check_output, fail, scenario_from_args, warn)
+                   add_mpc_args, add_tire_price_arg, check_distinct, check_output,
+                   check_tire_price, fail, scenario_from_args, tire_price, warn)
 from .view import add_view_args, announce, check_view_args, serve_until_stopped, view_kwargs
 
 EXIT_INTERRUPTED = 130  # Ctrl-C: the shell's 128 + SIGINT
@@ -45,6 +46,7 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
                                                   "as the signals)")
     ap.add_argument("--wear-plot", metavar="FILE",
                     help="write a figure of the wear per wheel and per axle (.png, .pdf, .svg)")
+    add_tire_price_arg(ap)
     add_view_args(ap)  # --view, --view-save, --view-port: the run in Rerun
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bar on stderr (default: on a terminal for runs > 10 s)")
@@ -64,7 +66,10 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
     try:
         scenario, want_view = _checked_options(a)
         built = scenario.build()
+        check_tire_price(a, built.vehicle)
     except USAGE_ERRORS as e:
+        if built is not None:
+            built.close()
         return fail(prog, e, a)
     except KeyboardInterrupt:
         if built is not None:
@@ -110,6 +115,8 @@ def _checked_options(a):
     check_output(a.log, "--log")
     check_output(a.json_out, "--json-out")
     check_output(a.wear_plot, "--wear-plot", suffixes=PLOT_SUFFIXES)
+    check_distinct(("--plot", a.plot), ("--log", a.log), ("--json-out", a.json_out),
+                   ("--wear-plot", a.wear_plot), ("--view-save", a.view_save))
     want_view = check_view_args(a)
     return scenario_from_args(a), want_view
 
@@ -140,7 +147,8 @@ def _run(a, scenario, built, view):
 
 def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) -> None:
     """The result: warnings, the JSON document, the log, the figures, the table."""
-    from msagv.controller.metrics import format_table, format_wheel_wear
+    from msagv.controller.metrics import (format_per_km, format_table, format_wheel_wear,
+                                          wear_per_km)
     from msagv.experiments.checks import solve_time_warnings
     from msagv.experiments.results import result, scenario_info
 
@@ -156,7 +164,8 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
                         f"cover the {len(log.t)} steps run")
         warn(prog, warnings[-1:])
     m = log.metrics()
-    wear = log.wheel_wear()  # per wheel and per axle
+    wear = wear_per_km(log.wheel_wear(), log.distance(), vehicle.tire_wear,  # per wheel and
+                       vehicle.wheel_radius, tire_price(a, vehicle))  # axle, per km
     doc = result(prog.split(" ", 1)[1], info, m, warnings, completed=not interrupted, wear=wear)
     doc["budget"] = budget  # the controller's time budget (Controller.budget)
     if a.log:
@@ -168,7 +177,7 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     if a.wear_plot:
         from msagv.experiments.plots import plot_wear, run_title
 
-        plot_wear(log, a.wear_plot, title=run_title(info))
+        plot_wear(log, a.wear_plot, title=run_title(info), wear=wear)
     if a.json_out:
         Path(a.json_out).write_text(json.dumps(doc, indent=1) + "\n")
     if a.json:
@@ -179,7 +188,7 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     speed = f" at {info['speed_kmh']} km/h" if info["speed_kmh"] is not None else ""
     print(format_table(m, f"{ref.name}{speed}, {settings.method.upper()} ({how}), {where}"
                           f"{' (interrupted)' if interrupted else ''}"))
-    print("\n".join(format_wheel_wear(wear)))
+    print("\n".join(format_wheel_wear(wear) + format_per_km(wear)))
     for k, path in (("log", a.log), ("plot", a.plot), ("wear plot", a.wear_plot),
                     ("view", a.view_save), ("json", a.json_out)):
         if path:
