@@ -20,7 +20,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from msagv.plant.signals import BODY_FIELDS
+from msagv.plant.signals import BODY_FIELDS, foreign_separator
 
 KMH = 1.0 / 3.6
 AFTER_END = ("hold", "continue")
@@ -294,19 +294,9 @@ def from_samples(t, x, y, phi, name: str = "trajectory") -> Reference:
                      name=name)
 
 
-SEPARATORS = {";": "semicolons", "\t": "tabs", "|": "vertical bars", " ": "spaces"}
 MS_MIN_SPAN = 600.0  # s: a CSV read as seconds that lasts this long ...
 MS_MAX_SPEED = 0.1  # m/s: ... at this average speed or slower ...
 MS_PLAUSIBLE = (0.2, 50.0)  # m/s: ... but plausible read as milliseconds: t was in ms
-
-
-def _separator_problem(header_line: str) -> str | None:
-    """The separator a header uses when it is not a comma (``'t;x;y;phi'``), else None."""
-    for sep, name in SEPARATORS.items():
-        cols = [c.strip() for c in header_line.split(sep)]
-        if all(c in cols for c in ("t", "x", "y", "phi")):
-            return name
-    return None
 
 
 def check_time_unit(t, x, y, where: str = "trajectory") -> None:
@@ -345,7 +335,7 @@ def from_csv(path: str | Path) -> Reference:
         header = [h.strip() for h in raw]
         miss = [c for c in ("t", "x", "y", "phi") if c not in header]
         if miss:
-            sep = _separator_problem(",".join(raw))
+            sep = foreign_separator(raw, ("t", "x", "y", "phi"))
             if sep is not None:
                 raise ReferenceError(f"{path}:1: the columns are separated by {sep} "
                                      f"('{','.join(raw).strip()}'): msagv reads comma-separated "

@@ -97,6 +97,19 @@ def _rerun_binary() -> Path:
     raise ViewerError(f"rerun-sdk's command-line program is missing from {base}")
 
 
+def check_port_free(host: str, port: int, what: str) -> None:
+    """:class:`ViewerError` when ``port`` on ``host`` is taken (another view, another
+    program): said at once, not as a server thread's error after the work."""
+    fam = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(fam, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, int(port)))
+        except OSError as e:
+            raise ViewerError(f"port {port} on {host} ({what}) is in use ({e.strerror}): "
+                              f"another view? choose another --view-port") from None
+
+
 class WebViewer:
     """Rerun's web viewer (HTML and wasm) served over HTTP on ``host:port`` by the rerun
     program of the rerun-sdk wheel, opening the recording at ``grpc_uri``; stopped by
@@ -194,6 +207,8 @@ class RunView:
             if save is not None:
                 sinks.append(rr.FileSink(str(save)))
             if serve:
+                check_port_free(host, web_port, "the viewer")
+                check_port_free(host, grpc_port, "the data")
                 server = rr.GrpcServerSink(bind_ip=host, port=int(grpc_port))
                 sinks.append(server)
                 h = shown_host(host)
@@ -481,9 +496,13 @@ def view_recording(path: str | Path, view_kwargs: dict, run_index: int = -1) -> 
     kw = dict(view_kwargs)
     kw.setdefault("name", Path(path).name)
     view = RunView(vehicle, reference, power_scale_kw=scale, **kw)
-    for st in states:
-        view.log_state(st)
-    view.finish()
+    try:
+        for st in states:
+            view.log_state(st)
+        view.finish()
+    except RuntimeError as e:  # rerun's sinks (a server that could not start, a full disk)
+        view.close()
+        raise ViewerError(f"the view failed: {e}") from None
     return view, len(states)
 
 

@@ -162,9 +162,9 @@ def vehicle_main(argv: list[str]) -> int:
 # ---- msagv plant replay -----------------------------------------------------------------
 def replay_main(argv: list[str]) -> int:
     from msagv.plant.replay import read_inputs, replay, write_signals
-    from msagv.plant.vehicle import load_vehicle
+    from msagv.plant.vehicle import load_vehicle, plausibility_warnings
 
-    from .args import add_common_args, check_output, fail, note, parse_assignments
+    from .args import add_common_args, check_output, fail, note, parse_assignments, warn
     from .errors import USAGE_ERRORS
 
     ap = argparse.ArgumentParser(
@@ -182,6 +182,7 @@ def replay_main(argv: list[str]) -> int:
     try:
         check_output(a.out, "--out")
         v = load_vehicle(a.vehicle)
+        warn("msagv plant replay", plausibility_warnings(v))
         t, U = read_inputs(a.inputs, v)
         names, S = replay(v, t, U, parse_assignments(a.initial), rtol=a.rtol)
     except USAGE_ERRORS as e:
@@ -218,9 +219,9 @@ def fmu_main(argv: list[str]) -> int:
 
 def fmu_build_main(argv: list[str]) -> int:
     from msagv.fmu_build.build import FmuBuildError, build_fmu
-    from msagv.plant.vehicle import load_vehicle
+    from msagv.plant.vehicle import load_vehicle, plausibility_warnings
 
-    from .args import add_common_args, check_output, fail, note, parse_assignments
+    from .args import add_common_args, check_output, fail, note, parse_assignments, warn
     from .errors import USAGE_ERRORS
 
     ap = argparse.ArgumentParser(
@@ -241,6 +242,7 @@ def fmu_build_main(argv: list[str]) -> int:
     try:
         check_output(a.output, "-o", suffixes=(".fmu",))
         vehicle = load_vehicle(a.vehicle)
+        warn("msagv fmu build", plausibility_warnings(vehicle))
         initial = parse_assignments(a.initial)
         out = build_fmu(a.output, vehicle, prefix=a.prefix, initial=initial)
     except USAGE_ERRORS + (FmuBuildError,) as e:

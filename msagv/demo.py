@@ -157,7 +157,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str]) -> int:
-    from .args import PLOT_SUFFIXES, check_output, fail, warn
+    from .args import PLOT_SUFFIXES, check_distinct, check_output, fail, warn
 
     prog = "msagv demo"
     a = _parser().parse_args(argv)
@@ -171,6 +171,12 @@ def main(argv: list[str]) -> int:
         check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
         check_output(a.out, "--out", directory=True)
         check_output(a.json_out, "--json-out")
+        check_distinct(("--plot", a.plot), ("--json-out", a.json_out))
+        from msagv.experiments.scenario import Scenario
+
+        # what the plant process will check, before either process starts
+        warn(prog, Scenario(case="curve", speed=a.speed, duration=a.duration,
+                            solver=a.solver).preflight())
     except ValueError as e:
         return fail(prog, e, a)
     t0 = time.monotonic()

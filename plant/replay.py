@@ -9,7 +9,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .signals import input_names
+from .signals import foreign_separator, input_names
 from .stepping import Plant
 from .vehicle import Vehicle
 
@@ -37,6 +37,10 @@ def read_inputs(path: str | Path, vehicle: Vehicle) -> tuple[np.ndarray, np.ndar
             raise ReplayError(f"{path}: empty file (expected a header with {', '.join(need)})") from None
         missing = [c for c in need if c not in header]
         if missing:
+            sep = foreign_separator(header, ["t"] + missing[:1])
+            if sep is not None and len(header) == 1:
+                raise ReplayError(f"{path}:1: the columns are separated by {sep}: msagv "
+                                  f"reads comma-separated files (decimal points, not commas)")
             raise ReplayError(f"{path}:1: missing column(s) {', '.join(missing)}")
         idx = [header.index(c) for c in need]
         ts, rows = [], []

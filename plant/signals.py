@@ -60,3 +60,19 @@ def input_names(vehicle: Vehicle) -> list[str]:
     """The commands, in the FMU's input order: ``omega_w_ij`` then ``omega_s_ij``."""
     w = vehicle.wheel_names
     return [f"omega_w_{k}" for k in w] + [f"omega_s_{k}" for k in w]
+
+
+# separators a CSV header may use by mistake (msagv's CSV files are comma-separated)
+CSV_SEPARATORS = {";": "semicolons", "\t": "tabs", "|": "vertical bars", " ": "spaces"}
+
+
+def foreign_separator(header: list[str], columns) -> str | None:
+    """The separator a CSV's header line (as the csv module split it at commas) uses
+    instead of commas, when split at it the header has ``columns``; else None. For the
+    one-line error that names the separator rather than 'missing columns'."""
+    line = ",".join(header)
+    for sep, name in CSV_SEPARATORS.items():
+        cols = [c.strip() for c in line.split(sep)]
+        if all(c in cols for c in columns):
+            return name
+    return None

@@ -494,3 +494,41 @@ def test_a_case_table_marks_runs_shorter_than_the_path():
     assert rows[1]["partial"] is None and rows[2]["partial"] is None
     md = markdown_table(rows)
     assert "| TWO (2 of 38 s) |" in md and md.count("of 38 s") == 1
+
+
+def test_a_view_port_in_use_is_refused_at_once(tmp_path, capsys):
+    pytest.importorskip("rerun", reason="rerun-sdk (the 'viewer' extra) is not installed")
+    import socket
+
+    rec = _recording(tmp_path / "r.mcap")
+    with socket.socket() as busy:  # somebody else's server on the data port
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1] - 1
+        rc, out, err = run(capsys, "view", rec, "--view-port", port)
+    line, = err.strip().splitlines()
+    assert rc == 2 and f"port {port + 1} on 127.0.0.1 (the data) is in use" in line
+
+
+def test_the_other_commands_check_as_run_does(tmp_path, capsys, monkeypatch):
+    from helpers import BUILTIN_TOML, edit_toml
+
+    monkeypatch.chdir(tmp_path)
+    # plant replay names a CSV's separator too
+    u = tmp_path / "u.csv"
+    u.write_text("t;omega_w_11;omega_w_12\n0;1;1\n")
+    rc, out, err = run(capsys, "plant", "replay", "--inputs", u, "--out", tmp_path / "s.csv")
+    assert rc == 2 and err.strip() == (f"msagv plant replay: {u}:1: the columns are separated "
+                                       f"by semicolons: msagv reads comma-separated files "
+                                       f"(decimal points, not commas)")
+    # the demo refuses what its plant would, before starting either process
+    rc, out, err = run(capsys, "demo", "--duration", "0.001", "--plot", tmp_path / "d.png")
+    assert rc == 2 and "duration: 0.001 s is shorter than one control period" in err
+    rc, out, err = run(capsys, "demo", "--speed", "500", "--plot", tmp_path / "d.png")
+    assert rc == 2 and "speed: the reference moves at up to 500.0 km/h" in err
+    assert not list(tmp_path.glob("*.png"))
+    # an FMU of an implausible vehicle is built, with the warning
+    v = tmp_path / "v.toml"
+    v.write_text(edit_toml(BUILTIN_TOML, "", "mass", "12.0"))
+    rc, out, err = run(capsys, "fmu", "build", "--vehicle", v, "-o", tmp_path / "p.fmu")
+    assert rc == 0 and "msagv fmu build: warning: mass: 12 kg is 3 kg per wheel" in err
