@@ -482,6 +482,13 @@ def add_session_args(ap: argparse.ArgumentParser, router: bool = False) -> None:
 
 
 def options_from_args(a, router: bool = False) -> SessionOptions:
+    """The session's options; a ``--zenoh-config`` file or a ``--secure`` directory that
+    is not there is an :class:`OptionError` before any session starts."""
+    if a.zenoh_config and not Path(a.zenoh_config).is_file():
+        raise OptionError(f"--zenoh-config {a.zenoh_config}: no such file")
+    sec = getattr(a, "secure", None)
+    if sec and not Path(sec).is_dir():
+        raise OptionError(f"--secure {sec}: not a directory (create it with msagv certs {sec})")
     return SessionOptions(id=check_id(getattr(a, "id", DEFAULT_ID)), connect=list(a.connect),
                           listen=list(a.listen),
                           mode="router" if router else a.mode,

@@ -329,7 +329,7 @@ def router_main(argv: list[str]) -> int:
     sig.install()
     try:
         opts = options_from_args(a, router=True)
-    except SessionError as e:
+    except (SessionError, OptionError) as e:
         print(f"msagv router: {e}", file=sys.stderr)
         return EXIT_USAGE
     return serve(opts, sig.event) or EXIT_OK

@@ -532,3 +532,10 @@ def test_the_other_commands_check_as_run_does(tmp_path, capsys, monkeypatch):
     v.write_text(edit_toml(BUILTIN_TOML, "", "mass", "12.0"))
     rc, out, err = run(capsys, "fmu", "build", "--vehicle", v, "-o", tmp_path / "p.fmu")
     assert rc == 0 and "msagv fmu build: warning: mass: 12 kg is 3 kg per wheel" in err
+
+
+@pytest.mark.parametrize("cmd", ["plant", "controller", "router"])
+def test_a_missing_session_file_is_one_line_before_any_session(cmd, tmp_path):
+    r = run_msagv(cmd, "--zenoh-config", tmp_path / "nope.json5", timeout=60)
+    assert r.returncode == 2 and r.stdout == "", r.stderr
+    assert r.stderr.strip() == f"msagv {cmd}: --zenoh-config {tmp_path / 'nope.json5'}: no such file"
