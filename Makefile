@@ -9,7 +9,8 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test,ipopt,cosim,study,viewer]'
+	$(BIN)/python -m pip install -q -e '.[test,ipopt,cosim,study,viewer,foxglove]'
+	$(BIN)/python -m pip install -q -e '.[ros2]' || echo "ROS 2 wheels not installed: the ROS 2 tests will skip"
 	touch $(STAMP)
 
 # acados (--solver acados) for the tests and benchmarks, never for the demo. The registry's

@@ -169,12 +169,15 @@ class RecorderStats:
     errors: int = 0
     last_error: str | None = None
     queue_peak: int = 0
+    ros2_bag: str | None = None  # the bag of the ROS 2 channels (bridge.ros_bag)
+    ros2_messages: int = 0
 
     def to_dict(self) -> dict:
         return {"path": self.path, "files": list(self.files), "records": self.records,
                 "bytes": self.bytes, "dropped": self.dropped, "rejected": self.rejected,
                 "errors": self.errors, "last_error": self.last_error,
-                "queue_peak": self.queue_peak}
+                "queue_peak": self.queue_peak, "ros2_bag": self.ros2_bag,
+                "ros2_messages": self.ros2_messages}
 
 
 _STOP = object()
@@ -183,7 +186,9 @@ _STOP = object()
 class Recorder:
     """Thread-safe, non-blocking MCAP recorder (see the module docstring).
 
-    ``header``: the process's header map (JSON-serialisable). ``max_bytes``: rotate to a
+    ``header``: the process's header map (JSON-serialisable). ``ros2``: also write the
+    run's ROS 2 channels, a rosbag2 bag beside the file (:mod:`bridge.ros_bag`; needs the
+    header's ``vehicle``). ``max_bytes``: rotate to a
     new file after this many bytes (None: never). ``keep``: keep at most this many files,
     deleting the oldest (0: all). ``queue_items``/``queue_bytes``: the bound of what waits
     to be written. Opening the first file fails with :class:`RecordingError`; everything
@@ -192,7 +197,8 @@ class Recorder:
 
     def __init__(self, path: str | Path, header: dict, flush_s: float = 0.5,
                  max_bytes: int | None = DEFAULT_MAX_BYTES, keep: int = 0,
-                 queue_items: int = DEFAULT_QUEUE_ITEMS, queue_bytes: int = DEFAULT_QUEUE_BYTES):
+                 queue_items: int = DEFAULT_QUEUE_ITEMS, queue_bytes: int = DEFAULT_QUEUE_BYTES,
+                 ros2: bool = True):
         if max_bytes is not None and max_bytes < 4096:
             raise RecordingError(f"the recording's file size limit must be >= 4096 bytes, "
                                  f"got {max_bytes}")
@@ -217,10 +223,13 @@ class Recorder:
         self._channels: dict = {}
         self._schemas: dict = {}
         self._seq: dict = {}
+        self._ros = None
         try:
             self._open_part()
         except OSError as e:
             raise RecordingError(f"{self.path}: cannot be written ({e.strerror or e})") from None
+        if ros2 and "vehicle" in self.header:  # the same run as ROS 2 messages, beside it
+            self._ros = self._open_bag()
         self._thread = threading.Thread(target=self._run, name="msagv-recorder", daemon=True)
         self._thread.start()
 
@@ -258,6 +267,13 @@ class Recorder:
                 self._put(("msg", direction, key, data, ts), len(data))
         except Exception as e:  # a payload that is not bytes-like: counted, never raised
             self._error(f"cannot record a message on {key}: {e}")
+
+    def predicted_path(self, t0: float, dt: float, poses) -> None:
+        """The controller's predicted poses (x, y, phi) at t0, t0 + dt, ... (the ROS 2
+        channel ``predicted_path`` only)."""
+        if self._ros is not None:
+            self._put(("pred", float(t0), float(dt), [list(map(float, p)) for p in poses],
+                       time.time()))
 
     def event(self, name: str, **fields) -> None:
         rec = {"ts": time.time(), "ev": name}
@@ -334,6 +350,7 @@ class Recorder:
         # chunks of at most 1 MiB (uncompressed), and small enough that a file ends within
         # about an eighth of its size limit
         chunk = 1 << 20 if self._max_bytes is None else min(1 << 20, max(4096, self._max_bytes // 8))
+        self._chunk_size = chunk
         w = Writer(f, chunk_size=chunk)
         w.start(profile=PROFILE, library=f"msagv {_package_version()}")
         w.add_metadata(META_RECORDING, {"format": MAGIC, "version": str(MCAP_VERSION),
@@ -374,10 +391,40 @@ class Recorder:
         t = int(ts * 1e9)
         self._w.add_message(channel_id=cid, log_time=t, publish_time=t, data=data, sequence=n)
 
+    def _open_bag(self):
+        from .ros_bag import RosBag, bag_path
+
+        try:
+            bag = RosBag(bag_path(self.path), self.header, chunk_size=self._chunk_size,
+                         max_bytes=self._max_bytes, keep=self._keep,
+                         library=f"msagv {_package_version()}")
+        except Exception as e:  # no rosbags, an unwritable directory: the recording goes on
+            log.warning("recording %s: no ROS 2 bag (%s: %s)", self.path, type(e).__name__, e)
+            return None
+        self.stats.ros2_bag = str(bag.path)
+        return bag
+
+    def _bag(self, method: str, *args) -> None:
+        """Call the ROS 2 bag; an error stops the bag (logged, counted), never the
+        recording."""
+        if self._ros is None:
+            return
+        try:
+            getattr(self._ros, method)(*args)
+            self.stats.ros2_messages = self._ros.messages
+        except Exception as e:
+            self._error(f"the ROS 2 bag stopped ({type(e).__name__}: {e}); msagv recover "
+                        f"{self.path} repairs what was written")
+            self._ros.abandon()
+            self._ros = None
+
     def _write(self, item) -> None:
         if self._failed:
             with self._lock:
                 self.stats.dropped += 1
+            return
+        if item[0] == "pred":
+            self._bag("predicted", *item[1:])
             return
         try:
             kind = item[0]
@@ -386,6 +433,8 @@ class Recorder:
                 k = _kind(key)
                 schema = (f"msagv.{k}", message_schema(k)) if k else None
                 self._add(self._channel(key, direction, "msgpack", schema), data, ts)
+                if k is not None:
+                    self._bag("record", key, data, ts)
             elif kind in ("rej", "ev", "summary"):
                 topic = {"rej": TOPIC_REJECTED, "ev": TOPIC_EVENTS, "summary": TOPIC_SUMMARY}[kind]
                 rec = dict(item[1])
@@ -439,6 +488,9 @@ class Recorder:
             self._f.close()
         except Exception:
             pass
+        if self._ros is not None:
+            self._ros.abandon()
+            self._ros = None
 
     def _flush(self) -> None:
         if self._failed:
@@ -448,6 +500,7 @@ class Recorder:
             self._maybe_rotate()
         except Exception as e:
             self._fail(e)
+        self._bag("flush")
 
     def _finish(self) -> None:
         if self._failed:
@@ -458,6 +511,7 @@ class Recorder:
             self._f.close()
         except Exception as e:
             self._fail(e)
+        self._bag("close")
 
 
 def _package_version() -> str:

@@ -23,6 +23,7 @@ COMMANDS = {
     "run": "in-process closed loop (controller at 100 Hz on the stepping plant)",
     "report": "the paper's metrics and plots from a recording",
     "view": "view FILE: a recording in Rerun's 3D viewer (vehicle, wheel wear, paths, errors)",
+    "recover": "recover FILE: a recording cut short by a kill or a full disk made readable",
     "experiment": "the paper's Cases 1-3, the Pareto front and the ridge study",
     "fmu": "fmu build | fmu simulate",
     "bench": "benchmarks (plant, rollout, controller, optimality, nmpc, transport, fmu)",
@@ -71,6 +72,8 @@ def _dispatch(cmd: str, rest: list[str]) -> int:
     if cmd == "report":
         from .report import main as report_main
         return report_main(rest)
+    if cmd == "recover":
+        return recover_main(rest)
     if cmd == "experiment":
         from .experiment import main
         return main(rest)
@@ -189,6 +192,45 @@ def replay_main(argv: list[str]) -> int:
         return fail("msagv plant replay", e, a)
     write_signals(a.out, names, S)
     note(a, f"wrote {len(t)} rows x {len(names)} signals to {a.out}")
+    return 0
+
+
+def recover_main(argv: list[str]) -> int:
+    """``msagv recover FILE``: every file of a recording (its rotated parts, its ROS 2 bag)
+    made a complete MCAP file, and the bag's metadata.yaml written (bridge.recover)."""
+    from msagv.bridge.recover import recover_recording
+    from msagv.bridge.recording import RecordingError
+
+    from .args import add_common_args, fail
+
+    prog = "msagv recover"
+    ap = argparse.ArgumentParser(
+        prog=prog, description="Make a recording cut short (a killed process, a full disk) "
+                               "readable by the standard readers: each file of it (FILE, its "
+                               "rotated parts FILE.1.mcap, ..., its ROS 2 bag NAME_ros2/) is "
+                               "rewritten in place with every complete record up to the cut; "
+                               "the bag's metadata.yaml is written. Complete files are left "
+                               "as they are.")
+    ap.add_argument("recording", metavar="FILE", help="the recording (msagv ... --record FILE)")
+    ap.add_argument("--json", action="store_true", help="print what was recovered as JSON")
+    add_common_args(ap)
+    a = ap.parse_args(argv)
+    try:
+        out = recover_recording(a.recording)
+    except (RecordingError, OSError) as e:
+        return fail(prog, e, a)
+    if a.json:
+        print(json.dumps(out))
+        return 0
+    for f in out["files"]:
+        topics = ", ".join(f"{n} {t.rsplit('/', 1)[-1] or t}" for t, n in
+                           sorted(f["by_topic"].items()) if t.endswith(("/state", "/cmd", "odom")))
+        print(f"{f['path']}: {'complete, nothing to do' if f['complete'] else 'repaired'}; "
+              f"{f['messages']} messages{' (' + topics + ')' if topics else ''}")
+    if out["bag"]:
+        b = out["bag"]
+        print(f"{b['path']}/metadata.yaml: written ({b['messages']} messages on "
+              f"{b['topics']} topics)")
     return 0
 
 
