@@ -19,14 +19,13 @@ and by ``msagv recover`` (:mod:`bridge.recover`) after a kill.
 
 from __future__ import annotations
 
+import functools
 import io
 import logging
 import os
-from collections import OrderedDict
 from pathlib import Path
 from typing import Mapping
 
-from . import messages as M
 from . import ros_msgs as R
 
 log = logging.getLogger("msagv.recording")
@@ -64,6 +63,7 @@ def qos_profile(topic: str):
                QosLiveliness.AUTOMATIC, inf, False)
 
 
+@functools.lru_cache(maxsize=None)
 def qos_yaml(topic: str) -> str:
     """rosbag2's ``offered_qos_profiles`` text (version 9) of a topic."""
     from rosbags.rosbag2.metadata import dump_qos_v9
@@ -152,7 +152,7 @@ def scan_file(path: Path) -> dict:
 
 
 # ---- writing ----------------------------------------------------------------------------------
-class RosBag:
+class RosBag(R.RunChannels):
     """The bag of one recording (see the module docstring). Called only from the recorder's
     writer thread. ``header``: the recording's header (``vehicle``, ``period``,
     ``reference``, ...); ``chunk_size``, ``max_bytes``, ``keep`` as the recorder's."""
@@ -163,20 +163,14 @@ class RosBag:
 
         self.path = Path(bag)
         self.header = dict(header)
-        self.vehicle = vehicle_from_dict(self.header["vehicle"])
-        self.nw = self.vehicle.n_wheels
-        self.period = float(self.header.get("period") or 0.01)
-        self.msgs = R.RunMessages(self.vehicle, self.period)
-        self._ref_msg = self.header.get("reference")
+        super().__init__(vehicle_from_dict(self.header["vehicle"]),
+                         float(self.header.get("period") or 0.01), self.header.get("reference"))
         self._chunk = chunk_size
         self._max_bytes = max_bytes
         self._keep = keep
         self._library = library
         self._part = 0
         self._files: list[dict] = []  # closed parts' entries for metadata.yaml
-        self._deltas: OrderedDict[int, list] = OrderedDict()  # state seq -> delta
-        self._last_seq: int | None = None
-        self._plan_due = True
         self.messages = 0
         self._prepare_dir()
         self._open()
@@ -234,54 +228,11 @@ class RosBag:
         c = self._cur
         c["start"] = t if c["start"] is None else min(c["start"], t)
         c["end"] = t if c["end"] is None else max(c["end"], t)
-        e = c["topics"].setdefault("/" + topic, [R.TYPES[topic], 0, qos_yaml(topic)])
+        e = c["topics"].get("/" + topic)
+        if e is None:
+            e = c["topics"]["/" + topic] = [R.TYPES[topic], 0, qos_yaml(topic)]
         e[1] += 1
         self.messages += 1
-
-    # ---- fed by the recorder -------------------------------------------------------------
-    def record(self, key: str, data: bytes, ts: float) -> None:
-        """A msgpack payload the recorder wrote on ``key`` (a valid state, command or
-        reference becomes ROS 2 messages; anything else is not a ROS message)."""
-        kind = key.rsplit("/", 1)[-1]
-        try:
-            if kind == "state":
-                self._state(M.decode_state(data, self.nw), ts)
-            elif kind == "cmd":
-                c = M.decode_cmd(data, self.nw)
-                delta = self._deltas.get(c["state_seq"])
-                if delta is not None:
-                    for topic, msg in self.msgs.commands(c["t"], delta, c["omega_w"],
-                                                         c["omega_s"]):
-                        self.write(topic, msg, ts)
-            elif kind == "reference":
-                self._ref_msg = M.decode_reference(data)
-                self._plan_due = True
-        except M.MessageError:
-            return  # not written on the ROS side, as the process did not use it
-
-    def _state(self, st: dict, ts: float) -> None:
-        seq = st["seq"]
-        if self._last_seq is None or seq == 0 or seq < self._last_seq:
-            self.msgs.reset()  # a new run
-            self._plan_due = True
-        if seq == self._last_seq:
-            return  # sent again (lockstep, a controller that reappeared)
-        self._last_seq = seq
-        self._deltas[seq] = st["delta"]
-        while len(self._deltas) > 512:
-            self._deltas.popitem(last=False)
-        if self._plan_due and self._ref_msg is not None:
-            ref = dict(self._ref_msg)
-            if ref.get("relative"):
-                ref["t"] = [v + st["t"] for v in ref["t"]]
-            self.write(R.PLAN, R.reference_path(ref), ts)
-            self._plan_due = False
-        for topic, msg in self.msgs.state_messages(st):
-            self.write(topic, msg, ts)
-
-    def predicted(self, t0: float, dt: float, poses, ts: float) -> None:
-        """The controller's predicted path of the solve at ``t0`` (poses at t0 + k dt)."""
-        self.write(R.PREDICTED_PATH, R.predicted_path(t0, dt, poses), ts)
 
     # ---- files ---------------------------------------------------------------------------
     def flush(self) -> None:

@@ -56,6 +56,8 @@ TYPES = {
 # the wear topic's rows (layout.dim[0]); its columns (dim[1]) are the wheels in order
 WEAR_ROWS = ("P_tw", "W_tw")  # wear power [W] (mean over the last period), work [J]
 
+MARKER_EVERY = 10  # the markers of every tenth state (10 Hz at T = 10 ms; tf moves them at
+# every state, as they are drawn in base_link)
 BODY_COLOR = (125 / 255, 45 / 255, 200 / 255, 0.8)  # as the Rerun view's body
 PATH_COLOR = (0.35, 0.35, 0.35, 1.0)
 COOL, HOT = np.array([60, 180, 75]) / 255, np.array([220, 30, 40]) / 255
@@ -327,9 +329,9 @@ class RunMessages:
         self._peak = 0.0
 
     # every message of one state
-    def state_messages(self, st: Mapping) -> list[tuple[str, Any]]:
+    def state_messages(self, st: Mapping, markers: bool = True) -> list[tuple[str, Any]]:
         """``[(topic, message), ...]`` of one state: clock, odom, tf, joint_states, wear
-        (when the state carries the per-wheel wear work) and markers."""
+        (when the state carries the per-wheel wear work) and (``markers``) markers."""
         t = float(st["t"])
         self._advance(st, t)
         out = [(CLOCK, new("rosgraph_msgs/msg/Clock", clock=time_msg(t))),
@@ -337,7 +339,8 @@ class RunMessages:
         w = self.wear(st)
         if w is not None:
             out.append((WEAR, w))
-        out.append((MARKERS, self.markers(st)))
+        if markers:
+            out.append((MARKERS, self.markers(st)))
         return out
 
     def _advance(self, st: Mapping, t: float) -> None:
@@ -461,3 +464,91 @@ def predicted_path(t0: float, dt: float, poses: Sequence[Sequence[float]]):
     p = np.asarray(poses, dtype=float).reshape(-1, 3)
     t = t0 + dt * np.arange(p.shape[0])
     return path_msg(t, p[:, 0], p[:, 1], p[:, 2], stamp=t0)
+
+
+class RunChannels:
+    """The ROS 2 messages of a process's msgpack traffic (what a recorder is handed): a
+    valid state becomes its :meth:`RunMessages.state_messages` (and the ``plan`` at a run's
+    first state and, with ``plan_every``, every that many states), a command answering a
+    known state its two command topics, a reference the next ``plan``. Subclasses say where
+    a message goes (:meth:`write`): a bag (:class:`bridge.ros_bag.RosBag`), a live view."""
+
+    def __init__(self, vehicle, period: float, reference: Mapping | None = None,
+                 plan_every: int | None = None):
+        self.vehicle = vehicle
+        self.nw = vehicle.n_wheels
+        self.period = float(period)
+        self.msgs = RunMessages(vehicle, self.period)
+        self._ref_msg = reference
+        self._plan_every = plan_every
+        self._deltas: dict[int, list] = {}
+        self._last_seq: int | None = None
+        self._plan_due = True
+
+    def write(self, topic: str, msg, ts: float) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def record(self, key: str, data: bytes, ts: float) -> None:
+        """A msgpack payload on ``key`` at record time ``ts`` [s] (anything that is not a
+        valid state, command or reference is not a ROS message and is left out)."""
+        from . import messages as M
+
+        kind = key.rsplit("/", 1)[-1]
+        try:
+            if kind == "state":
+                self._state(M.decode_state(data, self.nw), ts)
+            elif kind == "cmd":
+                c = M.decode_cmd(data, self.nw)
+                delta = self._deltas.get(c["state_seq"])
+                if delta is not None:
+                    for topic, msg in self.msgs.commands(c["t"], delta, c["omega_w"],
+                                                         c["omega_s"]):
+                        self.write(topic, msg, ts)
+            elif kind == "reference":
+                self._ref_msg = M.decode_reference(data)
+                self._plan_due = True
+        except M.MessageError:
+            return
+
+    def _state(self, st: dict, ts: float) -> None:
+        seq = st["seq"]
+        if self._last_seq is None or seq == 0 or seq < self._last_seq:
+            self.msgs.reset()  # a new run
+            self._plan_due = True
+        if seq == self._last_seq:
+            return  # sent again (lockstep, a controller that reappeared)
+        self._last_seq = seq
+        self._deltas[seq] = st["delta"]
+        if len(self._deltas) > 512:
+            del self._deltas[min(self._deltas)]
+        if self._plan_every and seq % self._plan_every == 0:
+            self._plan_due = True
+        if self._plan_due and self._ref_msg is not None:
+            ref = dict(self._ref_msg)
+            if ref.get("relative"):
+                ref["t"] = [v + st["t"] for v in ref["t"]]
+            self.write(PLAN, reference_path(ref), ts)
+            self._plan_due = False
+        for topic, msg in self.msgs.state_messages(st, markers=seq % MARKER_EVERY == 0):
+            self.write(topic, msg, ts)
+
+    def predicted(self, t0: float, dt: float, poses, ts: float) -> None:
+        """The controller's predicted path of the solve at ``t0`` (poses at t0 + k dt)."""
+        self.write(PREDICTED_PATH, predicted_path(t0, dt, poses), ts)
+
+
+def predicted_poses(mpc, state: Mapping, reference) -> np.ndarray | None:
+    """The last solve's predicted poses (N_p + 1, 3: x, y, phi): ``mpc.predicted_poses()``
+    where the controller has it, else its solution rolled out by its own prediction model
+    from ``state``. None when the controller has neither (the feed-forward alone)."""
+    fn = getattr(mpc, "predicted_poses", None)
+    if fn is not None:
+        return np.asarray(fn(), dtype=float)
+    try:
+        s = mpc.settings
+        x0 = np.r_[[float(state[k]) for k in BODY_FIELDS], np.asarray(state["delta"], dtype=float)]
+        rows = np.ascontiguousarray(reference.sample(float(state["t"]) + s.dt * np.arange(s.N_p + 1)))
+        roll = mpc.model.rollout(x0, rows, mpc.z)
+        return np.vstack([x0[:3], roll.poses[0]])
+    except Exception:  # noqa: BLE001 - a controller without a rollout
+        return None

@@ -18,6 +18,7 @@ COMMANDS = {
     "vehicle": "vehicle show [--vehicle FILE] [--json]",
     "plant": "the plant as a Zenoh process; 'plant replay' for open-loop CSV replay",
     "controller": "the MPC as a Zenoh process",
+    "ros2": "ros2 controller | ros2 plant: the MPC and the plant as ROS 2 nodes (docs/ROS2.md)",
     "router": "a Zenoh router for plants and controllers on several machines",
     "certs": "certs DIR: a CA and per-role certificates for --secure (mutual TLS, access control)",
     "run": "in-process closed loop (controller at 100 Hz on the stepping plant)",
@@ -57,6 +58,9 @@ def _dispatch(cmd: str, rest: list[str]) -> int:
     if cmd == "controller":
         from .nodes import controller_main
         return controller_main(rest)
+    if cmd == "ros2":
+        from .ros2_cli import main as ros2_main
+        return ros2_main(rest)
     if cmd == "certs":
         from .certs import main as certs_main
         return certs_main(rest)

@@ -7,6 +7,7 @@ functions, and the ``module:Class`` targets of the solver table), so the rules h
 lazily imported modules too:
 
     plant <- controller <- (bridge, fmu_build) <- experiments <- benchmarks <- app
+    plant, controller <- bridge <- ros2 <- app      (the ROS 2 nodes)
 
 An arrow points from a package to those that may import it (``app``: the modules of
 ``msagv/`` itself, the command line); nothing imports upwards; there are no cycles between
@@ -30,7 +31,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"plant": "plant", "controller": "controller", "bridge": "bridge",
            "fmu_build": "fmu_build", "experiments": "experiments", "benchmarks": "benchmarks",
-           "app": "msagv"}
+           "ros2": "ros2", "app": "msagv"}
 PACKAGES = tuple(FOLDERS)
 ALLOWED = {
     "plant": set(),
@@ -39,7 +40,9 @@ ALLOWED = {
     "fmu_build": {"plant"},
     "experiments": {"plant", "controller", "bridge", "fmu_build"},
     "benchmarks": {"plant", "controller", "bridge", "fmu_build", "experiments"},
-    "app": {"plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks"},
+    # the ROS 2 nodes: transport like bridge/, on rclpy; imported only by the command line
+    "ros2": {"plant", "controller", "bridge"},
+    "app": {"plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks", "ros2"},
 }
 SUBPACKAGES = {k for k in FOLDERS if k != "app"}
 # 'module:attribute' strings in the solver table are imports too
@@ -190,7 +193,8 @@ def test_no_file_imports_another_that_imports_it_back():
 
 
 def test_nothing_imports_a_generic_top_level_name():
-    generic = {"plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks"}
+    generic = {"plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks",
+               "ros2"}
     bad = [f"{f.relative_to(ROOT)}: {m}" for f in all_sources() for m in imported_modules(f)
            if m.split(".")[0] in generic]
     assert not bad, bad
@@ -212,9 +216,11 @@ def test_bridge_does_not_import_the_app():
 def test_no_imports_by_string():
     """Modules are imported by name (visible to this test), never with importlib by string,
     except the solver table's ``module:Class`` targets (read above as imports) and the
-    FMU's slave, which imports the plant the FMU bundles under a build-specific name."""
+    FMU's slave, which imports the plant the FMU bundles under a build-specific name, and
+    the ROS 2 runtime, which finds a ROS message class (a third-party package) by its ROS
+    type name (``nav_msgs/msg/Odometry``)."""
     pat = re.compile(r"importlib\.import_module|__import__\(")
-    allowed = {"slave.py", "solvers.py"}
+    allowed = {"slave.py", "solvers.py", "runtime.py"}
     users = [str(f.relative_to(ROOT)) for f in all_sources()
              if pat.search(f.read_text()) and f.name not in allowed]
     assert not users, users

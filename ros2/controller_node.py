@@ -1,0 +1,399 @@
+"""``msagv ros2 controller``: the MPC as a ROS 2 node (docs/ROS2.md).
+
+In: ``odom`` (nav_msgs/Odometry: pose in odom, twist in base_link as REP-105 says),
+``joint_states`` (sensor_msgs/JointState: positions of ``steer_ij``, velocities of
+``wheel_ij``) and ``plan`` (nav_msgs/Path, the reference). Out: ros2_control's
+forward-command topics ``steering_controller/commands`` (steering angle targets [rad]: the
+angle the commanded rate reaches in one period, :func:`bridge.ros_msgs.steering_targets`)
+and ``wheel_controller/commands`` (wheel speeds [rad/s]), ``predicted_path`` (the MPC's
+horizon) and ``wear`` (each wheel's wear power under the command at the observed state, by
+the plant's tire model, and its integral).
+
+One solve per odometry message: when the joint states stamped no earlier than it have
+arrived (a plant that stamps both alike, as ``msagv ros2 plant``, is answered state by
+state), or after half a period with the newest joint states. A repeated stamp (a plant
+sending its state again) gets the same commands again, unsolved.
+
+Safety, the same state machine as the plant's (:class:`bridge.loss.CommandWatch`), run on
+the node's wall-clock timer at 1/T over the inputs instead of the commands: more than
+``stale_ms`` without a fresh odometry + joint-states pair puts the node in its safe
+behaviour - steering targets held at the last measured angles, wheel speeds ramped down
+at ``safe_decel`` - until fresh inputs come for ``resume_periods`` periods. Nothing is
+published before the first state (nothing to hold). A plan's end: past its last pose the
+reference holds that pose (the vehicle stops there); an empty plan stops the vehicle as the
+safe behaviour does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from msagv.bridge import messages as M
+from msagv.bridge import ros_msgs as R
+from msagv.bridge.loss import SAFE, CommandWatch
+from msagv.bridge.plant_node import percentiles_ms
+from msagv.controller.reference import Reference, from_samples
+
+from .runtime import Context
+
+log = logging.getLogger("msagv.ros2.controller")
+
+
+# ---- the plan -> the reference ---------------------------------------------------------------
+def plan_reference(t, x, y, phi, t_now: float, speed_ms: float) -> tuple[Reference, str]:
+    """The reference of a path's poses: timed by their stamps where those increase
+    strictly; else along the arc length at ``speed_ms`` from ``t_now`` (Nav2's planners
+    leave the stamps zero). Headings from the poses' orientations, or the path's tangent
+    where every orientation is the identity (a planner that leaves them unset). Past the
+    last pose the reference holds it. Returns ``(reference, how it was timed)``."""
+    t, x, y, phi = (np.asarray(a, dtype=float) for a in (t, x, y, phi))
+    if x.size < 2:
+        raise ValueError(f"a plan needs at least 2 poses, got {x.size}")
+    seg = np.hypot(np.diff(x), np.diff(y))
+    stamped = bool(np.all(np.diff(t) > 0))
+    if not stamped:
+        keep = np.r_[True, seg > 1e-9]  # repeated points carry no time along the arc
+        x, y, phi = x[keep], y[keep], phi[keep]
+        seg = np.hypot(np.diff(x), np.diff(y))
+        if x.size < 2:
+            raise ValueError("a plan without stamps needs two distinct points")
+        if not (math.isfinite(speed_ms) and speed_ms > 0):
+            raise ValueError(f"the plan speed must be > 0, got {speed_ms * 3.6:g} km/h")
+        t = t_now + np.r_[0.0, np.cumsum(seg)] / speed_ms
+    if np.all(phi == 0.0) and seg.sum() > 0:
+        head = np.arctan2(np.diff(y), np.diff(x))
+        phi = np.r_[head, head[-1]]
+    if x.size == 2:  # from_samples needs three samples: the midpoint
+        t, x, y, phi = (np.r_[a[0], 0.5 * (a[0] + a[1]), a[1]] for a in (t, x, y, phi))
+    ref = from_samples(t, x, y, phi, name="plan")
+    ref.after_end = "hold"
+    how = "its stamps" if stamped else f"its arc length at {speed_ms * 3.6:g} km/h"
+    return ref, how
+
+
+def shifted(ref: Reference, dt: float) -> Reference:
+    """The reference ``dt`` seconds later (its time axis moved; the same samples)."""
+    if dt == 0.0:
+        return ref
+    return dataclasses.replace(ref, t=np.asarray(ref.t) + dt)
+
+
+# ---- the parameters -----------------------------------------------------------------------------
+# ROS parameters (``--ros-args -p NAME:=VALUE`` or a params file), each also an option
+PARAMETERS = {
+    "method": str, "model": str, "policy": str, "solver": str, "seed": int,
+    "iterations": int, "chains": int, "deadline_ms": float, "Q": list, "L": list, "E": list,
+    "R": list, "plan_speed_kmh": float, "stale_ms": float, "resume_periods": int,
+    "safe_decel": float, "max_age_ms": float,
+}
+
+
+def declare_parameters(node, defaults: dict) -> dict:
+    """Declare every parameter with the command line's value as its default; returns the
+    values in force (a ``-p`` override wins). 0 for ``deadline_ms``/``max_age_ms``: none."""
+    out = {}
+    for name, kind in PARAMETERS.items():
+        d = defaults[name]
+        if kind is list:
+            d = [float(v) for v in d]
+        elif kind is float:
+            d = float(0.0 if d is None else d)
+        elif kind is int:
+            d = int(d)
+        else:
+            d = str(d)
+        try:
+            p = node.declare_parameter(name, d)
+            v = p.value
+        except Exception as e:  # a -p value of the wrong type
+            raise ValueError(f"ROS parameter {name}: {e}") from None
+        out[name] = [float(x) for x in v] if kind is list else kind(v)
+    return out
+
+
+# ---- wear -----------------------------------------------------------------------------------------
+class WearEstimate:
+    """Each wheel's wear power under a command at an observed state, by the plant's tire
+    model (the plant reset to the state, its outputs read), and the work summed over the
+    solves (power times the time to the next state)."""
+
+    def __init__(self, vehicle):
+        from msagv.plant import Plant
+
+        self.plant = Plant(vehicle)
+        self.names = vehicle.wheel_names
+        self.reset()
+
+    def reset(self) -> None:
+        self.work = np.zeros(len(self.names))
+        self._last: tuple[float, np.ndarray] | None = None
+
+    def update(self, st: dict, omega_w, omega_s) -> tuple[np.ndarray, np.ndarray]:
+        init = {k: st[k] for k in ("x", "y", "phi", "vx", "vy", "r")}
+        for n, d in zip(self.names, st["delta"]):
+            init[f"delta_{n}"] = d
+        self.plant.reset(init)
+        self.plant.set_inputs(omega_w, omega_s)
+        out = self.plant.outputs()
+        p = np.array([out[f"P_s_{n}"] + out[f"P_alpha_{n}"] + out[f"P_t_{n}"]
+                      for n in self.names])
+        t = float(st["t"])
+        if self._last is not None and t > self._last[0]:
+            self.work = self.work + self._last[1] * (t - self._last[0])
+        self._last = (t, p)
+        return p, self.work
+
+
+# ---- the node ---------------------------------------------------------------------------------
+@dataclasses.dataclass
+class RosControllerConfig:
+    period: float = 0.01
+    stale_ms: float = 50.0
+    resume_periods: int = 3
+    safe_decel: float = 2.0
+    plan_speed_kmh: float = 15.0
+    max_age_ms: float | None = None
+    node_name: str = "msagv_controller"
+    vehicle_id: str = "agv0"
+
+
+class RosController:
+    """The controller node (see the module docstring). ``make_mpc(parameters)`` builds the
+    controller from the parameters in force (:data:`PARAMETERS`; ``defaults`` their
+    command-line values); ``reference``: the reference to track from the first state on
+    (None: wait for a plan); ``recorder``: a recorder-like sink or None."""
+
+    def __init__(self, make_mpc: Callable[[dict], object], defaults: dict, vehicle,
+                 cfg: RosControllerConfig, ros_args: list[str], reference: Reference | None,
+                 recorder=None, stop: threading.Event | None = None):
+        self.ctx = Context(cfg.node_name, ros_args)
+        self.params = declare_parameters(self.ctx.node, defaults)
+        p = self.params
+        cfg = dataclasses.replace(cfg, stale_ms=p["stale_ms"], resume_periods=p["resume_periods"],
+                                  safe_decel=p["safe_decel"], plan_speed_kmh=p["plan_speed_kmh"],
+                                  max_age_ms=p["max_age_ms"] or None)
+        if not (cfg.stale_ms > 0 and cfg.safe_decel > 0 and cfg.plan_speed_kmh > 0
+                and cfg.resume_periods >= 1):
+            raise ValueError("stale_ms, safe_decel and plan_speed_kmh must be > 0 and "
+                             "resume_periods >= 1")
+        self.cfg = cfg
+        self.vehicle = vehicle
+        self.nw = vehicle.n_wheels
+        self.mpc = make_mpc(p)
+        t0 = time.perf_counter()
+        self.mpc.warmup()  # compiled before any topic is declared: a plant that sees this
+        log.info("MPC warm (%.2f s)", time.perf_counter() - t0)  # node is answered at once
+        self.rec = recorder
+        self.stop = stop or threading.Event()
+        self.base_reference = reference
+        self.reference: Reference | None = None
+        self.msgs = R.RunMessages(vehicle, cfg.period)
+        self.wear = WearEstimate(vehicle)
+        self.watch = CommandWatch(int(math.floor(cfg.stale_ms / 1000 / cfg.period + 1e-9)),
+                                  cfg.resume_periods, cfg.period)
+        self.ramp = cfg.safe_decel / vehicle.wheel_radius
+        self.key_state = f"msagv/{cfg.vehicle_id}/state"
+        self.key_cmd = f"msagv/{cfg.vehicle_id}/cmd"
+        self._odom = None
+        self._odom_rx = 0.0
+        self._joints = None
+        self._last_t: float | None = None  # the newest state solved
+        self._last_cmd: tuple | None = None  # (t, steering targets, wheel speeds)
+        self._delta = None  # the newest measured steering angles
+        self._tick = 0
+        self._fresh_tick: int | None = None
+        self._plan_msg = None
+        self._safe = False
+        self._seq = 0
+        self._cmd_seq = 0
+        self._told_arc = False
+        self.stats = {"answered": 0, "repeated": 0, "safe_events": 0, "safe_periods": 0,
+                      "resumes": 0, "plans": 0, "rejected": 0, "new_runs": 0,
+                      "dropped_stale": 0, "no_reference": 0}
+        self.solve_ms: list = []
+        self.rej = M.Rejections("ros2 controller", log)
+        c = self.ctx
+        self.pub_steer = c.publisher(R.STEERING_COMMANDS)
+        self.pub_wheel = c.publisher(R.WHEEL_COMMANDS)
+        self.pub_pred = c.publisher(R.PREDICTED_PATH)
+        self.pub_wear = c.publisher(R.WEAR)
+        self._subs = [c.subscription(R.ODOM, self._on_odom),
+                      c.subscription(R.JOINT_STATES, self._on_joints),
+                      c.subscription(R.PLAN, self._on_plan)]
+        from rclpy.clock import Clock, ClockType
+
+        self._timer = c.node.create_timer(cfg.period, self._on_tick,
+                                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    # ---- inputs ------------------------------------------------------------------------
+    def _on_odom(self, msg) -> None:
+        self._odom, self._odom_rx = msg, time.perf_counter()
+        self._try()
+
+    def _on_joints(self, msg) -> None:
+        self._joints = msg
+        self._try()
+
+    def _on_plan(self, msg) -> None:
+        self._plan_msg = msg  # taken at the next state (its time is the plan's start)
+        self.stats["plans"] += 1
+
+    def _try(self, force: bool = False) -> None:
+        o, j = self._odom, self._joints
+        if o is None or j is None:
+            return
+        to = R.stamp_seconds(o.header.stamp)
+        if self._last_t is not None and to == self._last_t:
+            self._odom = None  # the same state again: answered once (a command names no
+            self.stats["repeated"] += 1  # state, so a second answer would answer the next)
+            return
+        if not force and R.stamp_seconds(j.header.stamp) < to:
+            return  # the joint states of this period are on their way
+        self._odom = None
+        try:
+            st = R.state_from_ros(o, j, self.nw)
+        except R.RosMessageError as e:
+            self.rej.add(M.MessageError(M.BAD_VALUE, str(e)), R.ODOM)
+            self.stats["rejected"] += 1
+            return
+        self._solve(st, self._odom_rx)
+
+    def _take_plan(self, t_now: float) -> None:
+        msg, self._plan_msg = self._plan_msg, None
+        if len(msg.poses) == 0:
+            log.warning("an empty plan: stopping (the safe behaviour) until a plan comes")
+            self.reference = None
+            return
+        try:
+            ref, how = plan_reference(*R.path_arrays(msg), t_now, self.cfg.plan_speed_kmh / 3.6)
+        except ValueError as e:
+            self.rej.add(M.MessageError(M.BAD_VALUE, f"plan: {e}"), R.PLAN)
+            return
+        if how.startswith("its arc") and not self._told_arc:
+            log.warning("plan: the pose stamps do not increase (Nav2's planners leave them "
+                        "zero): timing the path along %s", how)
+            self._told_arc = True
+        self.reference = ref
+        self.mpc.set_reference(ref)
+        log.info("new plan: %d poses, %.1f m, t %.2f..%.2f s (timed by %s)", len(msg.poses),
+                 float(np.hypot(np.diff(ref.x), np.diff(ref.y)).sum()), ref.t[0], ref.t[-1], how)
+
+    # ---- the solve ---------------------------------------------------------------------
+    def _solve(self, st: dict, rx_perf: float) -> None:
+        t = st["t"]
+        if self._last_t is None or t < self._last_t:  # the first state, or a new run
+            self.mpc.reset()
+            self.wear.reset()
+            self.stats["new_runs"] += 1
+            self._seq = 0
+            if self.base_reference is not None:
+                self.reference = shifted(self.base_reference, t)
+                self.mpc.set_reference(self.reference)
+        self._last_t = t
+        self._delta = np.asarray(st["delta"], dtype=float)
+        self._fresh_tick = self._tick
+        if self._plan_msg is not None:
+            self._take_plan(t)
+        seq = self._seq
+        self._seq += 1
+        if self.rec is not None:
+            self.rec.message("rx", self.key_state, M.encode_state(seq, st))
+        if self.reference is None:
+            self.stats["no_reference"] += 1
+            return
+        if self._safe:
+            return  # the timer decides when the inputs are fresh again
+        cmd = self.mpc.step(st, self.reference)
+        self.solve_ms.append(cmd.solve_ms)
+        if self.cfg.max_age_ms is not None and \
+                (time.perf_counter() - rx_perf) * 1000 > self.cfg.max_age_ms:
+            self.stats["dropped_stale"] += 1
+            return
+        tgt = R.steering_targets(st["delta"], cmd.omega_s, self.cfg.period, self.vehicle.limits)
+        w = np.asarray(cmd.omega_w, dtype=float)
+        self._publish_cmd(tgt, w)
+        self._last_cmd = (t, tgt, w)
+        self.stats["answered"] += 1
+        if self.rec is not None:
+            self.rec.message("tx", self.key_cmd, M.encode_cmd(
+                self._cmd_seq, t, seq, cmd.omega_w, cmd.omega_s, solve_ms=cmd.solve_ms,
+                cost=cmd.cost))
+        self._cmd_seq += 1
+        # after the commands: the horizon and the wear (not on the command's path)
+        poses = R.predicted_poses(self.mpc, st, self.reference)
+        if poses is not None:
+            self.pub_pred.publish(R.encode(R.predicted_path(t, self.mpc.settings.dt, poses),
+                                           R.TYPES[R.PREDICTED_PATH]))
+            if self.rec is not None and hasattr(self.rec, "predicted_path"):
+                self.rec.predicted_path(t, self.mpc.settings.dt, poses)
+        p, work = self.wear.update(st, cmd.omega_w, cmd.omega_s)
+        self.pub_wear.publish(R.encode(self._wear_msg(p, work), R.TYPES[R.WEAR]))
+
+    def _wear_msg(self, p, work):
+        m = R.float_array(np.r_[p, work])
+        m.layout.dim = [R.new("std_msgs/msg/MultiArrayDimension", label="|".join(R.WEAR_ROWS),
+                              size=2, stride=2 * self.nw),
+                        R.new("std_msgs/msg/MultiArrayDimension",
+                              label="|".join(R.wheel_names(self.nw)), size=self.nw,
+                              stride=self.nw)]
+        return m
+
+    def _publish_cmd(self, targets, wheels) -> None:
+        self.pub_steer.publish(R.encode(R.float_array(targets), R.TYPES[R.STEERING_COMMANDS]))
+        self.pub_wheel.publish(R.encode(R.float_array(wheels), R.TYPES[R.WHEEL_COMMANDS]))
+
+    # ---- the timer: stale inputs -------------------------------------------------------
+    def _on_tick(self) -> None:
+        self._tick += 1
+        if self._odom is not None and time.perf_counter() - self._odom_rx > self.cfg.period / 2:
+            self._try(force=True)  # joint states stamped differently: the newest ones
+        if self._last_t is None:
+            return  # nothing received yet: nothing to hold
+        no_ref = self.reference is None
+        d = self.watch.step(self._tick, None if no_ref else self._fresh_tick, True)
+        if d.resumed:
+            self._safe = False
+            self.stats["resumes"] += 1
+            log.warning("inputs fresh again: commanding")
+            if self.rec is not None:
+                self.rec.event("safe", on=False)
+        if d.state != SAFE:
+            return
+        if d.entered_safe is not None:
+            self._safe = True
+            self.stats["safe_events"] += 1
+            why = "no plan" if no_ref else d.entered_safe.replace("command", "odometry + joint states")
+            log.warning("SAFE: %s; holding the steering, ramping the wheels down at %g m/s^2",
+                        why, self.cfg.safe_decel)
+            if self.rec is not None:
+                self.rec.event("safe", on=True, why=why)
+        self.stats["safe_periods"] += 1
+        held = self._last_cmd[2] if self._last_cmd is not None else np.zeros(self.nw)
+        w = np.maximum(held - self.ramp * self.cfg.period, 0.0)
+        tgt = self._delta if self._delta is not None else np.zeros(self.nw)
+        self._last_cmd = (self._last_t, tgt, w)
+        self._publish_cmd(tgt, w)
+
+    # ---- running -------------------------------------------------------------------------
+    def run(self) -> dict:
+        log.info("ROS 2 controller ready: %s", ", ".join(
+            f"{k}={v}" for k, v in self.params.items() if k in ("method", "model", "solver")))
+        while not self.stop.is_set():
+            self.ctx.spin_once(0.05)
+        return self.summary()
+
+    def close(self) -> None:
+        self.ctx.close()
+
+    def summary(self) -> dict:
+        return {"role": "ros2 controller", **self.stats,
+                "solve_ms": percentiles_ms(np.asarray(self.solve_ms) / 1000.0),
+                "rejected_by_reason": self.rej.summary(),
+                "parameters": self.params, "safe": self._safe}
