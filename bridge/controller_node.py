@@ -37,6 +37,7 @@ from .loss import LOST, STALE_MS, LossTimer
 from .ownership import CLAIM_REFRESH_S, CLAIM_RETRY_S, RELEASE, claim, params_replies
 from .plant_node import percentiles_ms
 from .presence import Presence
+from .ros_msgs import predicted_poses
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, freeze_heap
 from .session import Keys, SessionError, SessionOptions
 from .transport import Sample, Transport
@@ -464,6 +465,10 @@ class ControllerNode:
         self._cmd_seq += 1
         if self.rec is not None:
             self.rec.message("tx", self.keys.cmd, payload)
+            if hasattr(self.rec, "predicted_path"):  # the ROS 2 channel predicted_path
+                poses = predicted_poses(self.mpc, st, self.mpc.reference)
+                if poses is not None:
+                    self.rec.predicted_path(st["t"], self.mpc.settings.dt, poses)
         self.stats.answered += 1
         return "sent"
 

@@ -124,6 +124,7 @@ def _parser() -> argparse.ArgumentParser:
     from msagv.controller import solvers
 
     from .args import add_common_args
+    from .foxglove_cli import add_foxglove_args
 
     ap = argparse.ArgumentParser(prog="msagv demo", description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0, metavar="S",
@@ -152,12 +153,14 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--secure", action="store_true",
                     help="mutual TLS and access control (certificates made for the run by "
                          "msagv certs; docs/SECURITY.md)")
+    add_foxglove_args(ap)  # served by the plant process, which prints the address
     add_common_args(ap)  # -v also shows the processes' logs
     return ap
 
 
 def main(argv: list[str]) -> int:
     from .args import PLOT_SUFFIXES, check_distinct, check_output, fail, warn
+    from .foxglove_cli import check_foxglove_args
 
     prog = "msagv demo"
     a = _parser().parse_args(argv)
@@ -177,6 +180,7 @@ def main(argv: list[str]) -> int:
         # what the plant process will check, before either process starts
         warn(prog, Scenario(case="curve", speed=a.speed, duration=a.duration,
                             solver=a.solver).preflight())
+        check_foxglove_args(a, prog)
     except ValueError as e:
         return fail(prog, e, a)
     t0 = time.monotonic()
@@ -211,8 +215,11 @@ def _run_processes(a, work: Path) -> dict:
 
         certs = work / "certs"
         create_certs(certs)
+    # --foxglove: served by the plant process, which prints the address
+    fox = (["--foxglove", "--foxglove-port", str(a.foxglove_port), "--foxglove-host",
+            a.foxglove_host] if a.foxglove else [])
     return run_demo(a.duration, a.speed, a.run_mode, a.deadline_ms, a.seed, work,
-                    quiet=not a.verbose, extra_plant=rt,
+                    quiet=not a.verbose, extra_plant=rt + fox,
                     extra_controller=rt + ["--solver", a.solver], secure=certs)
 
 

@@ -24,6 +24,7 @@ from msagv.bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtim
 from .args import (OptionError, add_case_args, add_common_args, add_fmu_args, add_mpc_args,
                    add_session_args, check_output, options_from_args, scenario_from_args)
 from .errors import USAGE_ERRORS
+from .foxglove_cli import add_foxglove_args, check_foxglove_args, open_foxglove
 from .view import add_view_args, announce, check_view_args, view_kwargs
 
 
@@ -116,6 +117,7 @@ def plant_parser() -> argparse.ArgumentParser:
                          f"(default {d.wheel_wear})")
     add_record_args(ap)
     add_view_args(ap)  # --view, --view-save, --view-port: the running plant in Rerun
+    add_foxglove_args(ap)  # --foxglove: the running plant in Foxglove
     ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
     add_common_args(ap)  # -q: log warnings only; -v: debug
     add_session_args(ap)
@@ -135,6 +137,7 @@ def plant_main(argv: list[str]) -> int:
         opts = options_from_args(a)
         check_record_args(a)
         want_view = check_view_args(a)
+        check_foxglove_args(a, "msagv plant")
         scenario = scenario_from_args(a)
         plant, vehicle, ref, initial = scenario.make_plant()
         for w in scenario.check(vehicle, ref, initial):  # a speed no wheel reaches: exit 2
@@ -147,14 +150,15 @@ def plant_main(argv: list[str]) -> int:
                           wheel_wear=a.wheel_wear)
         from msagv.experiments.results import scenario_info
 
-        rec = open_recording(a, {
-            "role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),
-            "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
-            "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
-            "fmu": a.fmu, "argv": list(argv),
-            # what was run, as msagv run --json says it: msagv report reads it from here
-            "scenario": dict(scenario_info(scenario, vehicle, ref, None, duration),
-                             period_s=cfg.period)})
+        header = {"role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),
+                  "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
+                  "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
+                  "fmu": a.fmu, "argv": list(argv),
+                  # what was run, as msagv run --json says it: msagv report reads it from here
+                  "scenario": dict(scenario_info(scenario, vehicle, ref, None, duration),
+                                   period_s=cfg.period)}
+        rec = open_recording(a, header)
+        rec = open_foxglove(a, "msagv plant", header, rec)
         if want_view:  # beside the recorder: it only queues, a thread logs
             from msagv.experiments.viewer import RunView, Tee, ViewSink
 

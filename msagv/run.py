@@ -17,6 +17,7 @@ from pathlib import Path
 from .args import (PLOT_SUFFIXES, OptionError, add_case_args, add_common_args, add_fmu_args,
                    add_mpc_args, add_tire_price_arg, check_distinct, check_output,
                    check_tire_price, fail, scenario_from_args, tire_price, warn)
+from .foxglove_cli import add_foxglove_args, check_foxglove_args
 from .view import add_view_args, announce, check_view_args, serve_until_stopped, view_kwargs
 
 EXIT_INTERRUPTED = 130  # Ctrl-C: the shell's 128 + SIGINT
@@ -48,6 +49,10 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
                     help="write a figure of the wear per wheel and per axle (.png, .pdf, .svg)")
     add_tire_price_arg(ap)
     add_view_args(ap)  # --view, --view-save, --view-port: the run in Rerun
+    add_foxglove_args(ap)  # --foxglove: the run in Foxglove, paced in real time
+    ap.add_argument("--foxglove-wait", type=float, default=0.0, metavar="S",
+                    help="with --foxglove: wait up to S seconds for a Foxglove client to "
+                         "subscribe before the run starts (default 0: start at once)")
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bar on stderr (default: on a terminal for runs > 10 s)")
     add_common_args(ap)
@@ -87,7 +92,12 @@ def main(argv: list[str], prog: str = "msagv run", fmu: bool = False) -> int:
             built.close()
             return fail(prog, f"--view: {e}", a)
         announce(view, prog)
-    log, interrupted, error = _run(a, scenario, built, view)
+    try:
+        fox = _foxglove(a, prog, scenario, built)
+    except USAGE_ERRORS as e:
+        built.close()
+        return fail(prog, e, a)
+    log, interrupted, error = _run(a, scenario, built, view, fox)
     if error is not None:
         return fail(prog, error, a, EXIT_FAILED)
     if view is not None:
@@ -118,10 +128,60 @@ def _checked_options(a):
     check_distinct(("--plot", a.plot), ("--log", a.log), ("--json-out", a.json_out),
                    ("--wear-plot", a.wear_plot), ("--view-save", a.view_save))
     want_view = check_view_args(a)
+    check_foxglove_args(a, "msagv run")
+    if not a.foxglove_wait >= 0:
+        raise OptionError(f"--foxglove-wait must be >= 0, got {a.foxglove_wait:g}")
     return scenario_from_args(a), want_view
 
 
-def _run(a, scenario, built, view):
+def _foxglove(a, prog: str, scenario, built):
+    """The Foxglove view of ``--foxglove`` (None without it), its address printed; waits
+    ``--foxglove-wait`` for a client."""
+    if not a.foxglove:
+        return None
+    from msagv.experiments.foxglove import FoxgloveError, FoxgloveView
+
+    try:
+        fox = FoxgloveView({"vehicle": built.vehicle.to_dict(), "period": scenario.period,
+                            "reference": built.reference.to_message()},
+                           host=a.foxglove_host, port=a.foxglove_port, name=prog)
+    except FoxgloveError as e:
+        raise OptionError(str(e)) from None
+    print(f"{prog}: Foxglove: open connection {fox.address} (Foxglove WebSocket); the run "
+          f"goes in real time", file=sys.stderr, flush=True)
+    if a.foxglove_wait and not fox.wait_for_client(a.foxglove_wait):
+        warn(prog, [f"no Foxglove client within {a.foxglove_wait:g} s: starting"])
+    return fox
+
+
+def _on_step(view, fox, built):
+    """closed_loop's ``on_step``: the Rerun view's, and the Foxglove view's paced in real
+    time (each state sent when the wall clock reaches its time) with the predicted path."""
+    if fox is None:
+        return view.on_step if view is not None else None
+    import time
+
+    from msagv.bridge.ros_msgs import predicted_poses
+
+    t_start = []
+
+    def on_step(k, st, cmd):
+        if view is not None:
+            view.on_step(k, st, cmd)
+        if not t_start:
+            t_start.append(time.monotonic() - st["t"])
+        wait = t_start[0] + st["t"] - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        fox.on_step(k, st, cmd)
+        poses = predicted_poses(built.controller, st, built.reference)
+        if poses is not None:
+            fox.predicted_path(st["t"], built.controller.settings.dt, poses)
+
+    return on_step
+
+
+def _run(a, scenario, built, view, fox=None):
     """The closed loop: ``(log, interrupted, error)``; the plant is closed afterwards. A
     Ctrl-C keeps the rows so far (``interrupted``); a failed step is ``error`` (a line)."""
     from msagv.controller.loop import RunLog, closed_loop
@@ -133,7 +193,7 @@ def _run(a, scenario, built, view):
     try:
         closed_loop(built.plant, built.controller, built.reference, built.duration,
                     period=scenario.period, progress=False if a.quiet else a.progress, log=log,
-                    on_step=view.on_step if view is not None else None)
+                    on_step=_on_step(view, fox, built))
     except KeyboardInterrupt:
         interrupted = True
         log.cut_short()
@@ -142,6 +202,8 @@ def _run(a, scenario, built, view):
         return log, False, f"the run failed at t = {t:.2f} s: {e}"
     finally:
         built.close()
+        if fox is not None:
+            fox.close()
     return log, interrupted, None
 
 

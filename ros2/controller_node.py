@@ -196,6 +196,7 @@ class RosController:
         self.reference: Reference | None = None
         self.msgs = R.RunMessages(vehicle, cfg.period)
         self.wear = WearEstimate(vehicle)
+        self._warm_extras(reference)
         self.watch = CommandWatch(int(math.floor(cfg.stale_ms / 1000 / cfg.period + 1e-9)),
                                   cfg.resume_periods, cfg.period)
         self.ramp = cfg.safe_decel / vehicle.wheel_radius
@@ -231,6 +232,18 @@ class RosController:
 
         self._timer = c.node.create_timer(cfg.period, self._on_tick,
                                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _warm_extras(self, reference) -> None:
+        """Compile what runs after each command (the horizon's rollout, the tire model of
+        the wear estimate) before any topic is declared: compiled at the first state, it
+        held that state's successor for seconds."""
+        st = {"t": 0.0, "x": 0.0, "y": 0.0, "phi": 0.0, "vx": 1.0, "vy": 0.0, "r": 0.0,
+              "delta": [0.0] * self.nw, "omega_w": [0.0] * self.nw}
+        ref = reference if reference is not None else getattr(self.mpc, "reference", None)
+        if ref is not None:
+            R.predicted_poses(self.mpc, st, ref)
+        self.wear.update(st, [1.0] * self.nw, [0.0] * self.nw)
+        self.wear.reset()
 
     # ---- inputs ------------------------------------------------------------------------
     def _on_odom(self, msg) -> None:
@@ -369,7 +382,10 @@ class RosController:
         if d.entered_safe is not None:
             self._safe = True
             self.stats["safe_events"] += 1
-            why = "no plan" if no_ref else d.entered_safe.replace("command", "odometry + joint states")
+            age = self._tick - (self._fresh_tick or 0)
+            why = ("no plan" if no_ref else
+                   f"no fresh odometry and joint states for {age} periods "
+                   f"({age * self.cfg.period * 1000:.0f} ms; bound {self.watch.max_missed})")
             log.warning("SAFE: %s; holding the steering, ramping the wheels down at %g m/s^2",
                         why, self.cfg.safe_decel)
             if self.rec is not None:

@@ -108,6 +108,7 @@ class RosPlant:
         self._wheel: tuple[int, np.ndarray] | None = None
         self._pub_perf: dict[int, float] = {}
         self.accepted = 0
+        self.after_end = 0
         self.roundtrip_s: list = []
         self.lateness_s: list = []
         self.missed_periods = 0
@@ -161,6 +162,9 @@ class RosPlant:
     def _answered(self) -> None:
         s, w = self._steer, self._wheel
         if s is None or w is None or s[0] != w[0] or s[0] != self.seq:
+            return
+        if self.seq >= self.cfg.steps:
+            self.after_end += 1  # the answer to the end state: never applied
             return
         self.accepted += 1
         tp = self._pub_perf.pop(self.seq, None)
@@ -340,7 +344,7 @@ class RosPlant:
         return {"role": "ros2 plant", "run_mode": self.cfg.run_mode, "period": self.cfg.period,
                 "steps": steps, "t_end": steps * self.cfg.period,
                 "completed": steps == self.cfg.steps and self.error is None,
-                "error": self.error, "commands": {"accepted": self.accepted},
+                "error": self.error, "commands": {"accepted": self.accepted, "after_end": self.after_end},
                 "rejected": self.rej.summary(),
                 "roundtrip_ms": percentiles_ms(self.roundtrip_s),
                 "lateness_ms": percentiles_ms(self.lateness_s),
