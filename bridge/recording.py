@@ -27,6 +27,11 @@ rotates to ``NAME.1.mcap``, ``NAME.2.mcap``, ... when a file passes ``max_bytes`
 limit) is logged and counted, never raised: the recorder stops writing and counts what it
 drops. :func:`check_writable` refuses an unusable path before a process starts.
 
+Beside the file, :mod:`bridge.ros_bag` writes the same run as ROS 2 messages in rosbag2's
+layout (``NAME_ros2/``, fed by the writer thread: :meth:`Recorder.predicted_path` adds the
+controller's horizon); ``msagv recover`` (:mod:`bridge.recover`) makes a recording cut short
+by a kill readable by the standard reader.
+
 Recordings of the first format (a msgpack stream: header, ``{"ts", "dir", "key", "p"}``
 messages, events, summary) are still read by :func:`iter_records`/:func:`read_recording`.
 """

@@ -78,7 +78,8 @@ def _every_command():
     out = []
     for c in COMMANDS:
         out += {"plant": [["plant"], ["plant", "replay"]],
-                "fmu": [["fmu", "build"], ["fmu", "simulate"]]}.get(c, [[c]])
+                "fmu": [["fmu", "build"], ["fmu", "simulate"]],
+                "ros2": [["ros2", "controller"], ["ros2", "plant"]]}.get(c, [[c]])
     return out
 
 
