@@ -466,7 +466,7 @@ class ControllerNode:
         if self.rec is not None:
             self.rec.message("tx", self.keys.cmd, payload)
             if hasattr(self.rec, "predicted_path"):  # the ROS 2 channel predicted_path
-                poses = predicted_poses(self.mpc, st, self.mpc.reference)
+                poses = predicted_poses(self.mpc)
                 if poses is not None:
                     self.rec.predicted_path(st["t"], self.mpc.settings.dt, poses)
         self.stats.answered += 1

@@ -13,7 +13,7 @@ Conventions (docs/ROS2.md): frames ``odom`` (the world frame G of the state) and
 axle from the front, j 1 left, 2 right), joints ``steer_ij`` (steering angle delta_ij
 [rad]) and ``wheel_ij`` (wheel angular speed omega_w_ij [rad/s]); stamps are the run's
 vehicle time t (ROS simulated time, published on ``clock``). Field names come from
-:mod:`msagv.plant.interface`, never retyped.
+:mod:`msagv.plant.signals`, never retyped.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from msagv.plant.interface import BODY_FIELDS, WHEEL_WEAR_FIELDS
+from msagv.plant.signals import BODY_FIELDS, WEAR_POWER_FIELDS, WHEEL_WEAR_FIELDS, wheel_suffixes
 
 FRAME_ODOM = "odom"
 FRAME_BASE = "base_link"
@@ -156,8 +156,8 @@ def new(typename: str, **fields):
 
 # ---- conventions -------------------------------------------------------------------------------
 def wheel_names(n_wheels: int) -> list[str]:
-    """``['11', '12', '21', ...]``: the wheel order (plant.vehicle.Vehicle.wheel_names)."""
-    return [f"{i}{j}" for i in range(1, n_wheels // 2 + 1) for j in (1, 2)]
+    """``['11', '12', '21', ...]``: the wheel order (:func:`plant.signals.wheel_suffixes`)."""
+    return wheel_suffixes(n_wheels)
 
 
 def steer_joints(n_wheels: int) -> list[str]:
@@ -537,18 +537,9 @@ class RunChannels:
         self.write(PREDICTED_PATH, predicted_path(t0, dt, poses), ts)
 
 
-def predicted_poses(mpc, state: Mapping, reference) -> np.ndarray | None:
-    """The last solve's predicted poses (N_p + 1, 3: x, y, phi): ``mpc.predicted_poses()``
-    where the controller has it, else its solution rolled out by its own prediction model
-    from ``state``. None when the controller has neither (the feed-forward alone)."""
-    fn = getattr(mpc, "predicted_poses", None)
-    if fn is not None:
-        return np.asarray(fn(), dtype=float)
-    try:
-        s = mpc.settings
-        x0 = np.r_[[float(state[k]) for k in BODY_FIELDS], np.asarray(state["delta"], dtype=float)]
-        rows = np.ascontiguousarray(reference.sample(float(state["t"]) + s.dt * np.arange(s.N_p + 1)))
-        roll = mpc.model.rollout(x0, rows, mpc.z)
-        return np.vstack([x0[:3], roll.poses[0]])
-    except Exception:  # noqa: BLE001 - a controller without a rollout
-        return None
+def predicted_poses(controller) -> np.ndarray | None:
+    """The last solve's predicted poses (N_p + 1, 3: x, y, phi; row 0 the state it started
+    from) of a controller (:class:`controller.interface.Controller`), None when it has none."""
+    fn = getattr(controller, "predicted_poses", None)
+    poses = fn() if fn is not None else None
+    return None if poses is None else np.asarray(poses, dtype=float)

@@ -174,7 +174,7 @@ def _on_step(view, fox, built):
         if wait > 0:
             time.sleep(wait)
         fox.on_step(k, st, cmd)
-        poses = predicted_poses(built.controller, st, built.reference)
+        poses = predicted_poses(built.controller)
         if poses is not None:
             fox.predicted_path(st["t"], built.controller.settings.dt, poses)
 

@@ -240,8 +240,12 @@ class RosController:
         st = {"t": 0.0, "x": 0.0, "y": 0.0, "phi": 0.0, "vx": 1.0, "vy": 0.0, "r": 0.0,
               "delta": [0.0] * self.nw, "omega_w": [0.0] * self.nw}
         ref = reference if reference is not None else getattr(self.mpc, "reference", None)
-        if ref is not None:
-            R.predicted_poses(self.mpc, st, ref)
+        horizon = getattr(self.mpc, "horizon", None)
+        if ref is not None and horizon is not None:
+            s = self.mpc.settings
+            x0 = np.r_[[st[k] for k in ("x", "y", "phi", "vx", "vy", "r")], st["delta"]]
+            horizon.poses(x0, np.ascontiguousarray(ref.sample(s.dt * np.arange(s.N_p + 1))),
+                          self.mpc.z)
         self.wear.update(st, [1.0] * self.nw, [0.0] * self.nw)
         self.wear.reset()
 
@@ -340,7 +344,7 @@ class RosController:
                 cost=cmd.cost))
         self._cmd_seq += 1
         # after the commands: the horizon and the wear (not on the command's path)
-        poses = R.predicted_poses(self.mpc, st, self.reference)
+        poses = R.predicted_poses(self.mpc)
         if poses is not None:
             self.pub_pred.publish(R.encode(R.predicted_path(t, self.mpc.settings.dt, poses),
                                            R.TYPES[R.PREDICTED_PATH]))
