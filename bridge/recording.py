@@ -28,7 +28,7 @@ limit) is logged and counted, never raised: the recorder stops writing and count
 drops. :func:`check_writable` refuses an unusable path before a process starts.
 
 Beside the file, :mod:`bridge.ros_bag` writes the same run as ROS 2 messages in rosbag2's
-layout (``NAME_ros2/``, fed by the writer thread: :meth:`Recorder.predicted_path` adds the
+layout (``NAME_ros2/``, in a child process fed by the writer thread: :meth:`Recorder.predicted_path` adds the
 controller's horizon); ``msagv recover`` (:mod:`bridge.recover`) makes a recording cut short
 by a kill readable by the standard reader.
 
@@ -397,21 +397,21 @@ class Recorder:
         self._w.add_message(channel_id=cid, log_time=t, publish_time=t, data=data, sequence=n)
 
     def _open_bag(self):
-        from .ros_bag import RosBag, bag_path
+        from .ros_bag import BagProcess, bag_path
 
         try:
-            bag = RosBag(bag_path(self.path), self.header, chunk_size=self._chunk_size,
-                         max_bytes=self._max_bytes, keep=self._keep,
-                         library=f"msagv {_package_version()}")
-        except Exception as e:  # no rosbags, an unwritable directory: the recording goes on
+            bag = BagProcess(bag_path(self.path), self.header, chunk_size=self._chunk_size,
+                             max_bytes=self._max_bytes, keep=self._keep,
+                             library=f"msagv {_package_version()}")
+        except Exception as e:  # no interpreter to start: the recording goes on
             log.warning("recording %s: no ROS 2 bag (%s: %s)", self.path, type(e).__name__, e)
             return None
         self.stats.ros2_bag = str(bag.path)
         return bag
 
     def _bag(self, method: str, *args) -> None:
-        """Call the ROS 2 bag; an error stops the bag (logged, counted), never the
-        recording."""
+        """Feed the ROS 2 bag's writer (a child process, :class:`bridge.ros_bag.BagProcess`);
+        an error stops the bag (logged, counted), never the recording."""
         if self._ros is None:
             return
         try:

@@ -10,11 +10,13 @@ channel metadata, and the process's header as the metadata ``msagv.header``; so 
 info``, ``rosbags`` and the ``mcap`` reader with ``mcap-ros2-support``'s decoders open it,
 and Foxglove draws it. The topics and types are :mod:`bridge.ros_msgs`' (docs/ROS2.md).
 
-:class:`RosBag` is fed by the recorder's writer thread with the msgpack payloads it writes
+:class:`RosBag` runs in a child process of the recording process (:class:`BagProcess`), fed by
+the recorder's writer thread with the msgpack payloads it writes
 (states, commands, references) and the controller's predicted paths; it decodes them with
 :mod:`bridge.messages` and writes the ROS 2 messages with the payload's record time as their
-log time (stamps: the vehicle time). ``metadata.yaml`` is written when the recording closes
-and by ``msagv recover`` (:mod:`bridge.recover`) after a kill.
+log time (stamps: the vehicle time). ``metadata.yaml`` is written when the child's input
+ends (the recording closed, or its process died) and by ``msagv recover``
+(:mod:`bridge.recover`) after both were killed.
 """
 
 from __future__ import annotations
@@ -153,8 +155,8 @@ def scan_file(path: Path) -> dict:
 
 # ---- writing ----------------------------------------------------------------------------------
 class RosBag(R.RunChannels):
-    """The bag of one recording (see the module docstring). Called only from the recorder's
-    writer thread. ``header``: the recording's header (``vehicle``, ``period``,
+    """The bag of one recording (see the module docstring), written by one thread (the
+    child process of :class:`BagProcess`). ``header``: the recording's header (``vehicle``, ``period``,
     ``reference``, ...); ``chunk_size``, ``max_bytes``, ``keep`` as the recorder's."""
 
     def __init__(self, bag: str | Path, header: Mapping, chunk_size: int = 1 << 20,
@@ -270,3 +272,119 @@ class RosBag(R.RunChannels):
             self._f.close()
         except Exception:
             pass
+
+
+# ---- the bag writer as a process of its own ----------------------------------------------------
+class BagProcess:
+    """The :class:`RosBag` of a recording in a child process (``python -m
+    msagv.bridge.ros_bag``), fed the recorder's records through a pipe (msgpack-framed):
+    the CDR encoding never competes with the control loop for the interpreter (in the
+    recording process it cost the real-time demo 10-16 missed periods of 2000). The child
+    is in a session of its own (a Ctrl-C at the terminal does not cut its file) and
+    finishes the bag - footer, ``metadata.yaml`` - when its input ends: at :meth:`close`,
+    or when the recording process dies (a SIGKILL included). Called only from the
+    recorder's writer thread."""
+
+    def __init__(self, bag: str | Path, header: Mapping, chunk_size: int = 1 << 20,
+                 max_bytes: int | None = None, keep: int = 0, library: str = "msagv"):
+        import json
+        import subprocess
+        import sys
+
+        import msgpack
+
+        self.path = Path(bag)
+        self.messages = 0
+        self._pack = msgpack.Packer(use_bin_type=True)
+        self._p = subprocess.Popen([sys.executable, "-m", "msagv.bridge.ros_bag"],
+                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                   start_new_session=True)
+        self._send(["open", str(self.path), json.loads(json.dumps(dict(header), default=str)),
+                    chunk_size, max_bytes, keep, library])
+
+    def _send(self, rec) -> None:
+        self._p.stdin.write(self._pack.pack(rec))
+
+    def record(self, key: str, data: bytes, ts: float) -> None:
+        self._send(["rec", key, bytes(data), float(ts)])
+
+    def predicted(self, t0: float, dt: float, poses, ts: float) -> None:
+        self._send(["pred", t0, dt, poses, ts])
+
+    def flush(self) -> None:
+        self._send(["flush"])
+        self._p.stdin.flush()
+
+    def close(self, timeout: float = 60.0) -> dict:
+        """End the input; the child finishes the bag. Returns its account (``messages``,
+        ``error``) and sets :attr:`messages`."""
+        import json
+        import subprocess
+
+        try:
+            out, _ = self._p.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self._p.kill()
+            self._p.wait(5)
+            raise RuntimeError(f"the ROS 2 bag writer did not finish within {timeout:g} s")
+        lines = [ln for ln in out.decode(errors="replace").splitlines() if ln.startswith("{")]
+        res = json.loads(lines[-1]) if lines else {"messages": 0, "error": "no account"}
+        self.messages = int(res.get("messages", 0))
+        if res.get("error"):
+            raise RuntimeError(res["error"])
+        return res
+
+    def abandon(self) -> None:
+        """Stop feeding it (it finishes what it got)."""
+        try:
+            self._p.stdin.close()
+        except Exception:
+            pass
+
+
+def main() -> int:
+    """The child of :class:`BagProcess`: records from stdin until it ends, then the bag is
+    finished and ``{"messages", "error"}`` printed."""
+    import json
+    import signal
+    import sys
+
+    import msgpack
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        os.nice(5)  # below the control loops of the recording processes
+    except OSError:
+        pass
+    bag, error = None, None
+    for rec in msgpack.Unpacker(sys.stdin.buffer, raw=False, max_buffer_size=64 << 20):
+        if error is not None:
+            continue  # drained, so the recording process never blocks on a full pipe
+        try:
+            op = rec[0]
+            if op == "open":
+                _, path, header, chunk, max_bytes, keep, library = rec
+                bag = RosBag(path, header, chunk_size=chunk, max_bytes=max_bytes, keep=keep,
+                             library=library)
+            elif op == "rec":
+                bag.record(rec[1], rec[2], rec[3])
+            elif op == "pred":
+                bag.predicted(*rec[1:])
+            elif op == "flush":
+                bag.flush()
+        except Exception as e:  # noqa: BLE001 - reported at the end
+            error = f"{type(e).__name__}: {e}"
+            if bag is not None:
+                bag.abandon()
+    if bag is not None and error is None:
+        try:
+            bag.close()
+        except Exception as e:  # noqa: BLE001
+            error = f"{type(e).__name__}: {e}"
+    print(json.dumps({"messages": bag.messages if bag is not None else 0, "error": error}),
+          flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -45,6 +45,9 @@ def add_record_args(ap: argparse.ArgumentParser) -> None:
                          "many MB per file (default 1024)")
     ap.add_argument("--record-keep", type=int, default=0, metavar="N",
                     help="keep only the newest N files of the recording, 0 = all (default)")
+    ap.add_argument("--record-ros2", action=argparse.BooleanOptionalAction, default=True,
+                    help="also write the run as a ROS 2 bag beside the recording, FILE_ros2/ "
+                         "(docs/ROS2.md; default on)")
 
 
 def check_record_args(a) -> None:
@@ -71,7 +74,7 @@ def open_recording(a, header: dict):
         return None
     try:
         return Recorder(a.record, header, max_bytes=int(a.record_max_mb * (1 << 20)),
-                        keep=a.record_keep)
+                        keep=a.record_keep, ros2=a.record_ros2)
     except RecordingError as e:
         raise OptionError(f"--record {e}") from None
 

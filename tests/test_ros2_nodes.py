@@ -330,3 +330,36 @@ def test_an_unstamped_plan_is_timed_along_its_arc_length():
         plan_reference([0, 0], [1, 1], [2, 2], [0, 0], 0.0, 1.0)
     with pytest.raises(ValueError, match="at least 2 poses"):
         plan_reference([0], [1], [2], [0], 0.0, 1.0)
+
+
+# ---- the real-time plant and a controller that dies ----------------------------------------
+def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
+    """``--run-mode realtime``: the plant steps on the wall clock with the newest commands;
+    SIGKILL of the controller node: no answer for more than --stale-ms, the plant holds
+    the steering and ramps the wheels down (bridge.loss.CommandWatch, as msagv plant)."""
+    _ros()
+    import signal
+
+    procs.start("plant", msagv("ros2", "plant", "--run-mode", "realtime", "--case", "curve",
+                               "--duration", "4", "--stale-ms", "100", "--json", "-q"))
+    ctl = procs.start("ctl", msagv("ros2", "controller", "--case", "curve", "-q"))
+    peer = Peer("watcher")
+    from nav_msgs.msg import Odometry
+
+    stamps = []
+    peer.node.create_subscription(Odometry, "odom",
+                                  lambda m: stamps.append(_stamp(m.header)), 10)
+    try:
+        assert peer.spin(120, until=lambda: stamps and stamps[-1] >= 1.5), \
+            procs.err("plant")[-2000:]
+        ctl.send_signal(signal.SIGKILL)
+        ctl.wait(10)
+    finally:
+        peer.close()
+    assert procs.wait("plant", 60) == 0, procs.err("plant")[-2000:]
+    s = procs.json("plant")
+    assert s["completed"] and s["run_mode"] == "realtime"
+    assert s["safe"]["events"] >= 1 and s["safe"]["periods"] > 100
+    assert "SAFE at t =" in procs.err("plant")
+    # after > 2 s of ramping at 2 m/s^2 from ~4.2 m/s the wheels stand still
+    assert s["final_state"]["vx"] ** 2 + s["final_state"]["vy"] ** 2 < 0.5 ** 2
