@@ -15,6 +15,7 @@ import logging
 import sys
 import threading
 
+from msagv.bridge.loss import STALE_MS
 from msagv.bridge.process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, setup_logging
 
 from .args import (OptionError, add_case_args, add_common_args, add_mpc_args,
@@ -44,9 +45,9 @@ def main(argv: list[str]) -> int:
 
 def _safety_args(ap: argparse.ArgumentParser, who: str) -> None:
     ap.add_argument("--period", type=float, default=0.01, help="control period T [s] (0.01)")
-    ap.add_argument("--stale-ms", type=float, default=50.0,
+    ap.add_argument("--stale-ms", type=float, default=STALE_MS,
                     help=f"{who}: more than this without fresh input starts the safe behaviour "
-                         f"(default 50)")
+                         f"(default {STALE_MS:g})")
     ap.add_argument("--resume-periods", type=int, default=3, metavar="N",
                     help="the safe behaviour ends after N periods of fresh input (default 3)")
     ap.add_argument("--safe-decel", type=float, default=2.0, metavar="M/S2",
@@ -240,7 +241,7 @@ def plant_main(argv: list[str]) -> int:
         check_foxglove_args(a, prog)
         scenario = scenario_from_args(a)
         plant, vehicle, ref, initial = scenario.make_plant()
-        for w in scenario.check(vehicle, ref):
+        for w in scenario.check(vehicle, ref, initial):
             log.warning("%s", w)
         duration = scenario.run_duration(ref)
         from msagv.ros2.plant_node import RosPlantConfig

@@ -37,7 +37,7 @@ import numpy as np
 
 from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
-from msagv.bridge.loss import SAFE, CommandWatch
+from msagv.bridge.loss import SAFE, STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
 from msagv.controller.reference import Reference, from_samples
 
@@ -155,7 +155,7 @@ class WearEstimate:
 @dataclasses.dataclass
 class RosControllerConfig:
     period: float = 0.01
-    stale_ms: float = 50.0
+    stale_ms: float = STALE_MS
     resume_periods: int = 3
     safe_decel: float = 2.0
     plan_speed_kmh: float = 15.0

@@ -35,7 +35,7 @@ import numpy as np
 
 from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
-from msagv.bridge.loss import CommandWatch
+from msagv.bridge.loss import STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
 
 from .runtime import Context, Ros2Unavailable
@@ -57,7 +57,7 @@ class RosPlantConfig:
     steps: int = 100
     timeout_s: float = 10.0
     wait_s: float = 60.0
-    stale_ms: float = 50.0
+    stale_ms: float = STALE_MS
     safe_decel: float = 2.0
     resume_periods: int = 3
     node_name: str = "msagv_plant"
