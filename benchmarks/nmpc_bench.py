@@ -4,14 +4,15 @@ Two measurements per axle count (2: the paper's vehicle; 4, 6, 8: its
 ``plant.n_axle_vehicle`` relatives), both solvers with their defaults:
 
 * **Solves on the same states.** States sampled from closed-loop runs of the default
-  annealer (:func:`benchmarks.optimality_bench.sample_states`: Case 1 at 15, 25 and
-  35 km/h, Case 2 at 10 km/h), each with the annealer's previous solution, which defines
-  the warm start and the smoothing term. At each state the same horizon problem is solved
+  annealer (:func:`benchmarks.optimality_bench.sample_states`: every scenario class of the
+  study, :data:`benchmarks.optimality_bench.RUNS`), each with the annealer's previous
+  solution, which defines the warm start and the smoothing term. At each state the same horizon problem is solved
   by the annealer (its fixed budget, a fresh random stream per state, its step factors from
   the ladder) and by acados SQP-RTI (one Gauss-Newton iteration and the line search), the
   two interleaved (the order alternates from state to state) so that both see the same
   machine. Both answers are scored by the exact cost (numba, true |.|): the ratio
-  acados / annealer per state (< 1: acados found the lower cost), how many states each
+  acados / annealer per state (< 1: acados found the lower cost; both costs lifted by
+  :data:`benchmarks.optimality_bench.COST_FLOOR`), how many states each
   wins, and both solvers' solve-time percentiles (``MPC.step``'s wall time: everything a
   control period pays, state to command). Also acados with 3 SQP iterations in place of
   one, to tell how much of a gap is the single iteration's.
@@ -55,48 +56,48 @@ def bench_states(n_axles: int, n_states: int, settings=None, sqp: int = 3) -> di
     from msagv.controller import MPCSettings
     from msagv.controller.acados_rti import AcadosOptions
 
-    from .optimality_bench import RUNS, _solvers, sample_states
+    from .optimality_bench import (RUNS, make_solver, prime, ratio, references, run_label,
+                                   sample_states)
 
     s = settings or MPCSettings()
     vehicle = _vehicle(n_axles)
     samples = sample_states(n_states, s, vehicle=vehicle)
-    sa = _solvers(s, vehicle=vehicle)
+    refs = references(vehicle)
+    m = make_solver(s, vehicle=vehicle)
     t0 = time.perf_counter()
-    ac = _solvers(s, solver="acados", vehicle=vehicle)
+    q = make_solver(s, solver="acados", vehicle=vehicle)
     setup_s = time.perf_counter() - t0
-    built = any(m.solver.ocp.built for m in ac.values())
-    more = _solvers(s, solver="acados", vehicle=vehicle,
-                    options=AcadosOptions(iterations=sqp)) if sqp > 1 else {}
-    for m in list(sa.values()) + list(ac.values()) + list(more.values()):
-        m.warmup()
+    built = q.solver.ocp.built
+    w = (make_solver(s, solver="acados", vehicle=vehicle, options=AcadosOptions(iterations=sqp))
+         if sqp > 1 else None)
+    for c in (m, q, w):
+        if c is not None:
+            c.warmup()
     rows = []
     for i, smp in enumerate(samples):
-        key = (smp["case"], smp["speed"])
-        m, q = sa[key], ac[key]
+        ref = refs[smp["run"]]
 
         def run_sa():
-            m.solver.reset(seed=1000 + i)  # its own stream; step factors from the ladder
-            m.z = smp["z"].copy()
-            return m.step(smp["state"])
+            prime(m, smp["z"], seed=1000 + i)
+            return m.step(smp["state"], ref)
 
         def run_ac():
-            q.z = smp["z"].copy()
-            return q.step(smp["state"])
+            prime(q, smp["z"])
+            return q.step(smp["state"], ref)
 
         if i % 2:
             c_ac, c_sa = run_ac(), run_sa()
         else:
             c_sa, c_ac = run_sa(), run_ac()
-        row = {"case": key[0], "speed": key[1], "k": smp["k"], "J_sa": c_sa.cost,
+        row = {"run": smp["run"], "cls": smp["cls"], "k": smp["k"], "J_sa": c_sa.cost,
                "J_acados": c_ac.cost, "sa_ms": c_sa.solve_ms,
                "acados_ms": c_ac.solve_ms, "acados_status": q.solver.last_status}
-        if more:
-            w = more[key]
-            w.z = smp["z"].copy()
-            c = w.step(smp["state"])
+        if w is not None:
+            prime(w, smp["z"])
+            c = w.step(smp["state"], ref)
             row["J_sqp"], row["sqp_ms"] = c.cost, c.solve_ms
         rows.append(row)
-    r = np.array([x["J_acados"] / x["J_sa"] for x in rows])
+    r = np.array([ratio(x["J_acados"], x["J_sa"]) for x in rows])  # (with the cost floor)
     tol = 1e-9
     return {"axles_n": n_axles, "states": len(rows),
             "sa_ms": _pct([x["sa_ms"] for x in rows]),
@@ -108,48 +109,54 @@ def bench_states(n_axles: int, n_states: int, settings=None, sqp: int = 3) -> di
             "ties": int(np.sum(np.abs(r - 1) <= tol)),
             "acados_qp_failures": int(sum(x["acados_status"] not in (0, 2) for x in rows)),
             "sqp": ({"iterations": sqp, "ms": _pct([x["sqp_ms"] for x in rows]),
-                     "ratio_sqp_sa_p50": float(np.median([x["J_sqp"] / x["J_sa"] for x in rows])),
-                     "ratio_sqp_sa_p90": float(np.percentile([x["J_sqp"] / x["J_sa"]
+                     "ratio_sqp_sa_p50": float(np.median([ratio(x["J_sqp"], x["J_sa"])
+                                                          for x in rows])),
+                     "ratio_sqp_sa_p90": float(np.percentile([ratio(x["J_sqp"], x["J_sa"])
                                                               for x in rows], 90)),
                      "sqp_lower": int(sum(x["J_sqp"] < x["J_sa"] * (1 - tol) for x in rows)),
                      "sa_lower": int(sum(x["J_sa"] < x["J_sqp"] * (1 - tol) for x in rows))}
-                    if more else None),
+                    if w is not None else None),
             "acados_built_here": built, "acados_setup_s": setup_s,
-            "runs": [f"{c} {sp:g} km/h" for c, sp in RUNS], "rows": rows}
+            "runs": [run_label(r) for r in RUNS], "rows": rows}
 
 
 def bench_closed_loop(n_axles: int, speeds=(15.0, 35.0), seconds: float | None = None,
-                      solvers=("sa", "acados")) -> dict:
+                      solvers=("sa", "acados"), also: dict | None = None) -> dict:
     """The whole Case 1 curve (or ``seconds`` of it) per speed and solver: W_tw, tracking
-    and solve times, as ``msagv run --json`` reports them."""
+    and solve times, as ``msagv run --json`` reports them; ``also``: settings fields of a
+    second annealer run beside them (e.g. the former defaults), labelled ``sa[...]``."""
     from msagv.controller.loop import closed_loop
     from msagv.experiments.scenario import Scenario
 
     out = {}
+    runs = [(s, {}, s) for s in solvers]
+    if also:
+        runs.append(("sa", dict(also), "sa[" + ",".join(f"{k}={v}" for k, v in also.items())
+                     + "]"))
     for sp in speeds:
-        for solver in solvers:
+        for solver, settings, label in runs:
             sc = Scenario(vehicle=_vehicle(n_axles), case="curve", speed=float(sp),
-                          solver=solver, period=T, duration=seconds)
+                          solver=solver, period=T, duration=seconds, settings=settings)
             b = sc.build()
             log = closed_loop(b.plant, b.controller, b.reference, b.duration, period=T,
                               progress=False)
             m = log.metrics()
-            out[f"{solver} {sp:g} km/h"] = {
+            out[f"{label} {sp:g} km/h"] = {
                 "W_tw": m["W_tw"], "e_lat_rms_cm": m["e_lat_rms_cm"], "e_bar": m["e_bar"],
                 "solve_ms": m["solve_ms"], "steps": m["steps"]}
     return out
 
 
 def bench_nmpc(axles=(2, 4, 6, 8), n_states: int = 40, speeds=(15.0, 35.0),
-               seconds: float | None = None) -> dict:
+               seconds: float | None = None, also: dict | None = None) -> dict:
     """Both measurements per axle count; ``seconds``: the closed loops' length (None: the
-    whole path)."""
+    whole path); ``also``: a second annealer in the closed loops (:func:`bench_closed_loop`)."""
     out = {"axles": {}, "settings": {"states": n_states, "speeds_kmh": list(speeds),
                                      "closed_loop_seconds": seconds}}
     for n in axles:
         t0 = time.perf_counter()
         r = bench_states(n, n_states)
-        r["closed_loop"] = bench_closed_loop(n, speeds, seconds)
+        r["closed_loop"] = bench_closed_loop(n, speeds, seconds, also=also)
         r["wall_s"] = time.perf_counter() - t0
         out["axles"][str(n)] = r
     return out
@@ -164,9 +171,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=None,
                     help="closed-loop length [s] (default: the whole path)")
     ap.add_argument("--rows", action="store_true", help="include every state's costs")
+    ap.add_argument("--also", default=None, metavar="NAME=VALUE,...",
+                    help="a second annealer in the closed loops, these settings fields "
+                         "changed, e.g. iterations=40,polish=0 (the former defaults)")
     a = ap.parse_args(argv)
+    also = None
+    if a.also:
+        from .optimality_bench import parse_settings
+
+        try:
+            also = parse_settings(a.also)
+        except ValueError as e:
+            ap.error(f"--also: {e}")
     res = bench_nmpc(tuple(int(x) for x in a.axles.split(",") if x.strip()), a.states,
-                     tuple(float(x) for x in a.speeds.split(",") if x.strip()), a.seconds)
+                     tuple(float(x) for x in a.speeds.split(",") if x.strip()), a.seconds,
+                     also=also)
     if not a.rows:
         for r in res["axles"].values():
             r.pop("rows", None)

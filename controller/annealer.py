@@ -27,7 +27,8 @@ class Annealer:
     """Simulated annealing over the decision vector (docs/CONTROLLER.md, "The annealer").
 
     Uses every annealer field of the settings (chains, iterations, sigma_*, t_*, ladder,
-    adapt_*, seed, threads, deadline_ms: a wall-clock budget per solve, anytime). No
+    adapt_*, seed, threads, polish: the Gauss-Newton steps after the annealing,
+    deadline_ms: a wall-clock budget per solve, anytime). No
     options of its own (``options`` must be None).
     """
 
@@ -49,7 +50,8 @@ class Annealer:
             sigma_final=s.sigma_final, t_start=s.t_start, t_end=s.t_end,
             parallel=s.threads > 1, ladder=s.ladder, adapt_up=s.adapt_up,
             adapt_down=s.adapt_down, pool_seed=s.seed,
-            proposals=max(1, _ro.LANES // s.chains), restart_every=RESTART_EVERY)
+            proposals=max(1, _ro.LANES // s.chains), restart_every=RESTART_EVERY,
+            polish=s.polish)
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:
@@ -68,4 +70,7 @@ class Annealer:
         res = self.kernel.solve(x0, R, zprev, warm, self.rng, deadline, origin=origin,
                                 scale0=self.scale if CARRY_SCALES else None)
         self.scale = self.kernel.scale.copy()
+        # the Gauss-Newton polish of the best point (MPCSettings.polish; 0: none)
+        res = self.kernel.polish(x0, R, zprev, res, None if deadline is None else
+                                 s.deadline_ms / 1000.0 - (time.perf_counter() - t0))
         return Solution(res.x, res.cost, res.iterations)

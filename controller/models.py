@@ -70,6 +70,14 @@ class MPCSettings:
         fraction; t_start, t_end: relative temperatures; ladder: the smallest initial
         per-chain step factor (chains start on a geometric ladder from it to 1);
         adapt_up, adapt_down: per-chain step factor after an accepted / rejected move.
+      polish: at most this many Gauss-Newton steps after the annealing, from its best
+        point (controller.sa_kernel, "the Gauss-Newton polish": the residuals' Jacobian by
+        forward differences of the SIMD prediction, LANES Levenberg-Marquardt candidates
+        in one tile per step, the best kept if it lowers the cost; stops when a step
+        gains less than 1e-4 of the cost); 0: none. The defaults (5 iterations, then up
+        to 8 steps, ~3 on average) replaced 40 iterations and no polish: within 0.01 % of
+        IPOPT's optimum at the median at 2-8 axles, in a third less time at 2 axles
+        (docs/PERFORMANCE.md).
     method: 'two' (the paper's quadratic wear term, weights L), 'two-energy' (the linear
       wear-energy term, weights E) or 'ntwo' (no wear term).
     model: 'mf' (paper), 'dugoff' (DH), 'kinematic', 'tct'.
@@ -103,7 +111,7 @@ class MPCSettings:
     offset_w_max: float = 3.0
     offset_d_max: float = 0.3
     chains: int = 2
-    iterations: int = 40
+    iterations: int = 5
     deadline_ms: float | None = None
     seed: int = 0
     sigma_w: float = 0.3
@@ -114,6 +122,7 @@ class MPCSettings:
     ladder: float = 0.05
     adapt_up: float = 1.5
     adapt_down: float = 0.7
+    polish: int = 8
     threads: int = 1
     ff_cornering: bool = True
     policy: str = "offsets"
@@ -151,6 +160,8 @@ class MPCSettings:
             bad = f"ladder: must be in (0, 1], got {self.ladder}"
         elif not (self.adapt_up >= 1.0 and 0.0 < self.adapt_down <= 1.0):
             bad = f"adapt_up must be >= 1 and adapt_down in (0, 1], got {self.adapt_up}, {self.adapt_down}"
+        elif self.polish < 0:
+            bad = f"polish: must be >= 0, got {self.polish}"
         elif self.threads < 1:
             bad = f"threads: must be >= 1, got {self.threads}"
         elif not hasattr(self.seed, "__index__") or self.seed < 0:  # numpy's seeds are >= 0

@@ -128,7 +128,8 @@ _FAST_FLAGS = set(_approx.FASTMATH)
 @njit(cache=True, inline="always", error_model="numpy")
 def _wrap(a):
     """Angle wrapped to (-pi, pi]."""
-    return a - 2.0 * math.pi * math.ceil((a - math.pi) / (2.0 * math.pi))
+    # (np.ceil: a float; math.ceil is an int, whose conversions do not vectorise)
+    return a - 2.0 * math.pi * np.ceil((a - math.pi) / (2.0 * math.pi))
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -356,7 +357,9 @@ def policy_wheel(ub, vb, rd, acorner, delta, zw, zd, xw, yw, r_w, dmin, dmax, cm
     # at a stop: the speed projected on the stop's direction, >= 0
     inv_rw = 1.0 / r_w  # (loop-invariant: a multiplication in the lanes' loop)
     wclip = (wvx * (cmax if hi_ else cmin) + wvy * (smax if hi_ else smin)) * inv_rw
-    wff = (wclip if wclip > 0.0 else 0.0) if (hi_ or lo_) else math.sqrt(wvx * wvx + wvy * wvy) * inv_rw
+    wclip = wclip if wclip > 0.0 else 0.0
+    wff = math.sqrt(wvx * wvx + wvy * wvy) * inv_rw
+    wff = wclip if hi_ else (wclip if lo_ else wff)
     dff = dmax if hi_ else (dmin if lo_ else dff)
     w = _clip(wff + zw, 0.0, w_max)
     tgt = _clip(dff + zd, dmin, dmax)

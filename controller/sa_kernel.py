@@ -103,6 +103,7 @@ class AnnealResult:
     iterations: int  # iterations run
     evaluations: int  # candidate evaluations (incl. the initial ones)
     accepted: float  # fraction of proposals accepted
+    polish_steps: int = 0  # Gauss-Newton steps taken after the annealing (CompiledAnnealer.polish)
 
 
 def ladder_factors(chains: int, ladder: float) -> np.ndarray:
@@ -186,6 +187,324 @@ ITERATE = {(pred.name, kind, parallel): _make_iterate(
     for pred in (_ro.FAST, _ro.EXACT) for kind in _ro.KINDS for parallel in (False, True)}
 
 
+# ---- the Gauss-Newton polish of the annealer's best point ------------------------------
+# The horizon cost is a sum of squares (the pose errors, the quadratic wear term's powers),
+# a linear part (the wear-energy term) and a quadratic form of the decision vector (the
+# smoothing and the ridge): J(z) = |r(z)|^2 + e(z) + z'Az + b'z + c. The polish takes the
+# residuals' Jacobian Jr by forward differences once (D perturbed candidates: D / LANES
+# tiles of the SIMD prediction), then steps: the Gauss-Newton model's gradient
+# g = 2 Jr'r + grad e + 2Az + b and Hessian H = 2 Jr'Jr + 2A, the Levenberg-Marquardt
+# steps (H + mu diag H) dz = -g for the damping factors GN_MUS, each at the lengths
+# GN_ALPHAS: clipped to the box, these LANES candidates are one tile; the best is kept if
+# it lowers the cost, and the Jacobian follows the step by Broyden's rank-one update
+# (Jr += (r' - r - Jr dz) dz' / dz'dz, the same for grad e) instead of new differences.
+# When a step stalls (gains less than GN_TOL of the cost) with an updated Jacobian, the
+# differences are taken again (GN_REFRESH times at most); with a fresh one, it stops.
+# docs/PERFORMANCE.md has what each choice bought.
+GN_MUS = np.array([1e-2, 0.1, 1.0, 10.0])  # damping factors
+GN_ALPHAS = np.array([1.0, 0.3])  # step lengths of each damped step
+GN_TOL = 1e-4  # a step that lowers the cost by less than this fraction of it has stalled
+GN_REFRESH = 1  # after a stall, fresh differences this many times at most (then stop)
+GN_STEP = 1e-4  # forward-difference steps: this times sigma / max(sigma) (1e-4 rad/s, 7e-6 rad)
+GN_CANDIDATES = GN_MUS.shape[0] * GN_ALPHAS.shape[0]  # one tile
+
+
+@njit(cache=True, error_model="numpy")
+def quadratic_terms(stride, nsplit, R, zprev, A, b):
+    """The smoothing and ridge terms of the cost (:func:`controller.rollout.smoothing_cost`,
+    :func:`~controller.rollout.ridge_cost`) as ``z'Az + b'z + c``: fills ``A`` (D, D)
+    and ``b`` (D,), returns ``c``."""
+    D = A.shape[0]
+    A[:] = 0.0
+    b[:] = 0.0
+    c = 0.0
+    for i in range(D):
+        blk, j = divmod(i, stride)
+        w = R[lay.R_DW] if j < nsplit else R[lay.R_DD]
+        A[i, i] += (R[lay.R_OW] if j < nsplit else R[lay.R_OD]) + w
+        if blk == 0:
+            b[i] -= 2.0 * w * zprev[j]
+            c += w * zprev[j] * zprev[j]
+        else:
+            p = i - stride
+            A[p, p] += w
+            A[i, p] -= w
+            A[p, i] -= w
+    return c
+
+
+@njit(cache=True, error_model="numpy")
+def residuals(poses, wear, ref, Q, Lw, row, r, rrow):
+    """The cost's squared terms of candidate ``row`` as residuals ``r[rrow]`` (6 N_p: per
+    step the weighted pose errors, heading wrapped, then the weighted wear powers [kW]) and
+    its linear wear-energy term, returned: ``|r|^2 + e`` is the horizon part of
+    :func:`controller.rollout.candidate_cost`."""
+    Np = poses.shape[1]
+    sq = (math.sqrt(Q[lay.Q_X] / Np), math.sqrt(Q[lay.Q_Y] / Np), math.sqrt(Q[lay.Q_PHI] / Np))
+    sl = (math.sqrt(Lw[lay.L_S] / Np) * _ro.KW, math.sqrt(Lw[lay.L_ALPHA] / Np) * _ro.KW,
+          math.sqrt(Lw[lay.L_T] / Np) * _ro.KW)
+    e = 0.0
+    for k in range(Np):
+        o = 6 * k
+        ph = poses[row, k, lay.POSE_PHI] - ref[k + 1, lay.REF_PHI]
+        r[rrow, o] = sq[0] * (poses[row, k, lay.POSE_X] - ref[k + 1, lay.REF_X])
+        r[rrow, o + 1] = sq[1] * (poses[row, k, lay.POSE_Y] - ref[k + 1, lay.REF_Y])
+        r[rrow, o + 2] = sq[2] * (ph - 2.0 * math.pi * math.ceil((ph - math.pi) / (2.0 * math.pi)))
+        ps = wear[row, k, lay.WEAR_S]
+        pa = wear[row, k, lay.WEAR_ALPHA]
+        pt = wear[row, k, lay.WEAR_T]
+        r[rrow, o + 3] = sl[0] * ps
+        r[rrow, o + 4] = sl[1] * pa
+        r[rrow, o + 5] = sl[2] * pt
+        e += Lw[lay.LE_S] * ps + Lw[lay.LE_ALPHA] * pa + Lw[lay.LE_T] * pt
+    return e * _ro.KW / Np
+
+
+@njit(cache=True, error_model="numpy")
+def quadratic_value(A, b, c, z):
+    """``z'Az + b'z + c``."""
+    D = z.shape[0]
+    J = c
+    for i in range(D):
+        t = b[i]
+        for j in range(D):
+            t += A[i, j] * z[j]
+        J += t * z[i]
+    return J
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def gauss_newton_gradient(Jr, r0, ge, A, z, b, g):
+    """``g = 2 Jr r0 + ge + 2 A z + b`` (``Jr`` (D, M): the residuals' derivatives by row)."""
+    D, M = Jr.shape
+    for i in range(D):
+        t = 0.0
+        for m in range(M):
+            t += Jr[i, m] * r0[m]
+        u = 0.0
+        for j in range(D):
+            u += A[i, j] * z[j]
+        g[i] = 2.0 * t + ge[i] + 2.0 * u + b[i]
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def gauss_newton_hessian(Jr, A, H):
+    """``H = 2 Jr Jr' + 2 A``."""
+    D, M = Jr.shape
+    for i in range(D):
+        for j in range(i + 1):
+            t = 0.0
+            for m in range(M):
+                t += Jr[i, m] * Jr[j, m]
+            H[i, j] = H[j, i] = 2.0 * t + 2.0 * A[i, j]
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def broyden_update(Jr, ge, H, dz, dr, de):
+    """Broyden's rank-one update of the Jacobian ``Jr`` (D, M) and the linear term's
+    gradient ``ge`` after the step ``dz`` that changed the residuals by ``dr`` and the
+    linear term by ``de``: ``Jr += dz t'``, ``t = (dr - Jr' dz) / dz'dz`` (likewise
+    ``ge``), and ``H = 2 Jr Jr' + 2A`` with it, in O(D M + D^2):
+    ``H += 2 (u dz' + dz u' + t't dz dz')``, ``u = Jr t`` (before the update)."""
+    D, M = Jr.shape
+    ss = 0.0
+    for j in range(D):
+        ss += dz[j] * dz[j]
+    if not ss > 0.0:
+        return
+    t = np.empty(M)
+    tt = 0.0
+    for m in range(M):
+        v = dr[m]
+        for j in range(D):
+            v -= Jr[j, m] * dz[j]
+        t[m] = v / ss
+        tt += t[m] * t[m]
+    u = np.empty(D)
+    for j in range(D):
+        v = 0.0
+        for m in range(M):
+            v += Jr[j, m] * t[m]
+        u[j] = v
+    for i in range(D):
+        for j in range(D):
+            H[i, j] += 2.0 * (u[i] * dz[j] + dz[i] * u[j] + tt * dz[i] * dz[j])
+        for m in range(M):
+            Jr[i, m] += dz[i] * t[m]
+    v = de
+    for j in range(D):
+        v -= ge[j] * dz[j]
+    v /= ss
+    for j in range(D):
+        ge[j] += v * dz[j]
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def damped_step(H, g, mu, Lc, dz):
+    """Solve ``(H + mu diag H) dz = -g`` by Cholesky (``Lc`` (D, D) scratch); False when the
+    matrix is not positive definite (then ``dz`` is undefined)."""
+    D = H.shape[0]
+    for j in range(D):
+        s = H[j, j] * (1.0 + mu)
+        for k in range(j):
+            s -= Lc[j, k] * Lc[j, k]
+        if not s > 0.0:
+            return False
+        d = math.sqrt(s)
+        Lc[j, j] = d
+        for i in range(j + 1, D):
+            t = H[i, j]
+            for k in range(j):
+                t -= Lc[i, k] * Lc[j, k]
+            Lc[i, j] = t / d
+    for i in range(D):  # L y = -g
+        t = -g[i]
+        for k in range(i):
+            t -= Lc[i, k] * dz[k]
+        dz[i] = t / Lc[i, i]
+    for i in range(D - 1, -1, -1):  # L' dz = y
+        t = dz[i]
+        for k in range(i + 1, D):
+            t -= Lc[k, i] * dz[k]
+        dz[i] = t / Lc[i, i]
+    return True
+
+
+def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, lin, Zfd,
+                 poses, wear, cmds, Jr, ge, H):
+    """The residuals' Jacobian ``Jr`` (D, M; row d: the derivatives by z_d) and the linear
+    term's gradient ``ge`` at ``z`` by forward differences (backward at the upper bound),
+    from the residuals ``r[0]`` and linear term ``lin[0]`` of ``z``; ``r[1]`` is scratch;
+    and the Gauss-Newton Hessian ``H`` from them. ``rollout`` is a global bound by
+    :func:`_make_gn`."""
+    D = z.shape[0]
+    M = r.shape[1]
+    for d in range(D):
+        for j in range(D):
+            Zfd[d, j] = z[j]
+        Zfd[d, d] += h[d] if z[d] + h[d] <= upper[d] else -h[d]
+    rollout(model, x0, ref, Zfd, block, P, S, wx, wy, poses, wear, cmds)  # noqa: F821
+    for d in range(D):
+        e = residuals(poses, wear, ref, Q, Lw, d, r, 1)
+        inv = 1.0 / (Zfd[d, d] - z[d])
+        for m in range(M):
+            Jr[d, m] = (r[1, m] - r[0, m]) * inv
+        ge[d] = (e - lin[0]) * inv
+    gauss_newton_hessian(Jr, A, H)
+
+
+def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, mus, alphas,
+             z, J, r, lin, poses, wear, cmds, Jr, ge, g, H, Lc, dz, Zc):
+    """One polish step from ``z`` (cost ``J``, residuals ``r[0]``, linear term ``lin[0]``,
+    Jacobian ``Jr``, ``ge``, Hessian ``H``): the candidates of the damped steps, predicted
+    in one call; the best, if it is below ``J``, becomes ``z`` (with its residuals) and
+    updates the Jacobian and the Hessian (:func:`broyden_update`). Returns the cost after
+    the step. ``rollout`` is a global bound by :func:`_make_gn`."""
+    D = z.shape[0]
+    M = r.shape[1]
+    na = alphas.shape[0]
+    gauss_newton_gradient(Jr, r[0], ge, A, z, b, g)
+    for k in range(mus.shape[0]):
+        ok = damped_step(H, g, mus[k], Lc, dz)
+        for a in range(na):
+            for j in range(D):
+                v = z[j] + alphas[a] * dz[j] if ok else z[j]
+                Zc[k * na + a, j] = min(max(v, lower[j]), upper[j])
+    rollout(model, x0, ref, Zc, block, P, S, wx, wy, poses, wear, cmds)  # noqa: F821
+    best = -1
+    Jb = J
+    for k in range(Zc.shape[0]):
+        e = residuals(poses, wear, ref, Q, Lw, k, r, 1)
+        Jk = e + quadratic_value(A, b, c, Zc[k])
+        for m in range(M):
+            Jk += r[1, m] * r[1, m]
+        if Jk < Jb:
+            Jb = Jk
+            best = k
+    if best < 0:
+        return J
+    e = residuals(poses, wear, ref, Q, Lw, best, r, 1)
+    for j in range(D):
+        dz[j] = Zc[best, j] - z[j]
+    for m in range(M):
+        r[1, m] -= r[0, m]  # (the change of the residuals)
+    broyden_update(Jr, ge, H, dz, r[1], e - lin[0])
+    for m in range(M):
+        r[1, m] += r[0, m]
+    for m in range(M):
+        r[0, m] = r[1, m]
+    lin[0] = e
+    for j in range(D):
+        z[j] = Zc[best, j]
+    return Jb
+
+
+def _gn_start(model, x0, ref, block, P, S, wx, wy, Q, Lw, z, r, lin, Zfd, poses, wear, cmds):
+    """The residuals ``r[0]`` and linear term ``lin[0]`` of ``z`` (one rollout)."""
+    for j in range(z.shape[0]):
+        Zfd[0, j] = z[j]
+    rollout(model, x0, ref, Zfd[:1], block, P, S, wx, wy, poses, wear, cmds)  # noqa: F821
+    lin[0] = residuals(poses, wear, ref, Q, Lw, 0, r, 0)
+
+
+def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, h, mus, alphas,
+            tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, Jr, ge, g, H, Lc, dz, Zc):
+    """Up to ``n`` polish steps (:func:`_gn_step`) from the state ``st`` = [cost, steps
+    taken, Jacobian fresh (1) or updated (0), refreshes, stopped]: a step that lowers the
+    cost by less than ``tol`` of it stops the polish if the Jacobian is fresh from the
+    differences or ``refresh`` refreshes are spent, and otherwise takes the differences
+    again at ``z`` (:func:`_gn_jacobian`). ``gn_step`` and ``gn_jacobian`` are globals
+    bound by :func:`_make_gn`."""
+    J = st[0]
+    fresh = st[2] > 0.0
+    for _ in range(n):
+        Jn = gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c,  # noqa: F821
+                     lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds, Jr, ge, g,
+                     H, Lc, dz, Zc)
+        st[1] += 1.0
+        stalled = not Jn < J or J - Jn < tol * J
+        J = min(J, Jn)
+        if stalled:
+            if fresh or st[3] >= refresh:
+                st[4] = 1.0
+                break
+            # the updated Jacobian has stopped helping: differences again, at z
+            gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A,  # noqa: F821
+                        upper, h, z, r, lin, Zfd, poses, wear, cmds, Jr, ge, H)
+            st[3] += 1.0
+            fresh = True
+        else:
+            fresh = False
+    st[0] = J
+    st[2] = 1.0 if fresh else 0.0
+
+
+def _make_gn(rollout, fn, name: str, **bound):
+    """``fn`` (:func:`_gn_start`, :func:`_gn_jacobian`, :func:`_gn_step`, :func:`_gn_run`)
+    compiled with ``rollout`` (and ``bound``) as its globals (not a closure: see
+    :func:`_make_iterate`)."""
+    g = dict(globals(), rollout=rollout, **bound)
+    f = types.FunctionType(fn.__code__, g, name, fn.__defaults__)
+    f.__qualname__ = name
+    f.__doc__ = fn.__doc__
+    f.__module__ = __name__
+    return njit(cache=True, error_model="numpy")(f)
+
+
+def _gn_kernels(pred, kind: str, parallel: bool) -> tuple:
+    """The polish's kernels (start, Jacobian, run) over ``pred``'s rollout of ``kind``."""
+    ro = pred.kernels[kind]["rollout_batch_parallel" if parallel else "rollout_batch"]
+    sfx = f"_{'parallel' if parallel else 'serial'}_{kind}_{pred.name}"
+    start = _make_gn(ro, _gn_start, "gn_start" + sfx)
+    jac = _make_gn(ro, _gn_jacobian, "gn_jacobian" + sfx)
+    step = _make_gn(ro, _gn_step, "gn_step" + sfx)
+    return start, jac, _make_gn(ro, _gn_run, "gn_run" + sfx, gn_step=step, gn_jacobian=jac)
+
+
+GN = {(pred.name, kind, parallel): _gn_kernels(pred, kind, parallel)
+      for pred in (_ro.FAST, _ro.EXACT) for kind in _ro.KINDS for parallel in (False, True)}
+
+
 class CompiledAnnealer:
     """Simulated annealing of one MPC horizon problem, with preallocated buffers.
 
@@ -199,7 +518,7 @@ class CompiledAnnealer:
                  sigma_final: float, t_start: float, t_end: float, parallel: bool = False,
                  restart_every: int = 10, init_spread: float = 0.5, ladder: float = 1.0,
                  adapt_up: float = 1.0, adapt_down: float = 1.0, exact: bool = False,
-                 pool_seed: int = 0, proposals: int = 1):
+                 pool_seed: int = 0, proposals: int = 1, polish: int = 0):
         self.model = model
         self.Q, self.L, self.R = (np.ascontiguousarray(a, dtype=np.float64) for a in (Q, L, R))
         self.lower = np.ascontiguousarray(lower, dtype=np.float64)
@@ -236,6 +555,65 @@ class CompiledAnnealer:
         self.pool = noise_pool(pool_seed)
         denom = max(self.iterations - 1, 1)
         self._fixed_fracs = np.minimum(np.arange(self.iterations) / denom, 1.0)
+        self.polish_steps = int(polish)
+        if self.polish_steps < 0:
+            raise ValueError("anneal: polish must be >= 0")
+        self._gn_start, self._gn_jacobian, self._gn_run = GN[(pred.name, kind, bool(parallel))]
+        Np = model.settings.N_p
+        rows = max(D, GN_CANDIDATES)
+        M = 6 * Np
+        self._gn_out = (np.empty((rows, Np, lay.N_POSE)), np.empty((rows, Np, lay.N_WEAR)),
+                        np.empty((rows, 2, model.n_wheels)))
+        self._gn_r, self._gn_lin, self._gn_Zfd = np.empty((2, M)), np.empty(1), np.empty((D, D))
+        self._gn_J = (np.empty((D, M)), np.empty(D))  # Jr, ge
+        self._gn_la = (np.empty(D), np.empty((D, D)), np.empty((D, D)), np.empty(D),
+                       np.empty((GN_CANDIDATES, D)))  # g, H, Lc, dz, Zc
+        self._A, self._b = np.empty((D, D)), np.empty(D)
+        self._gn_state = np.empty(5)
+        self._h = GN_STEP * self.sigma / self.sigma.max()
+
+    def polish(self, x0: np.ndarray, ref: np.ndarray, zprev: np.ndarray, res: AnnealResult,
+               deadline_s: float | None = None) -> AnnealResult:
+        """Up to ``polish`` Gauss-Newton steps (module section "the Gauss-Newton polish")
+        from ``res.x``, the annealing's best point, on the same horizon problem; stops
+        when a step stalls with a fresh Jacobian (:func:`_gn_run`), or when the next step
+        would pass ``deadline_s`` (seconds from this call, at the mean time of the steps
+        so far).
+        Returns ``res`` with the polished point and cost (never worse than ``res``)."""
+        n = self.polish_steps
+        if n == 0:
+            return res
+        t0 = time.perf_counter()
+        m = self.model
+        x0 = np.ascontiguousarray(x0, dtype=np.float64)
+        ref = np.ascontiguousarray(ref, dtype=np.float64)
+        zprev = np.ascontiguousarray(zprev, dtype=np.float64)
+        c = quadratic_terms(m.stride, m.nsplit, self.R, zprev, self._A, self._b)
+        z = np.array(res.x, dtype=np.float64)
+        r, lin, Zfd = self._gn_r, self._gn_lin, self._gn_Zfd
+        out = self._gn_out
+        head = (m.model_id, x0, ref, m.block, m.P, m.S, m.wx, m.wy, self.Q, self.L)
+        self._gn_start(*head, z, r, lin, Zfd, *out)
+        self._gn_jacobian(*head, self._A, self.upper, self._h, z, r, lin, Zfd, *out,
+                          *self._gn_J, self._gn_la[1])
+        st = self._gn_state
+        st[:] = (res.cost, 0.0, 1.0, 0.0, 0.0)
+        run = (*head, self._A, self._b, c, self.lower, self.upper, self._h, GN_MUS, GN_ALPHAS,
+               GN_TOL, GN_REFRESH)
+        bufs = (z, r, lin, Zfd, *out, *self._gn_J, *self._gn_la)
+        if deadline_s is None:
+            self._gn_run(*run, n, st, *bufs)
+        else:  # a step at a time, while the next one fits (at the mean time of those so far)
+            while st[1] < n and not st[4]:
+                el = time.perf_counter() - t0
+                if st[1] > 0 and el + el / st[1] > deadline_s:
+                    break
+                self._gn_run(*run, 1, st, *bufs)
+        J, done, refreshed = float(st[0]), int(st[1]), int(st[3])
+        evals = res.evaluations + 1 + (1 + refreshed) * m.dim + done * GN_CANDIDATES
+        if not J < res.cost:
+            return AnnealResult(res.x, res.cost, res.iterations, evals, res.accepted, done)
+        return AnnealResult(z, J, res.iterations, evals, res.accepted, done)
 
     def solve(self, x0: np.ndarray, ref: np.ndarray, zprev: np.ndarray, warm: np.ndarray,
               rng: np.random.Generator, deadline_s: float | None = None,

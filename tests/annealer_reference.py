@@ -108,3 +108,64 @@ def anneal(cost: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, lower: np.n
             J[worst] = best_J
         done += 1
     return AnnealResult(best_x, best_J, done, evals, acc / max(done * chains, 1))
+
+
+def gauss_newton_polish(residuals: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+                        A: np.ndarray, b: np.ndarray, c: float, z: np.ndarray, J: float,
+                        lower: np.ndarray, upper: np.ndarray, h: np.ndarray, *, steps: int,
+                        mus, alphas, tol: float,
+                        refresh: int) -> tuple[np.ndarray, float, int, int]:
+    """The Gauss-Newton polish of :meth:`controller.sa_kernel.CompiledAnnealer.polish`,
+    written plainly for ``J(z) = |r(z)|^2 + e(z) + z'Az + b'z + c`` with
+    ``residuals(Z) -> (r, e)`` for a batch of rows: the Jacobian of ``r`` and ``e`` by
+    forward differences (steps ``h``, backward at the upper bound) once, then per step the
+    Levenberg-Marquardt steps ``(H + mu diag H) dz = -g`` (``H = 2 Jr'Jr + 2A``,
+    ``g = 2 Jr'r + grad e + 2Az + b``) for each ``mu`` at each length ``alpha``, clipped to
+    the box; the best is taken if it lowers the cost, and the Jacobian follows it by
+    Broyden's update. A step that lowers the cost by less than ``tol`` of it ends the
+    polish if the Jacobian is fresh from differences (or ``refresh`` refreshes are
+    spent), and otherwise the differences are taken again. Returns ``(z, J, steps,
+    refreshes)``."""
+    z = np.asarray(z, dtype=float).copy()
+    D = z.size
+    r0, e0 = (a[0] for a in residuals(z[None, :]))
+
+    def differences(z, r0, e0):
+        hd = np.where(z + h <= upper, h, -h)
+        r, e = residuals(z[None, :] + np.diag(hd))
+        return ((r - r0) / hd[:, None]).T, (e - e0) / hd  # (M, D), (D,)
+
+    Jr, ge = differences(z, r0, e0)
+    done = refreshed = 0
+    fresh = True
+    while done < steps:
+        g = 2.0 * Jr.T @ r0 + ge + 2.0 * A @ z + b
+        H = 2.0 * Jr.T @ Jr + 2.0 * A
+        cands = []
+        for mu in mus:
+            try:
+                np.linalg.cholesky(H + mu * np.diag(np.diag(H)))
+                dz = np.linalg.solve(H + mu * np.diag(np.diag(H)), -g)
+            except np.linalg.LinAlgError:
+                dz = np.zeros(D)
+            cands += [np.clip(z + a * dz, lower, upper) for a in alphas]
+        C = np.array(cands)
+        r, e = residuals(C)
+        Jc = np.sum(r * r, axis=1) + e + np.einsum("ij,jk,ik->i", C, A, C) + C @ b + c
+        done += 1
+        k = int(np.argmin(Jc))
+        stalled = not Jc[k] < J or J - Jc[k] < tol * J
+        if Jc[k] < J:
+            s = C[k] - z
+            Jr += np.outer(r[k] - r0 - Jr @ s, s) / (s @ s)
+            ge += (e[k] - e0 - ge @ s) * s / (s @ s)
+            z, J, r0, e0 = C[k], float(Jc[k]), r[k], e[k]
+        if stalled:
+            if fresh or refreshed >= refresh:
+                break
+            Jr, ge = differences(z, r0, e0)
+            refreshed += 1
+            fresh = True
+        else:
+            fresh = False
+    return z, J, done, refreshed

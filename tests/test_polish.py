@@ -1,0 +1,163 @@
+"""The Gauss-Newton polish after the annealing (controller.sa_kernel, CompiledAnnealer.polish).
+
+* its pieces against the cost they stand for: the smoothing and ridge terms as a quadratic
+  form ``z'Az + b'z + c`` against ``rollout.smoothing_cost + ridge_cost``, and
+  ``|r|^2 + e + z'Az + b'z + c`` from the residuals against ``rollout.batch_cost``, for
+  every wear method and both policies with offsets (random states, random decisions);
+* the damped step solves its linear system (against numpy's solver) and refuses a matrix
+  that is not positive definite;
+* the compiled polish is the plain one of tests/annealer_reference.py on the MPC's
+  problem (same steps, same candidates, same answer), and that one solves a problem with a
+  known minimum (linear residuals: one step, the least-squares solution);
+* through the MPC: never worse than the annealing alone, inside the box, with a deadline
+  it stops early; bad settings are refused.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msagv.controller import MPCSettings, make_case
+from msagv.controller import rollout as ro
+from msagv.controller import sa_kernel as sk
+from msagv.controller.mpc import MPC
+from msagv.plant import default_vehicle, n_axle_vehicle
+
+from annealer_reference import gauss_newton_polish  # noqa: E402 (tests/ is on sys.path)
+from test_rollout_ref import _random_case  # noqa: E402
+
+
+def _vehicle(n):
+    return default_vehicle() if n == 2 else n_axle_vehicle(n)
+
+
+def _problem(axles=2, seed=0, **kw):
+    v = _vehicle(axles)
+    ref, _ = make_case("curve", 25.0)
+    mpc = MPC(v, MPCSettings(**kw), ref)
+    rng = np.random.default_rng(seed)
+    x0, R = _random_case(rng, v, mpc.settings)
+    lo, hi = mpc.horizon.lower, mpc.horizon.upper
+    zprev = rng.uniform(lo, hi)[: mpc.model.stride].copy()
+    return mpc, x0, R, zprev, rng
+
+
+@pytest.mark.parametrize("method", ["two", "two-energy", "ntwo"])
+@pytest.mark.parametrize("axles", [2, 3])
+def test_quadratic_form_and_residuals_are_the_cost(method, axles):
+    mpc, x0, R, zprev, rng = _problem(axles, seed=axles, method=method)
+    m = mpc.model
+    D = m.dim
+    Z = np.ascontiguousarray(np.vstack([np.zeros(D), rng.uniform(mpc.horizon.lower, mpc.horizon.upper, (6, D))]))
+    A, b = np.empty((D, D)), np.empty(D)
+    c = sk.quadratic_terms(m.stride, m.nsplit, mpc.horizon.R, zprev, A, b)
+    assert np.array_equal(A, A.T)
+    out = m.rollout(x0, R, Z)
+    want = np.empty(len(Z))
+    ro.batch_cost(out.poses, out.wear, R, Z, zprev, mpc.horizon.Q, mpc.horizon.L, mpc.horizon.R, m.stride, m.nsplit, want)
+    r = np.empty((len(Z), 6 * m.settings.N_p))
+    for i, z in enumerate(Z):
+        quad = ro.smoothing_cost(z, zprev, mpc.horizon.R, m.stride, m.nsplit) + ro.ridge_cost(
+            z, mpc.horizon.R, m.stride, m.nsplit)
+        assert z @ A @ z + b @ z + c == pytest.approx(quad, rel=1e-12, abs=1e-14)
+        e = sk.residuals(out.poses, out.wear, R, mpc.horizon.Q, mpc.horizon.L, i, r, i)
+        if method != "two-energy":
+            assert e == 0.0
+        assert r[i] @ r[i] + e + sk.quadratic_value(A, b, c, z) == pytest.approx(want[i], rel=1e-12)
+
+
+def test_damped_step_solves_and_refuses_indefinite():
+    rng = np.random.default_rng(3)
+    D = 13
+    G = rng.normal(size=(20, D))
+    H = G.T @ G
+    g = rng.normal(size=D)
+    Lc, dz = np.empty((D, D)), np.empty(D)
+    for mu in (0.0, 0.1, 10.0):
+        assert sk.damped_step(H, g, mu, Lc, dz)
+        want = np.linalg.solve(H + mu * np.diag(np.diag(H)), -g)
+        assert np.allclose(dz, want, rtol=1e-9, atol=1e-12)
+    H[4, 4] = -1.0
+    assert not sk.damped_step(H, g, 0.1, Lc, dz)
+
+
+def test_reference_polish_solves_linear_least_squares_in_one_step():
+    """Linear residuals r = M z - y in a box wide enough: the undamped step is the
+    least-squares solution (the Gauss-Newton model is then exact)."""
+    rng = np.random.default_rng(5)
+    M, y = rng.normal(size=(12, 4)), rng.normal(size=12)
+    A, b = 0.01 * np.eye(4), np.zeros(4)
+    want = np.linalg.solve(M.T @ M + A, M.T @ y)
+
+    def res(Z):
+        return Z @ M.T - y, np.zeros(len(Z))
+
+    z0 = np.zeros(4)
+    J0 = float(y @ y)
+    z, J, n, _ = gauss_newton_polish(res, A, b, 0.0, z0, J0, np.full(4, -10.0), np.full(4, 10.0),
+                                  np.full(4, 1e-6), steps=3, mus=[0.0, 1.0], alphas=[1.0],
+                                  tol=1e-12, refresh=0)
+    assert np.allclose(z, want, atol=1e-6)
+    assert J == pytest.approx(float(np.sum((M @ want - y) ** 2) + want @ A @ want), rel=1e-9)
+
+
+@pytest.mark.parametrize("axles", [2, 4])
+def test_compiled_polish_is_the_plain_one(axles):
+    mpc, x0, R, zprev, rng = _problem(axles, seed=10 + axles, iterations=4, polish=6)
+    sa, m = mpc.solver.kernel, mpc.model
+    warm = np.clip(rng.normal(size=m.dim) * mpc.horizon.sigma, mpc.horizon.lower, mpc.horizon.upper)
+    res = sa.solve(x0, R, zprev, warm, np.random.default_rng(1))
+    got = sa.polish(x0, R, zprev, res)
+    D = m.dim
+    A, b = np.empty((D, D)), np.empty(D)
+    c = sk.quadratic_terms(m.stride, m.nsplit, mpc.horizon.R, zprev, A, b)
+
+    def residuals(Z):
+        out = m.rollout(x0, R, np.ascontiguousarray(Z))
+        r = np.empty((len(Z), 6 * m.settings.N_p))
+        e = np.array([sk.residuals(out.poses, out.wear, R, mpc.horizon.Q, mpc.horizon.L, i, r, i)
+                      for i in range(len(Z))])
+        return r, e
+
+    z, J, n, refreshes = gauss_newton_polish(
+        residuals, A, b, c, res.x, res.cost, mpc.horizon.lower, mpc.horizon.upper, sa._h, steps=6,
+        mus=sk.GN_MUS, alphas=sk.GN_ALPHAS, tol=sk.GN_TOL, refresh=sk.GN_REFRESH)
+    assert got.polish_steps == n >= 1
+    assert got.evaluations == res.evaluations + 1 + (1 + refreshes) * D + n * sk.GN_CANDIDATES
+    assert got.cost == pytest.approx(J, rel=1e-9)
+    assert np.allclose(got.x, z, rtol=0, atol=1e-7)
+    assert got.cost < res.cost  # from 4 iterations of annealing there is room
+    assert np.all(got.x >= mpc.horizon.lower) and np.all(got.x <= mpc.horizon.upper)
+    assert got.iterations == res.iterations
+
+
+def test_polish_through_the_mpc_never_worse_and_deadline():
+    ref, init = make_case("curve", 25.0)
+    v = default_vehicle()
+    st = dict(init(v), t=4.0)
+    st["delta"] = [st.pop(f"delta_{w}") for w in v.wheel_names]
+    st["x"] += 0.3
+    costs = {}
+    for polish in (0, 4):
+        mpc = MPC(v, MPCSettings(iterations=8, polish=polish), ref)
+        cmd = mpc.step(st)
+        costs[polish] = cmd.cost
+        assert np.all(mpc.z >= mpc.horizon.lower) and np.all(mpc.z <= mpc.horizon.upper)
+    assert costs[4] < costs[0]  # same seed, same annealing: the polish only lowers it
+    # a deadline the annealing already spends leaves at most one polishing step
+    mpc = MPC(v, MPCSettings(iterations=8, polish=50), ref)
+    x0, R, zprev, warm = mpc.horizon_problem(st)
+    res = mpc.solver.kernel.solve(x0, R, zprev, warm, np.random.default_rng(0))
+    assert mpc.solver.kernel.polish(x0, R, zprev, res, deadline_s=1e-9).polish_steps <= 1
+    assert mpc.solver.kernel.polish(x0, R, zprev, res).polish_steps >= 1
+
+
+def test_bad_polish_setting_refused():
+    with pytest.raises(ValueError, match="polish"):
+        MPCSettings(polish=-1)
+    mpc = MPC(default_vehicle(), MPCSettings())
+    with pytest.raises(ValueError, match="polish"):
+        sk.CompiledAnnealer(mpc.model, mpc.horizon.Q, mpc.horizon.L, mpc.horizon.R, mpc.horizon.lower, mpc.horizon.upper, mpc.horizon.sigma,
+                            chains=2, iterations=2, sigma_final=0.1, t_start=1e-2,
+                            t_end=1e-4, polish=-2)
