@@ -13,6 +13,7 @@ until Ctrl-C (``msagv plant``: while the plant runs).
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -114,7 +115,36 @@ def serve_until_stopped(view, prog: str) -> None:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-        view.close()
+        close_within(view, CLOSE_S, prog)
+
+
+CLOSE_S = 10.0  # how long a stopping view waits for Rerun's sinks to finish
+
+
+def close_within(view, seconds: float, prog: str) -> None:
+    """``view.close()``, but at most ``seconds`` long: once (a CI machine at load 5) the
+    served viewer's flush never returned after SIGTERM with a browser connected, and the
+    process hung. What was logged is served or saved already; if the close hangs, say so
+    and end the process."""
+    done = threading.Event()
+    err: list[BaseException] = []
+
+    def close():
+        try:
+            view.close()
+        except BaseException as e:  # noqa: BLE001 - reported below
+            err.append(e)
+        finally:
+            done.set()
+
+    threading.Thread(target=close, name="view-close", daemon=True).start()
+    if not done.wait(seconds):
+        print(f"{prog}: warning: the viewer did not stop within {seconds:g} s; exiting "
+              "without waiting for it", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(0)
+    if err:
+        raise err[0]
 
 
 def main(argv: list[str]) -> int:

@@ -177,8 +177,9 @@ def test_a_trajectory_that_ends_is_continued_or_ends_the_run(tmp_path, capsys):
     assert rc == 0 and longer["metrics"]["steps"] == 400
     assert any("1 s past the end of line" in w for w in longer["warnings"]) and "warning" in err
     # driving straight on at constant speed wears at a steady rate: 4/3 of the 3 s run's
-    # wear (braking to the final pose, as before, cost many times that)
-    assert longer["metrics"]["W_tw"] < 1.6 * full["metrics"]["W_tw"]
+    # wear, which on a straight line is numerically zero (1e-12 J: no slip once at speed);
+    # braking to the final pose, as before, slipped the tires for joules
+    assert longer["metrics"]["W_tw"] < 1.6 * full["metrics"]["W_tw"] + 1e-6
     assert longer["metrics"]["e_bar"] < 0.5
     # --after-end stop: the run ends with the trajectory
     rc, out, err = run(capsys, "run", "--trajectory", path, "--duration", "4",

@@ -161,3 +161,40 @@ def test_bad_polish_setting_refused():
         sk.CompiledAnnealer(mpc.model, mpc.horizon.Q, mpc.horizon.L, mpc.horizon.R, mpc.horizon.lower, mpc.horizon.upper, mpc.horizon.sigma,
                             chains=2, iterations=2, sigma_final=0.1, t_start=1e-2,
                             t_end=1e-4, polish=-2)
+
+
+_FIRST_COMMAND = """
+import argparse, json
+from msagv.args import add_case_args, add_mpc_args, scenario_from_args
+from msagv.controller.loop import closed_loop
+ap = argparse.ArgumentParser(); add_case_args(ap); add_mpc_args(ap)
+b = scenario_from_args(ap.parse_args(["--duration", "0.02"])).build()
+out = []
+closed_loop(b.plant, b.controller, b.reference, 0.02,
+            on_step=lambda k, st, c: out.append(c.omega_w.tolist() + c.omega_s.tolist()))
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_compiled_and_cached_kernels_command_the_same(tmp_path):
+    """The first run after a change compiles the kernels, the next ones load them from
+    numba's cache: both must command the same, bit for bit (with numba's full fastmath the
+    polish's sums were vectorised differently, 4e-14 rad/s apart at step 0). Slow: a cold
+    compile of the kernels takes about a minute; a clean clone's make test checks the same
+    through tests/test_processes.py, whose in-process run compiles and whose processes
+    load the cache."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    runs = [subprocess.run([sys.executable, "-c", _FIRST_COMMAND], env=env, text=True,
+                           capture_output=True, timeout=280) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr
+    assert any((tmp_path / "numba").rglob("*.nbc"))
+    first, second = (json.loads(r.stdout) for r in runs)
+    assert first == second
