@@ -1,13 +1,16 @@
 """``msagv controller``: the MPC as a Zenoh process.
 
 Gets the vehicle from the plant's ``msagv/{id}/params`` queryable (or ``--vehicle FILE``)
-and binds to the plant session that answered (:mod:`bridge.ownership`): states from any
-other session are rejected (``not_bound``). Once its MPC is warm it declares
-``msagv/{id}/alive/controller/{zid}``, claims the vehicle on ``msagv/{id}/claim``, and while
-the plant grants it, answers every ``state`` with a ``cmd`` naming the state it answers
-(never for a state older than ``--max-age-ms``). It takes new references on
-``msagv/{id}/reference``. It stops commanding while the plant's token
-``msagv/{id}/alive/plant/{zid}`` is gone, and decides the plant is lost only after
+and binds to the plant that answered, by its identity (:mod:`bridge.ownership`; on a plain
+bus it warns that it cannot tell the real plant from a liar, with ``--secure`` the
+plant's certificate proves it): states from any other identity are rejected
+(``not_bound``), before they are decoded. Once its MPC is warm it declares
+``msagv/{id}/alive/controller/{identity}``, claims the vehicle from that plant on
+``msagv/{id}/claim`` (asking for the per-wheel wear), and while the plant grants it,
+answers every ``state`` with a ``cmd`` naming the state it answers (never for a state older
+than ``--max-age-ms``; a state sent again gets the same command again). It takes new
+references on ``msagv/{id}/reference``. It stops commanding while the plant's token
+``msagv/{id}/alive/plant/{identity}`` is gone, and decides the plant is lost only after
 :class:`bridge.loss.LossTimer`'s confirmation time of its own running time.
 
 :class:`ControllerNode` is the process's logic; it talks to the bus only through a
@@ -34,7 +37,8 @@ import numpy as np
 
 from . import messages as M
 from .loss import LOST, STALE_MS, LossTimer
-from .ownership import CLAIM_REFRESH_S, CLAIM_RETRY_S, RELEASE, claim, params_replies
+from .ownership import (CLAIM_REFRESH_S, CLAIM_RETRY_S, LATCHED, RELEASE, claim,
+                        params_replies)
 from .plant_node import percentiles_ms
 from .presence import Presence
 from .ros_msgs import predicted_poses
@@ -88,6 +92,7 @@ class ControllerStats:
     dropped_stale: int = 0  # solved but too old to send
     ignored_no_plant: int = 0  # states while the plant's token was gone
     not_granted: int = 0  # solved but not sent: the plant did not grant us the vehicle
+    resent: int = 0  # commands sent again: their state came again (a lockstep re-send)
     references: int = 0
     ends: int = 0
     solve_ms: list = dataclasses.field(default_factory=list)
@@ -118,8 +123,10 @@ class ControllerNode:
         self._fallback = False  # present because its states arrive, its token never seen
         self._last_state_rx = 0.0  # time.monotonic() of the last valid state
         self._pending_ref = None  # decoded reference message
-        self._again = None  # a held state to answer although its seq was seen
+        self._again = None  # (state, command): a held state, solved, to answer later
         self._last_seq: int | None = None
+        self._sent: tuple[int, bytes] | None = None  # (state seq, payload) of the last command
+        self._solved = None  # (state seq, command) of the last solve
         self._cmd_seq = 0
         self.plant_present = False
         self.plant_seen = False
@@ -131,7 +138,7 @@ class ControllerNode:
         self.plant_zid = plant_zid
         self._rebind = rebind  # fetches the params again; returns the new plant's zid
         self.granted = False
-        self.owner: str | None = None
+        self.grant_reason: str | None = None  # the plant's newest answer to our claim
         self._claim_wake = threading.Event()
         self._closing = threading.Event()
         self._claimer: threading.Thread | None = None
@@ -143,6 +150,8 @@ class ControllerNode:
         the token, and start claiming the vehicle."""
         t, k = transport, self.keys
         self.transport = t
+        log.info("controller identity %s (%s)", t.id, "its certificate's common name"
+                 if t.authenticated else "the session id: self-declared on a plain bus")
         if self.plant_zid is not None:
             self._watch_plant(self.plant_zid)
         self._pub = t.publisher(k.cmd)
@@ -172,7 +181,7 @@ class ControllerNode:
                 self._decls.remove(pres)
         self._plant_presence = None
         self.plant_zid = None
-        self.granted, self.owner = False, None
+        self.granted, self.grant_reason = False, None
         self.plant_present, self.plant_seen, self._fallback = False, False, False
         with self._lock:
             self._pending = self._held = None
@@ -194,7 +203,7 @@ class ControllerNode:
                 self._claim_wake.clear()
                 continue
             try:
-                replies = claim(self.transport, self.keys, n)
+                replies = claim(self.transport, self.keys, n, to=bound, wheel_wear=True)
             except Exception as e:  # the transport is closing
                 log.debug("claim failed: %s", e)
                 replies = []
@@ -213,13 +222,14 @@ class ControllerNode:
                     if not self.plant_present and self._plant_presence is not None:
                         self._fallback = True
                         self._on_plant_change(True, via="claims")
-                    self._set_granted(g["granted"], g.get("owner"))
+                    self._set_granted(g["granted"], g["reason"])
             wait = CLAIM_REFRESH_S if self.granted else CLAIM_RETRY_S
             self._claim_wake.wait(wait)
             self._claim_wake.clear()
 
-    def _set_granted(self, granted: bool, owner: str | None) -> None:
-        was, self.granted, self.owner = self.granted, granted, owner
+    def _set_granted(self, granted: bool, reason: str) -> None:
+        was, self.granted = self.granted, granted
+        told, self.grant_reason = self.grant_reason, reason
         if granted and not was:
             log.info("vehicle %s granted by plant %s", self.keys.id, self.plant_zid)
             with self._lock:  # a state that arrived before the grant's reply
@@ -227,12 +237,18 @@ class ControllerNode:
                     self._pending, self._held = self._held, None
             self._event.set()
         elif was and not granted:
-            log.warning("plant %s no longer grants vehicle %s to this controller (owner: %s): "
-                        "not commanding", self.plant_zid, self.keys.id, owner or "nobody")
-        elif not granted and owner is not None and owner != self.transport.id:
-            log.debug("vehicle %s is owned by %s; waiting", self.keys.id, owner)
-        if self.rec is not None and granted != was:
-            self.rec.event("granted", granted=granted, owner=owner)
+            log.warning("plant %s no longer grants vehicle %s to this controller (%s): "
+                        "not commanding", self.plant_zid, self.keys.id, reason)
+        if not granted and reason != told:
+            if reason == LATCHED:
+                log.warning("vehicle %s is latched (it lost its controller): an operator "
+                            "re-arms it for this controller with: msagv arm --id %s "
+                            "--controller %s", self.keys.id, self.keys.id, self.transport.id)
+            else:
+                log.info("vehicle %s not granted: %s; claiming again every %g s", self.keys.id,
+                         reason, CLAIM_RETRY_S)
+        if self.rec is not None and (granted != was or reason != told):
+            self.rec.event("granted", granted=granted, reason=reason)
 
     def close(self) -> None:
         self._closing.set()
@@ -305,11 +321,11 @@ class ControllerNode:
         from the bound plant is rejected as ``not_bound``."""
         key = self.keys.state
         try:
-            st = M.decode_state(payload, self.nw)
             if sender is None or sender != self.plant_zid:
-                who = sender or "a session without source info"
+                who = sender or "a sender without identity (protocol version 1)"
                 raise M.MessageError(M.NOT_BOUND, f"from {who}; bound to plant "
                                                   f"{self.plant_zid or '(none yet)'}")
+            st = M.decode_state(payload, self.nw)
         except M.MessageError as e:
             self.rej.add(e, key)
             if self.rec is not None:
@@ -407,17 +423,36 @@ class ControllerNode:
         self._claim_wake.set()
 
     def step(self, st: dict, rx_perf: float) -> str:
-        """Solve for one state and send the command. Returns 'sent', 'end', 'duplicate',
-        'stale', 'no plant' or 'not granted'."""
+        """Solve for one state and send the command. Returns 'sent', 'resent' (the same
+        command again for a state sent again), 'end', 'duplicate', 'stale', 'no plant' or
+        'not granted'."""
         seq = st["seq"]
         last = self._last_seq
-        again = st is self._again  # a held state, solved before, answered now
+        held = self._again
+        again = held is not None and st is held[0]  # a held state, solved before, answered now
         if again:
             self._again = None
+        # a state solved before is answered with the command computed then: a second solve
+        # would start from the first one's warm start (no longer the in-process run's)
+        reuse = held[1] if again else None
         if last is not None and seq == last and not again:
-            self.stats.duplicates += 1
-            return "duplicate"
-        if not again and (last is None or seq == 0 or seq < last):
+            sent = self._sent
+            if st.get("end") or sent is not None and sent[0] == seq:
+                if st.get("end") or not (self.granted and self.plant_present):
+                    self.stats.duplicates += 1
+                    return "duplicate"
+                # the plant sent this state again: our answer was lost (a lockstep plant
+                # re-sends an unanswered state); the same command again, not a new solve
+                self._pub.put(sent[1], self._cmd_seq - 1)
+                self.stats.resent += 1
+                if self.rec is not None:
+                    self.rec.message("tx", self.keys.cmd, sent[1])
+                return "resent"
+            # never answered (dropped while the plant was away, or not granted): answer it
+            solved = self._solved
+            if solved is not None and solved[0] == seq:
+                reuse = solved[1]
+        if reuse is None and (last is None or seq == 0 or seq < last):
             # a new plant run (or the first state seen): forget the warm start and reseed,
             # as closed_loop does after its warm-up
             self.mpc.reset()
@@ -435,8 +470,12 @@ class ControllerNode:
             ref_msg, self._pending_ref = self._pending_ref, None
         if ref_msg is not None:
             self._set_reference(ref_msg, st["t"])
-        cmd = self.mpc.step(st)
-        self.stats.solve_ms.append(cmd.solve_ms)
+        if reuse is not None:
+            cmd = reuse
+        else:
+            cmd = self.mpc.step(st)
+            self._solved = (seq, cmd)
+            self.stats.solve_ms.append(cmd.solve_ms)
         if self.cfg.max_age_ms is not None and \
                 (time.perf_counter() - rx_perf) * 1000.0 > self.cfg.max_age_ms:
             self.stats.dropped_stale += 1
@@ -445,23 +484,23 @@ class ControllerNode:
             self.stats.ignored_no_plant += 1
             if self.stats.ignored_no_plant <= 3:
                 log.warning("state %d solved but not answered: the plant is not present", seq)
-            self._hold(st, rx_perf, last)  # answered if the plant shows up again
+            self._hold(st, rx_perf, cmd)  # answered if the plant shows up again
             return "no plant"
         if not self.granted:
             self.stats.not_granted += 1
             if self.stats.not_granted <= 3:
                 # nobody owns it yet: our claim's answer is on its way (the plant publishes
                 # its first state as it grants); another owner: we are not driving
-                (log.info if self.owner is None else log.warning)(
-                    "state %d solved but not answered: the plant does not grant us the "
-                    "vehicle (owner: %s)", seq, self.owner or "nobody yet")
+                log.info("state %d solved but not answered: the plant does not grant us the "
+                         "vehicle (%s)", seq, self.grant_reason or "no answer to our claim yet")
             # answered once the grant comes: the plant publishes its first state as soon
             # as it grants, which can arrive before the grant's reply
-            self._hold(st, rx_perf, last)
+            self._hold(st, rx_perf, cmd)
             return "not granted"
         payload = M.encode_cmd(self._cmd_seq, st["t"], seq, cmd.omega_w, cmd.omega_s,
                                solve_ms=cmd.solve_ms, cost=cmd.cost)
         self._pub.put(payload, self._cmd_seq)
+        self._sent = (seq, payload)
         self._cmd_seq += 1
         if self.rec is not None:
             self.rec.message("tx", self.keys.cmd, payload)
@@ -472,12 +511,12 @@ class ControllerNode:
         self.stats.answered += 1
         return "sent"
 
-    def _hold(self, st: dict, rx_perf: float, last: int | None = None) -> None:
-        """Keep a solved but unanswered state to answer later (unless a newer one came);
-        ``--max-age-ms`` still drops it if it is too old by then."""
+    def _hold(self, st: dict, rx_perf: float, cmd) -> None:
+        """Keep a solved but unanswered state, with its command, to answer later (unless a
+        newer one came); ``--max-age-ms`` still drops it if it is too old by then."""
         with self._lock:
             if self._held is None and self._pending is None:
-                self._again = st
+                self._again = (st, cmd)
                 if self.granted and self.plant_present:
                     # the grant (or the plant) came while this state was being solved
                     self._pending = (st, rx_perf)
@@ -505,7 +544,8 @@ class ControllerNode:
                 "solve_ms": percentiles_ms(np.asarray(s.solve_ms) / 1000.0),
                 "skipped": s.skipped, "duplicates": s.duplicates, "new_runs": s.new_runs,
                 "dropped_stale": s.dropped_stale, "ignored_no_plant": s.ignored_no_plant,
-                "not_granted": s.not_granted, "plant_zid": self.plant_zid,
+                "not_granted": s.not_granted, "resent": s.resent, "plant_zid": self.plant_zid,
+                "grant": self.grant_reason,
                 "loss": {"state": self.loss.state, "suspicions": self.loss.suspicions,
                          "stalls": self.loss.stalls},
                 "references": s.references, "ends": s.ends, "rejected": self.rej.summary(),
@@ -539,9 +579,11 @@ def realtime_defaults(run_mode: str | None, deadline_ms: float | None,
 def fetch_params(transport: Transport, keys: Keys, wait_s: float, stop: threading.Event
                  ) -> tuple[dict, str]:
     """The plant's params (validated) and the identity of the plant that answered,
-    retrying until ``wait_s`` (0: forever). Answers from two or more different sessions are
-    refused (a second plant, or a rogue, on the same vehicle id): nothing is bound, and the
-    query is repeated."""
+    retrying until ``wait_s`` (0: forever). Answers from two or more identities are refused
+    (a second plant, or a rogue, on the same vehicle id): nothing is bound, and the query
+    is repeated. Error replies (which name nobody) do not count as answers. On a plain bus
+    the answer is taken on trust, with a warning; with ``--secure`` only a plant
+    certificate of this vehicle can answer (the access control)."""
     t0 = time.monotonic()
     told = False
     last_err = None
@@ -561,6 +603,14 @@ def fetch_params(transport: Transport, keys: Keys, wait_s: float, stop: threadin
                 good.setdefault(zid, m)
             if len(good) == 1:
                 (zid, m), = good.items()
+                if transport.authenticated:
+                    log.info("params from plant %s (its certificate's common name, checked by "
+                             "the bus's access control)", zid)
+                else:
+                    log.warning("plain bus: the params of plant %s are taken on trust: any "
+                                "peer can answer as any identity here, so a lone liar would "
+                                "not be told from the plant (--secure: the plant's "
+                                "certificate proves it; docs/SECURITY.md)", zid)
                 return m, zid
             if len(good) > 1:
                 last_err = (f"{len(good)} plant sessions answer {keys.params} "

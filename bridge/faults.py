@@ -1,19 +1,22 @@
 """Malformed messages of every kind docs/PROTOCOL.md rejects, for fault-injection tests.
 
 :func:`malformed` yields payloads that a conforming receiver must reject, each with the
-reason code it must count. ``python -m msagv.bridge.faults`` sends them at a running plant
-(``cmd``) and/or controller (``state``, ``reference``)::
+reason code it must count; :func:`flood` puts them on the bus through a
+:class:`bridge.transport.Transport`. ``python -m msagv.faults`` (the command line, in
+:mod:`msagv.faults`) sends them at a running plant (``cmd``) and/or controller (``state``,
+``reference``)::
 
-    python -m msagv.bridge.faults --connect tcp/127.0.0.1:7448 --id agv0 --count 10000 --at both
+    python -m msagv.faults --connect tcp/127.0.0.1:7448 --id agv0 --count 10000 --at both
+
+A receiver checks the sender first (docs/PROTOCOL.md section 5): from the flood's own
+identity every ``cmd`` is ``not_owner`` and every ``state`` ``not_bound``; the owner's
+(or the bound plant's) malformed messages are counted by their malformation.
 """
 
 from __future__ import annotations
 
-import argparse
 import itertools
-import json
 import math
-import sys
 import time
 from typing import Iterator
 
@@ -79,6 +82,7 @@ def state_cases(nw: int) -> list[tuple[bytes, str]]:
     """Malformed ``state`` payloads for a vehicle with ``nw`` wheels, with their reasons."""
     base = _valid_state(nw)
     return _variants(base, M.STATE_REQUIRED, ("delta", "omega_w"), ("x", "t"), "omega_w", [
+        (b"\x80" + b"\x00" * M.MAX_STATE_BYTES, M.TOO_LARGE),
         (M.pack(dict(base, seq=-1)), M.BAD_VALUE),
         (M.pack(dict(base, seq=1.5)), M.BAD_TYPE),
         (M.pack(dict(base, end="yes")), M.BAD_TYPE),
@@ -90,6 +94,7 @@ def cmd_cases(nw: int) -> list[tuple[bytes, str]]:
     (any plant that has published fewer than 10^9 states rejects them)."""
     base = _valid_cmd(nw)
     return _variants(base, M.CMD_REQUIRED, ("omega_w", "omega_s"), ("t",), "omega_w", [
+        (b"\x80" + b"\x00" * M.MAX_CMD_BYTES, M.TOO_LARGE),
         (M.pack(base), M.UNKNOWN_STATE),
         (M.pack(dict(base, state_seq=10 ** 12, t=10 ** 10)), M.UNKNOWN_STATE),
         # t not that of state 0 (UNKNOWN_STATE instead before the plant's first state)
@@ -117,51 +122,25 @@ def malformed(kind: str, nw: int, count: int) -> Iterator[tuple[bytes, str]]:
     return itertools.islice(itertools.cycle(cases), count)
 
 
-def flood(session, vid: str, kind: str, nw: int, count: int, rate_hz: float | None = None) -> dict:
-    """Put ``count`` malformed ``kind`` messages on ``msagv/{vid}/{kind}`` (reliable,
-    blocking congestion control: none is dropped on the way). Returns counts by reason."""
-    import zenoh
-
+def flood(transport, vid: str, kind: str, nw: int, count: int,
+          rate_hz: float | None = None) -> dict:
+    """Put ``count`` malformed ``kind`` messages on ``msagv/{vid}/{kind}`` as ``transport``'s
+    identity (:class:`bridge.transport.Transport`; over Zenoh reliable with blocking
+    congestion control: none is dropped on the way). Returns the counts by the reason of
+    their malformation."""
     key = f"msagv/{vid}/{kind}"
-    pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
-                                    reliability=zenoh.Reliability.RELIABLE)
+    pub = transport.publisher(key)
     t0 = time.monotonic()
     by: dict[str, int] = {}
     try:
         for i, (payload, reason) in enumerate(malformed(kind, nw, count)):
-            pub.put(payload)
+            pub.put(payload, i)
             by[reason] = by.get(reason, 0) + 1
             if rate_hz:
                 delay = t0 + (i + 1) / rate_hz - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
     finally:
-        pub.undeclare()
-    return {"key": key, "sent": count, "by_reason": by, "seconds": time.monotonic() - t0}
-
-
-def main(argv: list[str] | None = None) -> int:
-    from .session import add_session_args, open_session, options_from_args
-
-    ap = argparse.ArgumentParser(prog="python -m msagv.bridge.faults", description=__doc__.splitlines()[0])
-    ap.add_argument("--count", type=int, default=10000, help="messages per target kind")
-    ap.add_argument("--at", choices=["plant", "controller", "both"], default="both",
-                    help="plant: cmd messages; controller: state and reference messages")
-    ap.add_argument("--wheels", type=int, default=4, help="2n of the vehicle (default 4)")
-    ap.add_argument("--rate", type=float, help="messages per second per kind (default: as fast "
-                                               "as the receivers take them)")
-    add_session_args(ap)
-    a = ap.parse_args(argv)
-    opts = options_from_args(a)
-    kinds = {"plant": ["cmd"], "controller": ["state", "reference"],
-             "both": ["cmd", "state", "reference"]}[a.at]
-    with open_session(opts, "tool") as s:
-        time.sleep(0.3)  # let the declarations of the receivers arrive
-        out = [flood(s, opts.id, k, a.wheels, a.count, a.rate) for k in kinds]
-        time.sleep(0.3)
-    print(json.dumps(out))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        pub.close()
+    return {"key": key, "sent": count, "by_reason": by, "seconds": time.monotonic() - t0,
+            "as": transport.id}

@@ -9,7 +9,9 @@ and without a network. It delivers as Zenoh does from a node's point of view:
   :class:`~bridge.transport.TransportError`, as Zenoh refuses it;
 * a message reaches every matching subscriber, of every endpoint (the sender's own too),
   with the sender's identity; a query reaches every matching queryable (target ALL, no
-  consolidation) and returns their replies with the repliers' identities;
+  consolidation; or only the one of ``to``) and returns their replies with the repliers'
+  identities; an error reply names nobody (as on Zenoh, where the identity is in an ok
+  reply's key);
 * a token exists from its declaration until it is closed, dropped (as zenoh-python
   undeclares a token it garbage-collects: keep the handle), its endpoint is closed, or it
   vanishes (:meth:`LoopbackBus.vanish`); watchers see it appear and disappear, and the
@@ -25,10 +27,14 @@ order, as on Zenoh. An exception in a callback is logged and kept in
 :attr:`LoopbackBus.errors` (Zenoh, too, does not hand it to the sender); the tests check
 that list is empty.
 
+**Identity.** ``LoopbackBus(authenticated=True)`` stands for a ``--secure`` bus (its
+endpoints' ``authenticated`` is True); the bus itself never checks an identity.
+
 **Faults.** :meth:`LoopbackBus.endpoint` takes any identity, also one another endpoint
 has (a rogue that claims to be the owner); :meth:`LoopbackBus.inject` delivers a message
-with any sender, or none (a message without source info); :meth:`LoopbackBus.drop` loses
-the next messages on a key; :meth:`LoopbackBus.vanish` removes a token as an expired lease
+with any sender, or none (a client of the first protocol version);
+:meth:`LoopbackBus.inject_query` asks the same way; :meth:`LoopbackBus.drop` loses the
+next messages on a key; :meth:`LoopbackBus.vanish` removes a token as an expired lease
 does, without its endpoint knowing.
 
 Example (docs/ARCHITECTURE.md, "The transport seam")::
@@ -177,6 +183,7 @@ class LoopbackTransport:
     def __init__(self, bus: "LoopbackBus", id: str):
         self.bus = bus
         self.id = id
+        self.authenticated = bus.authenticated
         self.closed = False
         self._publishers: list[LoopbackPublisher] = []
 
@@ -201,10 +208,11 @@ class LoopbackTransport:
         self._check_open()
         return self.bus._add(_Entry(self.bus, "queryables", self, key, callback))
 
-    def query(self, selector: str, payload: bytes | None = None, *, sn: int = 0,
-              timeout: float = 1.0) -> list[Reply]:
+    def query(self, selector: str, payload: bytes | None = None, *, to: str | None = None,
+              sn: int = 0, timeout: float = 1.0) -> list[Reply]:
         self._check_open()
-        return self.bus._query(selector, None if payload is None else bytes(payload), self.id)
+        return self.bus._query(selector, None if payload is None else bytes(payload), self.id,
+                               to)
 
     def declare_token(self, key: str) -> _Token:
         self._check_open()
@@ -232,7 +240,8 @@ class LoopbackTransport:
 class LoopbackBus:
     """The in-memory bus (see the module). Thread-safe."""
 
-    def __init__(self):
+    def __init__(self, authenticated: bool = False):
+        self.authenticated = authenticated
         self._lock = threading.Lock()
         self._ids = itertools.count(1)
         self._tables: dict[str, list[_Entry]] = {"subs": [], "queryables": [], "tokens": [],
@@ -259,6 +268,12 @@ class LoopbackBus:
         the sender's identity); returns the number of subscribers reached."""
         chunks = key_chunks(key)
         return self._publish(key, chunks, bytes(payload), sender, sn)
+
+    def inject_query(self, selector: str, payload: bytes | None = None,
+                     sender: str | None = None) -> list[Reply]:
+        """Ask the queryables matching ``selector`` as ``sender`` (None: a query without the
+        querier's identity); returns their replies."""
+        return self._query(selector, None if payload is None else bytes(payload), sender)
 
     def drop(self, key: str, count: int = 1) -> None:
         """Lose the next ``count`` messages published on keys matching ``key``."""
@@ -312,15 +327,19 @@ class LoopbackBus:
         with self._lock:
             return any(intersects(e.chunks, chunks) for e in self._tables["subs"])
 
-    def _query(self, selector: str, payload: bytes | None, sender: str | None) -> list[Reply]:
+    def _query(self, selector: str, payload: bytes | None, sender: str | None,
+               to: str | None = None) -> list[Reply]:
         key, params = parse_selector(selector)
         chunks = key_chunks(key)
         with self._lock:
-            qbls = [e for e in self._tables["queryables"] if intersects(e.chunks, chunks)]
+            qbls = [e for e in self._tables["queryables"] if intersects(e.chunks, chunks)
+                    and (to is None or e.owner.id == to)]
         replies: list[Reply] = []
         for e in qbls:
             def answer(ok: bool, data: bytes, e=e) -> None:
-                replies.append(Reply(e.owner.id, bytes(data), ok, e.key if ok else None))
+                ok = ok and sender is not None  # (a reply names its querier, as on Zenoh)
+                replies.append(Reply(e.owner.id if ok else None, bytes(data), ok,
+                                     e.key if ok else None))
 
             self._call(e.callback, Query(key, dict(params), payload, sender, answer))
         return replies

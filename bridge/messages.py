@@ -29,11 +29,12 @@ CONTENT_TYPE = "application/msgpack"
 MAX_STATE_BYTES = 64 * 1024
 MAX_CMD_BYTES = 64 * 1024
 MAX_PARAMS_BYTES = 1024 * 1024
-MAX_REFERENCE_BYTES = 32 * 1024 * 1024
-MAX_REFERENCE_SAMPLES = 1_000_000
+MAX_REFERENCE_BYTES = 1024 * 1024  # the largest message: Zenoh's own limit is just above it
+MAX_REFERENCE_SAMPLES = 25_000  # (36 bytes a sample: a 25,000-sample reference is ~0.9 MB)
 
 # reason codes (docs/PROTOCOL.md, "Validation and rejection")
-NOT_MSGPACK = "not_msgpack"  # undecodable bytes, trailing bytes, too large
+NOT_MSGPACK = "not_msgpack"  # undecodable bytes, trailing bytes, empty
+TOO_LARGE = "too_large"  # larger than the message's limit (Zenoh drops what exceeds its own)
 NOT_A_MAP = "not_a_map"  # valid msgpack but not a map (non-string keys are not_msgpack)
 VERSION_MISMATCH = "version"  # v missing, not an integer, or not VERSION
 MISSING_FIELD = "missing_field"
@@ -45,11 +46,11 @@ NEGATIVE_WHEEL_SPEED = "negative_wheel_speed"
 BAD_VALUE = "value"  # out of the field's domain (negative seq, t not increasing, ...)
 UNKNOWN_STATE = "unknown_state"  # a command answering a state the plant never published
 T_MISMATCH = "t_mismatch"  # a command's t is not the t of the state it answers
-NOT_OWNER = "not_owner"  # a command from a session that does not own the vehicle
-NOT_BOUND = "not_bound"  # a state or params from a plant the controller is not bound to
-REASONS = (NOT_MSGPACK, NOT_A_MAP, VERSION_MISMATCH, MISSING_FIELD, EXTRA_FIELD, BAD_TYPE,
-           BAD_LENGTH, NON_FINITE, NEGATIVE_WHEEL_SPEED, BAD_VALUE, UNKNOWN_STATE, T_MISMATCH,
-           NOT_OWNER, NOT_BOUND)
+NOT_OWNER = "not_owner"  # a command from an identity that does not own the vehicle
+NOT_BOUND = "not_bound"  # a state from a plant the controller is not bound to
+REASONS = (NOT_MSGPACK, TOO_LARGE, NOT_A_MAP, VERSION_MISMATCH, MISSING_FIELD, EXTRA_FIELD,
+           BAD_TYPE, BAD_LENGTH, NON_FINITE, NEGATIVE_WHEEL_SPEED, BAD_VALUE, UNKNOWN_STATE,
+           T_MISMATCH, NOT_OWNER, NOT_BOUND)
 
 # field tables: name -> kind. kinds: "int" (>= 0), "float" (finite), "wheels" (2n finite
 # floats), "wheels+" (2n finite floats >= 0), "bool", "float+" (finite, >= 0), "str"
@@ -150,7 +151,7 @@ def unpack(payload, max_bytes: int) -> dict:
     if not isinstance(payload, (bytes, bytearray)):
         raise MessageError(NOT_MSGPACK, f"payload is {type(payload).__name__}, not bytes")
     if len(payload) > max_bytes:
-        raise MessageError(NOT_MSGPACK, f"payload of {len(payload)} bytes exceeds {max_bytes}")
+        raise MessageError(TOO_LARGE, f"payload of {len(payload)} bytes exceeds {max_bytes}")
     if not payload:
         raise MessageError(NOT_MSGPACK, "empty payload")
     try:
@@ -164,12 +165,12 @@ def unpack(payload, max_bytes: int) -> dict:
     return obj
 
 
-def _check_version(m: dict) -> None:
+def _check_version(m: dict, version: int = VERSION) -> None:
     if "v" not in m:
         raise MessageError(VERSION_MISMATCH, "no schema version field 'v'")
     v = m["v"]
-    if isinstance(v, bool) or not isinstance(v, int) or v != VERSION:
-        raise MessageError(VERSION_MISMATCH, f"schema version v = {v!r}, this side speaks {VERSION}")
+    if isinstance(v, bool) or not isinstance(v, int) or v != version:
+        raise MessageError(VERSION_MISMATCH, f"schema version v = {v!r}, this side speaks {version}")
 
 
 def _number(name: str, val) -> float:
@@ -194,8 +195,11 @@ def _array(name: str, val, n: int, nonneg: bool) -> list[float]:
     return out
 
 
-def _fields(m: dict, required: dict, optional: dict, n: int | None) -> dict:
-    _check_version(m)
+def fields(m: dict, required: dict, optional: dict, n: int | None,
+           version: int = VERSION) -> dict:
+    """Validate the map ``m`` against its field tables (schema version ``version``, wheel
+    arrays of ``n`` entries); the checks and their order of docs/PROTOCOL.md section 5."""
+    _check_version(m, version)
     missing = [k for k in required if k not in m]
     if missing:
         raise MessageError(MISSING_FIELD, f"missing field(s) {', '.join(missing)}")
@@ -242,17 +246,17 @@ def _fields(m: dict, required: dict, optional: dict, n: int | None) -> dict:
 
 def decode_state(payload, n_wheels: int) -> dict:
     """Validate a ``state`` message for a vehicle with ``n_wheels`` (= 2n) wheels."""
-    return _fields(unpack(payload, MAX_STATE_BYTES), STATE_REQUIRED, STATE_OPTIONAL, n_wheels)
+    return fields(unpack(payload, MAX_STATE_BYTES), STATE_REQUIRED, STATE_OPTIONAL, n_wheels)
 
 
 def decode_cmd(payload, n_wheels: int) -> dict:
     """Validate a ``cmd`` message (the state it answers is checked by the plant)."""
-    return _fields(unpack(payload, MAX_CMD_BYTES), CMD_REQUIRED, CMD_OPTIONAL, n_wheels)
+    return fields(unpack(payload, MAX_CMD_BYTES), CMD_REQUIRED, CMD_OPTIONAL, n_wheels)
 
 
 def decode_reference(payload) -> dict:
     """Validate a ``reference`` message: equal lengths >= 3, t strictly increasing."""
-    m = _fields(unpack(payload, MAX_REFERENCE_BYTES), REFERENCE_REQUIRED, REFERENCE_OPTIONAL,
+    m = fields(unpack(payload, MAX_REFERENCE_BYTES), REFERENCE_REQUIRED, REFERENCE_OPTIONAL,
                 None)
     n = len(m["t"])
     for k in ("x", "y", "phi"):
@@ -269,7 +273,7 @@ def decode_reference(payload) -> dict:
 
 def decode_params(payload) -> dict:
     """Validate a ``params`` reply; the vehicle itself is checked by ``vehicle_from_dict``."""
-    m = _fields(unpack(payload, MAX_PARAMS_BYTES), PARAMS_REQUIRED, PARAMS_OPTIONAL, None)
+    m = fields(unpack(payload, MAX_PARAMS_BYTES), PARAMS_REQUIRED, PARAMS_OPTIONAL, None)
     if m["run_mode"] not in RUN_MODES:
         raise MessageError(BAD_VALUE, f"run_mode '{m['run_mode']}' is not one of {RUN_MODES}")
     if not m["period"] > 0:

@@ -6,13 +6,16 @@ tests); :func:`serve` opens the Zenoh one unless given another.
 
 Publishes ``msagv/{id}/state`` every control period, applies commands from
 ``msagv/{id}/cmd``, serves the vehicle description on the queryable ``msagv/{id}/params``
-and declares the liveliness token ``msagv/{id}/alive/plant``. Two stepping modes
-(docs/PROTOCOL.md, "Modes"):
+(read-only), grants the vehicle on ``msagv/{id}/claim``, takes an operator's re-arm on
+``msagv/{id}/arm`` and declares the liveliness token ``msagv/{id}/alive/plant/{identity}``
+(the transport adds every sender's identity to the keys: docs/PROTOCOL.md, "Keys"). Two
+stepping modes (docs/PROTOCOL.md, "Modes"):
 
 * ``--run-mode lockstep`` (default): publish state k, step when the command answering
   ``state_seq = k`` arrives. Deterministic and as fast as the controller answers; a run
-  matches ``msagv run`` in-process. No command within ``--timeout`` ends the run with an
-  error (exit 3).
+  matches ``msagv run`` in-process. State k is published again every ``RESEND_S`` while
+  unanswered (a state or command lost with a closed link would otherwise stall the run);
+  no command within ``--timeout`` ends the run with an error (exit 3).
 * ``--run-mode realtime``: step on the wall clock at 1/T with the newest valid command.
   :class:`bridge.loss.CommandWatch` decides every period: more than ``--stale-ms / T``
   consecutive periods without an answer (default 5), or the owner's liveliness token gone,
@@ -20,9 +23,12 @@ and declares the liveliness token ``msagv/{id}/alive/plant``. Two stepping modes
   ``--safe-decel``) until the owner keeps up again for ``--resume-periods``. Missed
   periods (overruns) and late commands are counted.
 
-One controller session owns the vehicle (:class:`bridge.ownership.Ownership`): it claims
-it on ``msagv/{id}/claim``; commands from any other session are rejected (``not_owner``)
-and only the owner's token ``alive/controller/{zid}`` counts as the controller's presence.
+One controller owns the vehicle (:class:`bridge.ownership.Ownership`): it claims it on
+``msagv/{id}/claim``; commands from any other identity are rejected (``not_owner``, before
+they are decoded, so a flood costs little) and only the owner's token
+``alive/controller/{identity}`` counts as the controller's presence. Once the run has
+started, losing the owner latches the vehicle until an operator re-arms it
+(``msagv arm``) or the ``--rearm`` policy lets the same identity back.
 """
 
 from __future__ import annotations
@@ -42,7 +48,8 @@ from msagv.plant.signals import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
 
 from . import messages as M
 from .loss import SAFE, STALE_MS, CommandWatch
-from .ownership import CLAIM, Ownership, decode_claim, encode_grant
+from .ownership import (BAD_ARM, BAD_CLAIM, CLAIM, LATCHED, Ownership, RearmPolicy,
+                        decode_arm, decode_claim, encode_armed, encode_grant)
 from .presence import TokenSet
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_heap
 from .session import Keys, SessionError, SessionOptions
@@ -53,7 +60,9 @@ log = logging.getLogger("msagv.plant")
 
 
 WHEEL_WEAR_MODES = ("auto", "on", "off")
-WHEEL_WEAR_PARAM = "wheel_wear"  # the params query's parameter asking for per-wheel wear
+RESEND_S = 1.0  # lockstep: an unanswered state is published again after this long
+OLD_CLIENT = ("msagv protocol 2 (docs/PROTOCOL.md): this query carried no identity, as a "
+              "client of the first version asks; ask {key}/*/{{your identity}} instead")
 
 
 class PlantRunError(RuntimeError):
@@ -88,8 +97,11 @@ class PlantConfig:
     safe_decel: float = 2.0
     linger_s: float = 0.2
     resume_periods: int = 3
-    wheel_wear: str = "auto"  # per-wheel wear in the state: auto (when the params query
-    # asked for it, docs/PROTOCOL.md "Per-wheel wear") | on | off
+    wheel_wear: str = "auto"  # per-wheel wear in the state: auto (when the owner's claim
+    # asks for it, docs/PROTOCOL.md "Per-wheel wear") | on | off
+    rearm: str = "manual"  # how a latched vehicle is driven again (RearmPolicy): manual |
+    # same:N
+    resend_s: float = RESEND_S  # lockstep: republish an unanswered state after this long
 
     def __post_init__(self):
         if self.run_mode not in M.RUN_MODES:
@@ -111,6 +123,9 @@ class PlantConfig:
         if self.wheel_wear not in WHEEL_WEAR_MODES:
             raise ValueError(f"--wheel-wear: expected one of {', '.join(WHEEL_WEAR_MODES)}, "
                              f"got '{self.wheel_wear}'")
+        RearmPolicy.parse(self.rearm)  # ValueError naming --rearm
+        if not self.resend_s > 0:
+            raise ValueError(f"resend_s must be > 0, got {self.resend_s}")
 
     @property
     def max_missed(self) -> int:
@@ -147,6 +162,8 @@ class PlantStats:
     missed_periods: int = 0
     clock_resyncs: int = 0
     controller_losses: int = 0
+    resent: int = 0  # states published again because their answer did not come
+    old_clients: int = 0  # queries without an identity (clients of the first version)
     latency_s: list = field(default_factory=list)  # state published -> command received, - solve
     roundtrip_s: list = field(default_factory=list)  # state published -> command received
     lateness_s: list = field(default_factory=list)  # state publication - its nominal time
@@ -188,13 +205,15 @@ class PlantNode:
         self._decls = []
         self._token = None
         self.ramp = cfg.safe_decel / self.vehicle.wheel_radius  # rad/s^2
-        self.ownership = Ownership(on_change=self._on_owner_change)
+        self.ownership = Ownership(on_change=self._on_owner_change,
+                                   policy=RearmPolicy.parse(cfg.rearm), period=cfg.period,
+                                   on_event=self._on_ownership_event)
         self.watch = CommandWatch(cfg.max_missed, cfg.resume_periods, cfg.period)
         self._tokens: TokenSet | None = None
         self._refused_logged = 0
-        # the per-wheel wear fields go out when on, or (auto) when the newest params query
-        # asked for them: a peer of the first protocol version rejects unknown fields
-        self.wheel_wear = cfg.wheel_wear == "on"
+        # the per-wheel wear fields go out when on, or (auto) when the owner's claim asks
+        # for them: a peer of the first protocol version rejects unknown fields
+        self._wheel_wear_told = False  # the per-wheel wear last logged and recorded
 
     # ---- transport ---------------------------------------------------------------------
     def open(self, transport: Transport) -> None:
@@ -207,6 +226,7 @@ class PlantNode:
         self._decls.append(t.subscribe(k.cmd, self._on_cmd_sample))
         self._decls.append(t.queryable(k.params, self._on_params_query))
         self._decls.append(t.queryable(k.claim, self._on_claim_query))
+        self._decls.append(t.queryable(k.arm, self._on_arm_query))
         if self.rec is not None:
             self._decls.append(t.subscribe(k.reference, self._on_reference_sample))
         self._tokens = TokenSet(t, k.alive_controller, self._on_token)
@@ -223,42 +243,110 @@ class PlantNode:
                     pass
         self._token, self._decls, self._pub = None, [], None
 
+    def _old_client(self, query: Query) -> None:
+        """A query without the querier's identity (a client of the first protocol version):
+        an error reply that says why, and a log line (rate-limited)."""
+        with self._lock:
+            self.stats.old_clients += 1
+            n = self.stats.old_clients
+        if n <= 5 or n % 1000 == 0:
+            log.warning("a query on %s without an identity (a client of the first protocol "
+                        "version?): answered with an error (%d so far)", query.key, n)
+        try:
+            query.reply_err(OLD_CLIENT.format(key=query.key).encode())
+        except Exception as e:  # a vanished querier: nothing to do
+            log.debug("error reply failed: %s", e)
+
     def _on_params_query(self, query: Query) -> None:
-        if self.cfg.wheel_wear == "auto":
-            asked = query.parameters.get(WHEEL_WEAR_PARAM) == "1"
-            if asked != self.wheel_wear:
-                self.wheel_wear = asked
-                log.info("per-wheel wear in the state: %s (asked by the params query)",
-                         "on" if asked else "off")
-                if self.rec is not None:
-                    self.rec.event("wheel_wear", on=asked)
+        """Read-only: the params, to anyone who names itself (docs/PROTOCOL.md 3.4)."""
+        if query.sender is None:
+            return self._old_client(query)
         try:
             query.reply(self._params)
         except Exception as e:  # a vanished querier: nothing to do
             log.debug("params reply failed: %s", e)
 
     def _on_claim_query(self, query: Query) -> None:
-        zid = query.sender
+        who = query.sender
+        if who is None:
+            return self._old_client(query)
         try:
-            action = decode_claim(query.payload if query.payload is not None else b"")
+            c = decode_claim(query.payload if query.payload is not None else b"")
         except M.MessageError as e:
             self.rej.add(e, self.keys.claim)
-            action = None
-        if action is None:
-            granted, owner = False, self.ownership.owner
+            grant = self.ownership.claim(None)
+            grant.reason = BAD_CLAIM
         else:
-            granted, owner = self.ownership.claim(
-                zid, action, token_present=self._tokens is not None and self._tokens.present(zid))
-            if action == CLAIM and not granted:
+            # the owner's wheel_wear is taken with the grant, under the ownership's lock: the
+            # run may start the moment the grant is made, its first state must have it
+            grant = self.ownership.claim(
+                who, c["action"], token_present=self._tokens is not None and self._tokens.present(who),
+                wheel_wear=bool(c.get("wheel_wear", False)))
+            if grant.granted:
+                self._tell_wheel_wear()
+            if c["action"] == CLAIM and not grant.granted:
                 self._refused_logged += 1
                 n = self._refused_logged
                 if n <= 5 or n % 100 == 0:
-                    log.warning("claim of vehicle %s by %s refused: owned by %s (%d refused)",
-                                self.keys.id, zid or "a session without source info", owner, n)
+                    hint = (f"; re-arm it with: msagv arm --id {self.keys.id} --controller {who}"
+                            if grant.reason == LATCHED else "")
+                    log.warning("claim of vehicle %s by %s refused: %s (%d refused)%s",
+                                self.keys.id, who, grant.reason, n, hint)
         try:
-            query.reply(encode_grant(granted, owner))
+            query.reply(encode_grant(grant.granted, grant.reason))
         except Exception as e:
             log.debug("claim reply failed: %s", e)
+
+    def _on_arm_query(self, query: Query) -> None:
+        """An operator's re-arm (``msagv arm``): docs/PROTOCOL.md section 3.8."""
+        who = query.sender
+        if who is None:
+            return self._old_client(query)
+        try:
+            a = decode_arm(query.payload if query.payload is not None else b"")
+        except M.MessageError as e:
+            self.rej.add(e, self.keys.arm)
+            armed, reason = False, BAD_ARM
+        else:
+            armed, reason = self.ownership.arm(who, a.get("controller"),
+                                               t=max(self.seq, 0) * self.cfg.period)
+            if armed:
+                log.warning("vehicle %s re-armed by %s for %s", self.keys.id, who,
+                            a.get("controller") or "the first controller that claims it")
+            else:
+                log.warning("re-arm of vehicle %s by %s refused: %s", self.keys.id, who, reason)
+        try:
+            query.reply(encode_armed(armed, reason))
+        except Exception as e:
+            log.debug("arm reply failed: %s", e)
+
+    @property
+    def wheel_wear(self) -> bool:
+        """Whether the states carry the per-wheel wear: ``--wheel-wear on|off``, or (auto)
+        as the owner's newest granted claim asks."""
+        if self.cfg.wheel_wear != "auto":
+            return self.cfg.wheel_wear == "on"
+        return self.ownership.wheel_wear
+
+    def _tell_wheel_wear(self) -> None:
+        on = self.wheel_wear
+        if on != self._wheel_wear_told:
+            self._wheel_wear_told = on
+            log.info("per-wheel wear in the state: %s (%s)", "on" if on else "off",
+                     "asked by the owner's claim" if self.cfg.wheel_wear == "auto"
+                     else "--wheel-wear")
+            if self.rec is not None:
+                self.rec.event("wheel_wear", on=on)
+
+    def _on_ownership_event(self, name: str, fields: dict) -> None:
+        if name == "latched":
+            log.warning("vehicle %s latched: %s; no claim is granted until an operator "
+                        "re-arms it (msagv arm --id %s)%s", self.keys.id, fields["why"],
+                        self.keys.id, "" if self.ownership.policy.same_after is None else
+                        f" or the same identity claims it again after "
+                        f"{self.ownership.policy.same_after} periods")
+        if self.rec is not None:
+            self.rec.event(name, t=max(self.seq, 0) * self.cfg.period, **fields)
 
     def _on_owner_change(self, owner: str | None, why: str) -> None:
         log.info("vehicle %s: %s", self.keys.id, why)
@@ -309,15 +397,14 @@ class PlantNode:
         """Validate one command; the newest valid one is kept for the next step. Returns
         the decoded command, or None if rejected or ignored (stale, duplicate, or an answer
         to the end state: after_end). ``sender``: the sender's identity (None: the message
-        carried none); a command not from the owner is rejected as ``not_owner``."""
+        carried none); a command not from the owner is rejected as ``not_owner`` before it
+        is decoded (a flood from anyone else costs a comparison)."""
         key = self.keys.cmd
         try:
-            c = M.decode_cmd(payload, self.nw)
             if not self.ownership.accepts(sender):
                 self.ownership.violation(sender)
-                owner = self.ownership.owner
-                raise M.MessageError(M.NOT_OWNER, f"from {sender or 'a session without source info'}"
-                                                  f"; the vehicle is owned by {owner or 'nobody'}")
+                raise M.MessageError(M.NOT_OWNER, self._not_owner(sender))
+            c = M.decode_cmd(payload, self.nw)
             with self._lock:
                 newest_pub = self.seq
             j = c["state_seq"]
@@ -365,6 +452,13 @@ class PlantNode:
         self._cmd_event.set()
         return c
 
+    def _not_owner(self, sender: str | None) -> str:
+        if sender is None:
+            return (f"without the sender's identity: a client of the first protocol version "
+                    f"publishes on {self.keys.cmd}, version 2 on {self.keys.cmd}/{{identity}} "
+                    f"(docs/PROTOCOL.md)")
+        return f"from {sender}, which does not own the vehicle"
+
     # ---- state -------------------------------------------------------------------------
     def publish_state(self, seq: int, end: bool = False) -> None:
         st = self.plant.state_message()
@@ -377,6 +471,8 @@ class PlantNode:
             self._pub_perf[seq] = now
             while len(self._pub_perf) > 4096:
                 self._pub_perf.popitem(last=False)
+        if seq == 0:
+            self.ownership.start()  # from now on a lost owner latches the vehicle
         self._pub.put(payload, seq)
         if self.rec is not None:
             self.rec.message("tx", self.keys.state, payload)
@@ -414,8 +510,11 @@ class PlantNode:
 
     def _wait_answer(self, k: int, timeout_s: float) -> _Cmd | None:
         """Wait for the command answering state k (lockstep: every k; realtime: k = 0). A
-        controller that (re)appears meanwhile is sent state k again. None if stopped."""
-        t0 = time.monotonic()
+        controller that (re)appears meanwhile is sent state k again, and so is the owner
+        every ``resend_s`` while it does not answer (a state, or its answer, lost with a
+        link that was closed: a plant or controller stopped beyond the lease). None if
+        stopped."""
+        t0 = sent = time.monotonic()
         gen = self._ctl_generation
         while True:
             with self._lock:
@@ -436,6 +535,15 @@ class PlantNode:
                     time.sleep(0.005)
                 log.info("controller (re)appeared: sending state %d again", k)
                 self.publish_state(k)
+                sent = time.monotonic()
+            elif self.controller_present and time.monotonic() - sent >= self.cfg.resend_s:
+                self.stats.resent += 1
+                n = self.stats.resent
+                if n <= 5 or n % 100 == 0:
+                    log.info("no answer to state %d for %.1f s: sending it again (%d resent)",
+                             k, time.monotonic() - sent, n)
+                self.publish_state(k)
+                sent = time.monotonic()
             self._cmd_event.wait(0.05)
             self._cmd_event.clear()
 
@@ -558,7 +666,8 @@ class PlantNode:
                          "late": st.late, "lost": lost, "seq_gaps": st.cmd_seq_gaps,
                          "after_end": st.after_end},
             "safe": {"events": st.safe_events, "periods": st.safe_periods, "resumes": st.resumes},
-            "controller_losses": st.controller_losses,
+            "controller_losses": st.controller_losses, "resent_states": st.resent,
+            "old_clients": st.old_clients,
             "periods": (self.watch.summary() if self.cfg.run_mode == "realtime" else None),
             "ownership": self.ownership.summary(),
             "rejected": self.rej.summary(),

@@ -8,18 +8,21 @@ process:
 * ``transport/link/tls``: every link is TLS, and both ends present a certificate signed by
   the deployment's CA (``enable_mtls``); a peer without one, or with one from another CA,
   cannot open a session with an ``msagv`` process;
-* ``access_control``: default deny, and rules by the certificate's common name (Zenoh's
-  ``cert_common_names`` subjects) that let only the plant's identity publish ``state``,
-  declare the ``params``/``claim`` queryables and answer them and declare
-  ``alive/plant/*``, only the controller's identity publish ``cmd``, query
-  ``params``/``claim`` and declare ``alive/controller/*``, and a router's identity forward
-  everything (it enforces the same rules on its own links). Any other identity of the CA
-  (an *observer*) may only subscribe, read the tokens and get ``params``.
+* ``access_control``: default deny, and rules per identity, by the certificate's common
+  name (Zenoh's ``cert_common_names`` subjects). A process's identity on the bus is its
+  certificate's common name, and it travels in the keys (docs/PROTOCOL.md, "Keys"): the
+  rules let each certificate send only under its own name and only for its vehicles. A
+  plant of ``agv0`` may publish ``msagv/agv0/state/{its name}``, answer the
+  ``params``/``claim``/``arm`` queries put to it and declare ``alive/plant/{its name}``; a
+  controller of ``agv0`` may publish ``msagv/agv0/cmd/{its name}`` (and references), ask
+  ``params`` and ``claim`` and declare ``alive/controller/{its name}``; an operator may
+  ``arm`` a vehicle and ask ``params``; an observer may only read and ask ``params``; a
+  router forwards everything (it enforces the same rules on its own links).
 
 The directory (``msagv certs DIR``) holds ``ca.pem``, ``roles.json`` (identity -> common
-name and role) and ``NAME.pem``/``NAME.key`` per identity; ``ca.key`` is needed only to
-add identities later (keep it off the vehicles). docs/SECURITY.md: the threat model and how
-to deploy it across machines.
+name, role and vehicles) and ``NAME.pem``/``NAME.key`` per identity; ``ca.key`` is needed
+only to add identities later (keep it off the vehicles). docs/SECURITY.md: the threat
+model, the rules and how to deploy them across machines.
 """
 
 from __future__ import annotations
@@ -31,8 +34,11 @@ import os
 import re
 from pathlib import Path
 
-ROLES = ("plant", "controller", "router", "observer")
-DEFAULT_IDENTITIES = ("plant", "controller", "router")  # each is its own role
+ROLES = ("plant", "controller", "router", "operator", "observer")
+PER_VEHICLE = ("plant", "controller")  # roles issued once per vehicle: NAME = ROLE-VEHICLE
+SHARED = ("router", "operator")  # roles issued once, for every vehicle of the directory
+ANY = "*"  # an identity's vehicles: every vehicle
+DEFAULT_VEHICLES = ("agv0",)
 MANIFEST = "roles.json"
 CA_CERT, CA_KEY = "ca.pem", "ca.key"
 DEFAULT_SANS = ("localhost", "127.0.0.1", "::1")
@@ -44,17 +50,31 @@ class SecurityError(ValueError):
 
 
 # ---- the certificate directory -------------------------------------------------------------
-def parse_extra(text: str) -> tuple[str, str]:
-    """``NAME`` or ``NAME:ROLE`` (``msagv certs --extra``) -> (name, role); an extra
-    identity is an observer unless a role is given."""
-    name, _, role = text.partition(":")
+def parse_extra(text: str) -> tuple[str, str, tuple[str, ...]]:
+    """``NAME[:ROLE[:VEHICLE,...]]`` (``msagv certs --extra``) -> (name, role, vehicles); an
+    extra identity is an observer of every vehicle unless a role and vehicles are given."""
+    name, _, rest = text.partition(":")
+    role, _, vids = rest.partition(":")
     role = role or "observer"
     if not _NAME_RE.match(name) or name in (CA_CERT[:-4], "roles"):
         raise SecurityError(f"--extra: '{name}' is not a valid identity name (1-64 characters "
                             f"of A-Z a-z 0-9 _ . -, not 'ca' or 'roles')")
     if role not in ROLES:
         raise SecurityError(f"--extra {text}: role must be one of {', '.join(ROLES)}")
-    return name, role
+    return name, role, check_vehicles(vids.split(",") if vids else [ANY], f"--extra {text}")
+
+
+def check_vehicles(vids, what: str = "--vehicle") -> tuple[str, ...]:
+    """Vehicle ids (each one key chunk, as ``--id``) or ``*`` (every vehicle)."""
+    out = []
+    for v in vids:
+        if v != ANY and not _NAME_RE.match(v):
+            raise SecurityError(f"{what}: '{v}' is not a vehicle id (1-64 characters of "
+                                f"A-Z a-z 0-9 _ . -) or *")
+        out.append(v)
+    if not out:
+        raise SecurityError(f"{what}: no vehicle")
+    return tuple(dict.fromkeys(out))
 
 
 def _san(host: str):
@@ -75,12 +95,14 @@ def _write(path: Path, data: bytes, private: bool) -> None:
         f.write(data)
 
 
-def create_certs(directory, extras: list[tuple[str, str]] = (), sans: list[str] = (),
-                 days: int = 825, force: bool = False) -> dict:
+def create_certs(directory, extras=(), sans: list[str] = (), days: int = 825,
+                 force: bool = False, vehicles=DEFAULT_VEHICLES) -> dict:
     """Create (or complete) a certificate directory: a CA (reused if ``ca.pem`` and
-    ``ca.key`` exist), and a key and certificate for ``plant``, ``controller``, ``router``
-    and every ``(name, role)`` of ``extras``. Existing identity files are kept unless
-    ``force``. Returns the manifest (also written to ``roles.json``)."""
+    ``ca.key`` exist); per vehicle of ``vehicles`` a plant and a controller identity
+    (``plant-ID``, ``controller-ID``, common names ``msagv-plant-ID``, ...), allowed that
+    vehicle only; a ``router`` and an ``operator`` for every vehicle; and every
+    ``(name, role[, vehicles])`` of ``extras`` (common name = name). Existing identity files
+    are kept unless ``force``. Returns the manifest (also written to ``roles.json``)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -88,6 +110,14 @@ def create_certs(directory, extras: list[tuple[str, str]] = (), sans: list[str] 
 
     if not 1 <= days <= 36500:
         raise SecurityError(f"--days must be 1..36500, got {days}")
+    vehicles = check_vehicles(vehicles)
+    if ANY in vehicles:
+        raise SecurityError("--vehicle: plant and controller certificates are per vehicle; "
+                            "name the vehicles (an --extra identity may have '*')")
+    wanted = [(f"{role}-{v}", role, (v,)) for v in vehicles for role in PER_VEHICLE]
+    wanted += [(r, r, (ANY,)) for r in SHARED]
+    for e in extras:
+        wanted.append((e[0], e[1], check_vehicles(e[2]) if len(e) > 2 else (ANY,)))
     d = Path(directory)
     if d.exists() and not d.is_dir():
         raise SecurityError(f"{d} exists and is not a directory")
@@ -125,15 +155,17 @@ def create_certs(directory, extras: list[tuple[str, str]] = (), sans: list[str] 
         _write(ca_cert_p, ca.public_bytes(pem), private=False)
         force = True  # a new CA: every identity must be signed again
 
-    manifest = read_manifest(d, missing_ok=True) if not force else {"version": 1, "identities": {}}
-    wanted = [(r, r) for r in DEFAULT_IDENTITIES] + list(extras)
-    for name, role in wanted:
-        cn = f"msagv-{name}" if name in DEFAULT_IDENTITIES else name
+    manifest = read_manifest(d, missing_ok=True) if not force else {"version": 2, "identities": {}}
+    manifest["version"] = 2
+    generated = {n for n, _, _ in wanted[:len(wanted) - len(extras)]}
+    for name, role, vids in wanted:
+        cn = f"msagv-{name}" if name in generated else name
         cert_p, key_p = d / f"{name}.pem", d / f"{name}.key"
         known = manifest["identities"].get(name)
         if known is not None and known["role"] != role:
             raise SecurityError(f"identity '{name}' exists with role {known['role']}, not {role}")
         if cert_p.exists() and key_p.exists() and not force and known is not None:
+            known["vehicles"] = list(vids)  # the rules follow the manifest (no new certificate)
             continue
         key = ec.generate_private_key(ec.SECP256R1())
         cert = (x509.CertificateBuilder()
@@ -151,7 +183,7 @@ def create_certs(directory, extras: list[tuple[str, str]] = (), sans: list[str] 
                 .sign(ca_key, hashes.SHA256()))
         _write(key_p, key_pem(key), private=True)
         _write(cert_p, cert.public_bytes(pem), private=False)
-        manifest["identities"][name] = {"cn": cn, "role": role}
+        manifest["identities"][name] = {"cn": cn, "role": role, "vehicles": list(vids)}
     _write(d / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode(), private=False)
     return manifest
 
@@ -160,18 +192,47 @@ def read_manifest(directory, missing_ok: bool = False) -> dict:
     p = Path(directory) / MANIFEST
     if not p.exists():
         if missing_ok:
-            return {"version": 1, "identities": {}}
+            return {"version": 2, "identities": {}}
         raise SecurityError(f"--secure {directory}: no {MANIFEST} (create the directory with "
                             f"msagv certs {directory})")
     try:
         m = json.loads(p.read_text())
         ids = m["identities"]
         for name, v in ids.items():
-            if v["role"] not in ROLES or not isinstance(v["cn"], str):
+            if v["role"] not in ROLES or not isinstance(v["cn"], str) \
+                    or not _NAME_RE.match(v["cn"].removeprefix("msagv-")):
                 raise ValueError(name)
-    except (ValueError, KeyError, TypeError) as e:
+            # a directory of the first version (no vehicles): every vehicle
+            v["vehicles"] = list(check_vehicles(v.get("vehicles", [ANY]), name))
+    except (ValueError, KeyError, TypeError, AttributeError) as e:
         raise SecurityError(f"--secure {directory}: {MANIFEST} is malformed ({e})") from None
     return m
+
+
+def identity_for(directory, role: str, vid: str, name: str | None = None) -> str:
+    """The identity (a name of ``roles.json``) a process of ``role`` for vehicle ``vid``
+    uses: ``name`` if given, else ``ROLE-VID``, else ``ROLE`` (a router, an operator, or a
+    directory of the first version). SecurityError if there is none, or if it may not
+    serve ``vid``."""
+    if not Path(directory).is_dir():
+        raise SecurityError(f"--secure {directory}: not a directory (create it with "
+                            f"msagv certs {directory})")
+    m = read_manifest(directory)
+    ids = m["identities"]
+    if name is None:
+        name = next((n for n in (f"{role}-{vid}", role) if n in ids), None)
+        if name is None:
+            raise SecurityError(f"--secure {directory}: no identity for a {role} of vehicle "
+                                f"'{vid}' in {MANIFEST} (add one with msagv certs {directory} "
+                                f"--vehicle {vid})")
+    elif name not in ids:
+        raise SecurityError(f"--secure {directory}: no identity '{name}' in {MANIFEST} "
+                            f"(add it with msagv certs {directory} --extra {name}:ROLE)")
+    vids = ids[name]["vehicles"]
+    if ANY not in vids and vid not in vids and role != "router":
+        raise SecurityError(f"--secure {directory}: identity '{name}' serves vehicle(s) "
+                            f"{', '.join(vids)}, not '{vid}'")
+    return name
 
 
 # ---- the Zenoh settings --------------------------------------------------------------------
@@ -184,41 +245,61 @@ def acl_config(manifest: dict) -> dict:
 
     Every process applies the rules on its own links, by the common name of the remote
     end's certificate: ``ingress`` is what that identity may send to us, ``egress`` what we
-    may send to it (everything in ``msagv/**``: reading is not restricted among the CA's
-    identities). Default deny: an identity absent from the manifest may do nothing."""
-    rules = []
+    may send to it (everything of its vehicles: reading is not restricted among a
+    vehicle's identities). Each identity may send only under its own name (the last key
+    chunks, docs/PROTOCOL.md "Keys") and only for its vehicles; a key of the first
+    protocol version (no name) is let through to the plant, which answers it with the
+    reason it refuses it. Default deny: an identity absent from the manifest may do
+    nothing."""
+    rules, policies, subjects = [], [], []
 
-    def rule(rid, messages, flow, keys):
+    def rule(rid, messages, keys, flow="ingress"):
         rules.append({"id": rid, "messages": messages, "flows": [flow], "permission": "allow",
                       "key_exprs": keys})
+        return rid
 
-    rule("plant_sends", ["put"], "ingress", ["msagv/*/state"])
-    rule("plant_answers", ["declare_queryable", "reply"], "ingress",
-         ["msagv/*/params", "msagv/*/claim"])
-    rule("plant_token", ["liveliness_token"], "ingress", ["msagv/*/alive/plant/*"])
-    rule("controller_sends", ["put"], "ingress", ["msagv/*/cmd", "msagv/*/reference"])
-    rule("controller_asks", ["query"], "ingress", ["msagv/*/params", "msagv/*/claim"])
-    rule("controller_token", ["liveliness_token"], "ingress", ["msagv/*/alive/controller/*"])
-    rule("reads", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
-         "ingress", ["msagv/**"])
-    rule("observer_asks", ["query"], "ingress", ["msagv/*/params"])
-    rule("forwards", ALL_MESSAGES, "ingress", ["msagv/**"])
-    rule("to_anyone", ALL_MESSAGES, "egress", ["msagv/**"])
-    policy_rules = {
-        "plant": ["plant_sends", "plant_answers", "plant_token", "reads", "to_anyone"],
-        "controller": ["controller_sends", "controller_asks", "controller_token", "reads",
-                       "to_anyone"],
-        "router": ["forwards", "to_anyone"],
-        "observer": ["reads", "observer_asks", "to_anyone"],
-    }
-    by_role: dict[str, list[str]] = {}
-    for v in manifest["identities"].values():
-        by_role.setdefault(v["role"], []).append(v["cn"])
-    subjects = [{"id": role, "cert_common_names": sorted(cns)} for role, cns in by_role.items()]
-    policies = [{"id": f"{role}_policy", "rules": policy_rules[role], "subjects": [role]}
-                for role in by_role]
+    for i, (name, v) in enumerate(sorted(manifest["identities"].items())):
+        cn, role, vids = v["cn"], v["role"], v["vehicles"]
+        base = [f"msagv/{vid}" for vid in vids]
+        mine = []
+        if role == "router":
+            mine.append(rule(f"{i}_forwards", ALL_MESSAGES, ["msagv/**"]))
+        else:
+            mine.append(rule(f"{i}_reads", ["declare_subscriber", "declare_liveliness_subscriber",
+                                            "liveliness_query"], [f"{b}/**" for b in base]))
+            asks = {"plant": (), "controller": ("params", "claim"), "operator": ("params", "arm"),
+                    "observer": ("params",)}[role]
+            if asks:
+                mine.append(rule(f"{i}_asks", ["query"],
+                                 [f"{b}/{q}/*/{cn}" for b in base for q in asks]
+                                 + [f"{b}/{q}" for b in base for q in asks if q != "arm"]))
+            if role == "plant":
+                mine.append(rule(f"{i}_sends", ["put"], [f"{b}/state/{cn}" for b in base]))
+                mine.append(rule(f"{i}_answers", ["declare_queryable", "reply"],
+                                 [f"{b}/{q}/{cn}/*" for b in base for q in ("params", "claim", "arm")]
+                                 + [f"{b}/{q}" for b in base for q in ("params", "claim")]))
+                mine.append(rule(f"{i}_token", ["liveliness_token"],
+                                 [f"{b}/alive/plant/{cn}" for b in base]))
+            elif role == "controller":
+                mine.append(rule(f"{i}_sends", ["put"],
+                                 [f"{b}/{k}/{cn}" for b in base for k in ("cmd", "reference")]
+                                 + [f"{b}/cmd" for b in base]))
+                mine.append(rule(f"{i}_token", ["liveliness_token"],
+                                 [f"{b}/alive/controller/{cn}" for b in base]))
+            elif role == "operator":
+                mine.append(rule(f"{i}_sends", ["put"], [f"{b}/reference/{cn}" for b in base]))
+        mine.append(rule(f"{i}_egress", ALL_MESSAGES,
+                         ["msagv/**"] if role == "router" else [f"{b}/**" for b in base],
+                         flow="egress"))
+        subjects.append({"id": f"s{i}", "cert_common_names": [cn]})
+        policies.append({"id": f"p{i}_{name}", "rules": mine, "subjects": [f"s{i}"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
+
+
+def common_name(directory, identity: str) -> str:
+    """The common name of ``identity``'s certificate: its name on the bus."""
+    return read_manifest(directory)["identities"][identity]["cn"]
 
 
 def secure_config(directory, identity: str) -> dict:

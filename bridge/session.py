@@ -10,12 +10,18 @@ One helper turns ``--id/--connect/--listen/--mode/--zenoh-config/--lease-ms`` in
   ``tcp/127.0.0.1:7448`` and the controller connects to it (``listen/endpoints = []`` on
   the connecting side: a peer otherwise listens on every interface);
 * a fast reconnect (``connect/retry`` set as one object), so a restarted process is found
-  again within ~250 ms;
+  again within ~250 ms; a client's open waits up to 10 s for its router
+  (``connect/timeout_ms``; Zenoh's default of 0 failed a client started a moment before
+  its router);
 * a shortened transport lease (default 1 s instead of 10 s), so the loss of a process and
   of its liveliness token is noticed within about a second;
 * a maximum message size on the transport (:data:`MAX_MESSAGE_BYTES`, just above the
-  largest message of the protocol): a larger message is dropped by Zenoh before it is
-  reassembled, so it never reaches, nor stalls, a process.
+  largest message of the protocol, 1 MiB): Zenoh buffers at most that much of a larger
+  message and drops it, so it never reaches, nor stalls, a process (Zenoh tells the
+  application nothing of it: a message between the protocol's limit of its key and this
+  one is counted by the receiver as ``too_large``);
+* ``MSAGV_REQUIRE_SECURE`` in the environment (docs/SECURITY.md): no session without
+  ``--secure``, so a deployment turns the plain bus off.
 
 A ``--zenoh-config`` file is merged with these defaults: a key the file sets explicitly
 wins, every other default stays (so a file that sets only TLS still listens on loopback
@@ -28,6 +34,7 @@ See docs/PROTOCOL.md for the key expressions and the messages.
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import dataclass, field
 
@@ -36,8 +43,12 @@ DEFAULT_PORT = 7448  # the plant's default loopback endpoint (7447 is left to a 
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 ROUTER_PORT = 7447  # zenoh's usual router port: ``msagv router``'s default
 DEFAULT_LEASE_MS = 1000
-MAX_MESSAGE_BYTES = 33 * 1024 * 1024  # the largest message (a reference, 32 MiB) + 1 MiB
+MAX_MESSAGE_BYTES = 1024 * 1024 + 64 * 1024  # the largest message (a reference or params,
+# 1 MiB, bridge.messages) + 64 KiB: Zenoh buffers no more of a larger one before dropping it
+REQUIRE_SECURE_ENV = "MSAGV_REQUIRE_SECURE"  # set (not 0): every session needs --secure
 RETRY = "{period_init_ms: 50, period_max_ms: 250, period_increase_factor: 1.5}"
+CLIENT_CONNECT_TIMEOUT_MS = 10_000  # a client's open waits this long for its router (Zenoh's
+# default is 0: a client started a moment before its router failed at once)
 _ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 
 
@@ -47,7 +58,8 @@ class SessionError(ValueError):
 
 @dataclass(frozen=True)
 class Keys:
-    """The key expressions of one vehicle (docs/PROTOCOL.md, section "Keys")."""
+    """The base key expressions of one vehicle (docs/PROTOCOL.md, section "Keys"); the
+    transport adds the sender's identity to them on the wire."""
 
     id: str = DEFAULT_ID
 
@@ -75,6 +87,11 @@ class Keys:
         return f"msagv/{self.id}/claim"
 
     @property
+    def arm(self) -> str:
+        """The plant's queryable for an operator's re-arm (docs/PROTOCOL.md section 3.8)."""
+        return f"msagv/{self.id}/arm"
+
+    @property
     def alive_plant(self) -> str:
         """The prefix of the plant's token ``alive/plant/{zid}`` (:meth:`plant_token`)."""
         return f"msagv/{self.id}/alive/plant"
@@ -85,11 +102,11 @@ class Keys:
         return f"msagv/{self.id}/alive/controller"
 
     def plant_token(self, zid: str = "*") -> str:
-        """The liveliness token of the plant session ``zid`` (``*``: any plant's)."""
+        """The liveliness token of the plant ``zid`` (an identity; ``*``: any plant's)."""
         return f"{self.alive_plant}/{zid}"
 
     def controller_token(self, zid: str = "*") -> str:
-        """The liveliness token of the controller session ``zid`` (``*``: any controller's)."""
+        """The liveliness token of the controller ``zid`` (an identity; ``*``: any)."""
         return f"{self.alive_controller}/{zid}"
 
 
@@ -117,8 +134,8 @@ class SessionOptions:
     lease_ms : the transport lease [ms]; a dead peer (and its liveliness tokens) is
         noticed after at most this long.
     secure_dir : a certificate directory (``msagv certs``): mutual TLS and access control
-        with the identity ``identity`` (default: the role's); every endpoint must be
-        ``tls/...``.
+        with the identity ``identity`` (default: ``ROLE-ID``, else ``ROLE``,
+        :func:`bridge.security.identity_for`); every endpoint must be ``tls/...``.
     """
 
     id: str = DEFAULT_ID
@@ -173,11 +190,14 @@ def make_config(opts: SessionOptions, role: str):
         if "/" not in ep:
             raise SessionError(f"endpoint '{ep}': expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7448")
     secure = None
+    if opts.secure_dir is None and os.environ.get(REQUIRE_SECURE_ENV, "") not in ("", "0"):
+        raise SessionError(f"{REQUIRE_SECURE_ENV} is set: this deployment runs only with "
+                           f"--secure DIR (mutual TLS and access control, docs/SECURITY.md)")
     if opts.secure_dir is not None:
-        from .security import SecurityError, secure_config
+        from .security import SecurityError, identity_for, secure_config
 
-        ident = opts.identity or role
         try:
+            ident = identity_for(opts.secure_dir, role, opts.id, opts.identity)
             secure = secure_config(opts.secure_dir, ident)
         except SecurityError as e:
             raise SessionError(str(e)) from None
@@ -226,6 +246,8 @@ def make_config(opts: SessionOptions, role: str):
     ins("connect/retry", RETRY)
     if opts.mode != "client":
         ins("listen/retry", RETRY)
+    else:
+        default("connect/timeout_ms", str(CLIENT_CONNECT_TIMEOUT_MS))
     ins("transport/link/tx/lease", str(int(opts.lease_ms)))
     if secure is not None:
         if _has(explicit, "access_control") or _has(explicit, "transport/link/tls"):
@@ -234,6 +256,20 @@ def make_config(opts: SessionOptions, role: str):
         for key, value in secure.items():
             ins(key, json.dumps(value))
     return conf
+
+
+def secure_identity(opts: SessionOptions, role: str) -> str | None:
+    """The common name of the certificate a ``--secure`` process of ``role`` presents: its
+    identity on the bus (None without ``--secure``: the session id is)."""
+    if opts.secure_dir is None:
+        return None
+    from .security import SecurityError, common_name, identity_for
+
+    try:
+        return common_name(opts.secure_dir,
+                           identity_for(opts.secure_dir, role, opts.id, opts.identity))
+    except SecurityError as e:
+        raise SessionError(str(e)) from None
 
 
 def open_session(opts: SessionOptions, role: str):

@@ -12,29 +12,36 @@ on a bus. Two implementations:
 
 What an endpoint offers, and only that:
 
-* ``id``: its identity, the string every message it sends carries as its sender (on Zenoh
-  the session id; an implementation that authenticates its peers may make it, e.g., the
-  common name of a certificate). A receiver compares identities, never parses them;
+* ``id``: its identity, the string every message it sends carries as its sender. It comes
+  from the transport, never from a message: on Zenoh it travels in the key (the last
+  chunks, docs/PROTOCOL.md "Keys"); on a plain bus it is the session id, which anyone may
+  copy; with ``--secure`` it is the common name of the endpoint's certificate, and Zenoh's
+  access control lets a certificate send only under its own name. ``authenticated`` says
+  which. A receiver compares identities, never parses them; an identity is one key chunk;
 * :meth:`~Transport.publisher` / :meth:`Publisher.put`: publish on one key, each message
-  with the sender's identity and a sequence number attached (the node's own: the state's
-  ``seq``, the command's ``seq``); :attr:`Publisher.matching`: whether any subscriber
-  matches the key now;
+  with the sender's identity (and a sequence number for diagnostics: the state's ``seq``,
+  the command's ``seq``); :attr:`Publisher.matching`: whether any subscriber matches the
+  key now;
 * :meth:`~Transport.subscribe`: a callback per :class:`Sample` (payload bytes, key, the
-  sender's identity or None when the message carried none);
+  sender's identity, or None when the message carried none: a client of the first
+  protocol version);
 * :meth:`~Transport.queryable` / :meth:`~Transport.query`: a query reaches every matching
-  queryable (all of them, none consolidated) with the querier's identity; the callback
-  answers through :meth:`Query.reply` (or :meth:`Query.reply_err`); the querier gets every
-  :class:`Reply` with the replier's identity;
+  queryable (all of them, none consolidated, or only the one of ``to``) with the querier's
+  identity (None: it carried none); the callback answers through :meth:`Query.reply` (or
+  :meth:`Query.reply_err`); the querier gets every :class:`Reply` with the replier's
+  identity;
 * liveliness tokens: :meth:`~Transport.declare_token`, :meth:`~Transport.watch_tokens`
   (appearances and disappearances under a key expression, the tokens existing already
   reported first), :meth:`~Transport.tokens` (which exist now);
 * :meth:`~Transport.close`.
 
 Key expressions are Zenoh's: chunks separated by ``/``, ``*`` matches one chunk and
-``**`` any number of chunks (docs/PROTOCOL.md, "Keys"). Every declaration returns an
-object with ``close()``. Callbacks may run on a thread of the transport (Zenoh's) or on
-the sender's (the loopback's): a callback must not block for long, and a node must not
-hold a lock of its own while it publishes, queries or declares.
+``**`` any number of chunks (docs/PROTOCOL.md, "Keys"). The keys the nodes name are the
+protocol's base keys (``msagv/{id}/cmd``); where the sender's identity goes on the wire is
+the implementation's business. Every declaration returns an object with ``close()``.
+Callbacks may run on a thread of the transport (Zenoh's) or on the sender's (the
+loopback's): a callback must not block for long, and a node must not hold a lock of its
+own while it publishes, queries or declares.
 """
 
 from __future__ import annotations
@@ -51,19 +58,19 @@ class Sample(NamedTuple):
     """A published message as a subscriber receives it (a named tuple: cheap to make at
     every message)."""
 
-    key: str
+    key: str  # the base key subscribed to (without the sender's identity)
     payload: bytes
     sender: str | None  # the publisher's identity; None: the message carried none
-    sn: int | None = None  # the sequence number the publisher attached
+    sn: int | None = None  # the sequence number the publisher attached (diagnostics only)
 
 
 class Reply(NamedTuple):
     """One answer to :meth:`Transport.query`: ``ok`` False for an error reply."""
 
-    sender: str | None  # the replier's identity
+    sender: str | None  # the replier's identity (None: an error reply, which names nobody)
     payload: bytes
     ok: bool = True
-    key: str | None = None  # the key the replier answered on (ok replies)
+    key: str | None = None  # the base key the replier answered on (ok replies)
 
 
 class Query:
@@ -74,13 +81,15 @@ class Query:
 
     def __init__(self, key: str, parameters: Mapping[str, str], payload: bytes | None,
                  sender: str | None, answer: Callable[[bool, bytes], None]):
-        self.key = key  # the query's key expression, without its parameters
+        self.key = key  # the base key of the queryable
         self.parameters = parameters  # the selector's ``?name=value;...``
         self.payload = payload
         self.sender = sender  # the querier's identity (None: the query carried none)
         self._answer = answer
 
     def reply(self, payload: bytes) -> None:
+        """Answer with ``payload`` (to a querier without identity: an error reply, as a
+        reply must name the querier on Zenoh)."""
         self._answer(True, payload)
 
     def reply_err(self, payload: bytes) -> None:
@@ -114,6 +123,7 @@ class Transport(Protocol):
     """One endpoint on a bus (see the module)."""
 
     id: str
+    authenticated: bool  # True: identities on this bus are certificates' (``--secure``)
 
     def publisher(self, key: str) -> Publisher:
         """A publisher on ``key`` (a key without wildcards)."""
@@ -124,12 +134,13 @@ class Transport(Protocol):
     def queryable(self, key: str, callback: Callable[[Query], None]) -> Declaration:
         """``callback(query)`` for every query whose key expression matches ``key``."""
 
-    def query(self, selector: str, payload: bytes | None = None, *, sn: int = 0,
-              timeout: float = 1.0) -> list[Reply]:
-        """Ask every queryable matching ``selector`` (``KEY`` or ``KEY?name=value;...``)
-        with this endpoint's identity and ``sn`` attached; returns their replies, waiting
-        at most ``timeout`` seconds. Error replies may include the transport's own (Zenoh
-        reports a timeout as one): take ``ok`` replies as the answers."""
+    def query(self, selector: str, payload: bytes | None = None, *, to: str | None = None,
+              sn: int = 0, timeout: float = 1.0) -> list[Reply]:
+        """Ask every queryable matching ``selector`` (``KEY`` or ``KEY?name=value;...``),
+        or only the one of the endpoint ``to``, with this endpoint's identity and ``sn``
+        attached; returns their replies, waiting at most ``timeout`` seconds. Error
+        replies may include the transport's own (Zenoh reports a timeout as one): take
+        ``ok`` replies as the answers."""
 
     def declare_token(self, key: str) -> Declaration:
         """A liveliness token on ``key``: it exists until closed, or until the endpoint

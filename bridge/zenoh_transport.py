@@ -1,18 +1,26 @@
 """The transport over Eclipse Zenoh: one :class:`ZenohTransport` per Zenoh session.
 
 It implements :class:`bridge.transport.Transport` with what docs/PROTOCOL.md prescribes on
-the wire:
+the wire (protocol version 2):
 
-* identity: the session id (``str(session.zid())``); a message's sender is the ``zid`` of
-  the ``source_info`` it carries (``SourceInfo(entity id, sn)``), a reply's the Zenoh
-  ``replier_id``;
+* identity: on a plain bus the session id (``str(session.zid())``), with ``--secure`` the
+  common name of the session's certificate. It travels in the key, never in the message:
+  a publisher on ``K`` puts on ``K/{id}`` and a subscriber on ``K`` listens on ``K/*`` (the
+  sender is the last chunk); a queryable on ``K`` answers on ``K/{id}/*`` and a query
+  asks ``K/{to or *}/{id}`` (the querier is the last chunk, the replier the one before it
+  in the reply's key). With ``--secure``, Zenoh's access control lets a certificate use
+  only its own name there (:mod:`bridge.security`), so the identity is authenticated. On a
+  plain bus the name in the key must be the session that Zenoh says sent the message (the
+  ``source_info`` of a put or query, the ``replier_id`` of a reply), else the message has
+  no identity: a stock zenoh-python client cannot attach another session's id, so copying
+  the owner's id into a key buys nothing (a modified client can: docs/SECURITY.md);
+* the first protocol version's keys (``K`` itself, no identity): a subscriber and a
+  queryable listen there too and report the message with no sender (None), so a node can
+  tell an old client why it is refused;
 * publishers: ``express``, priority ``REAL_TIME``, congestion control ``BLOCK``, encoding
-  ``application/msgpack``; each put carries ``source_info`` with the caller's sequence
-  number;
-* queries: target ``ALL``, consolidation ``NONE``, with ``source_info`` naming the
-  session (the entity of this endpoint's first publisher, e.g. the controller's ``cmd``
-  publisher, else the session's own); replies with the msgpack encoding on the
-  queryable's key;
+  ``application/msgpack``; each put and query carries ``source_info`` (this session and the
+  caller's sequence number);
+* queries: target ``ALL``, consolidation ``NONE``; replies with the msgpack encoding;
 * liveliness: tokens, a liveliness subscriber with history, a liveliness get.
 
 Callbacks run on Zenoh's threads. The session is opened by :func:`bridge.session.open_session`
@@ -22,37 +30,43 @@ benchmark's session, which it closes itself).
 
 from __future__ import annotations
 
+import re
 from typing import Callable
 
 from . import messages as M
-from .session import SessionOptions, open_session
-from .transport import Query, Reply, Sample
+from .session import SessionOptions, open_session, secure_identity
+from .transport import Query, Reply, Sample, TransportError
 
 _SN_MASK = 0xFFFFFFFF  # Zenoh's source sequence number is a u32
+_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")  # an identity: one literal key chunk
 
 
-def _sender(sample_or_query) -> str | None:
-    """The zid in a sample's (or query's) ``source_info``; None if it carries none."""
-    si = getattr(sample_or_query, "source_info", None)
-    if si is None or si.source_id is None:
-        return None
-    return str(si.source_id.zid)
+def identity_chunk(chunk: str) -> str | None:
+    """``chunk`` if it can be an identity (one literal key chunk: no wildcard), else None."""
+    return chunk if _CHUNK.match(chunk) else None
+
+
+def split_selector(selector: str) -> tuple[str, str]:
+    """``KEY?PARAMS`` -> (KEY, '?PARAMS' or '')."""
+    key, sep, params = selector.partition("?")
+    return key, (sep + params if sep else "")
 
 
 class _Declared:
-    """A Zenoh declaration (subscriber, queryable, token) behind ``close()``."""
+    """Zenoh declarations (subscribers, queryables, a token) behind one ``close()``."""
 
-    __slots__ = ("_obj",)
+    __slots__ = ("_objs",)
 
-    def __init__(self, obj):
-        self._obj = obj
+    def __init__(self, *objs):
+        self._objs = objs
 
     def close(self) -> None:
-        self._obj.undeclare()
+        for o in self._objs:
+            o.undeclare()
 
 
 class ZenohPublisher:
-    """A publisher of :class:`ZenohTransport` (the QoS of the module docstring)."""
+    """A publisher of :class:`ZenohTransport` on ``key`` (it puts on ``key/{identity}``)."""
 
     def __init__(self, pub, key: str):
         import zenoh
@@ -74,20 +88,32 @@ class ZenohPublisher:
 
 
 class ZenohTransport:
-    """:class:`bridge.transport.Transport` over the Zenoh ``session``; ``owns``: close the
-    session in :meth:`close`. A context manager (``with ZenohTransport.open(...) as t:``)."""
+    """:class:`bridge.transport.Transport` over the Zenoh ``session``; ``identity``: the
+    endpoint's name on the bus (None: the session id); ``authenticated``: the identity is
+    the certificate's common name, which the bus's access control checks (``--secure``);
+    ``owns``: close the session in :meth:`close`. A context manager (``with
+    ZenohTransport.open(...) as t:``)."""
 
-    def __init__(self, session, *, owns: bool = True):
+    def __init__(self, session, *, identity: str | None = None, authenticated: bool = False,
+                 owns: bool = True):
         self.session = session
-        self.id = str(session.zid())
+        self.authenticated = authenticated
+        self.id = identity if identity is not None else str(session.zid())
+        # a plain bus: a key's identity must be the session Zenoh names as the sender
+        self._confirm = not authenticated
+        if identity_chunk(self.id) is None:
+            raise TransportError(f"identity '{self.id}' is not one key chunk")
         self._owns = owns
         self._entity = None  # the entity id named by the source info of queries
 
     @classmethod
     def open(cls, opts: SessionOptions, role: str) -> "ZenohTransport":
         """Open a session for ``role`` with :func:`bridge.session.open_session` (its
-        configuration: endpoints, scouting, lease, TLS; SessionError on failure)."""
-        return cls(open_session(opts, role))
+        configuration: endpoints, scouting, lease, TLS; SessionError on failure); with
+        ``--secure`` the identity is the certificate's common name."""
+        identity = secure_identity(opts, role)
+        return cls(open_session(opts, role), identity=identity,
+                   authenticated=identity is not None)
 
     def __enter__(self) -> "ZenohTransport":
         return self
@@ -100,7 +126,7 @@ class ZenohTransport:
         import zenoh
 
         pub = self.session.declare_publisher(
-            key, express=True, priority=zenoh.Priority.REAL_TIME,
+            f"{key}/{self.id}", express=True, priority=zenoh.Priority.REAL_TIME,
             congestion_control=zenoh.CongestionControl.BLOCK,
             encoding=zenoh.Encoding(M.CONTENT_TYPE))
         p = ZenohPublisher(pub, key)
@@ -109,48 +135,72 @@ class ZenohTransport:
         return p
 
     def subscribe(self, key: str, callback: Callable[[Sample], None]) -> _Declared:
-        def on_sample(s) -> None:
-            si = s.source_info
-            if si is None:
-                callback(Sample(str(s.key_expr), s.payload.to_bytes(), None, None))
-            else:
-                sid = si.source_id
-                callback(Sample(str(s.key_expr), s.payload.to_bytes(),
-                                None if sid is None else str(sid.zid), si.source_sn))
+        confirm = self._confirm
 
-        return _Declared(self.session.declare_subscriber(key, on_sample))
+        def signed(s) -> None:
+            base, _, sender = str(s.key_expr).rpartition("/")
+            si = s.source_info
+            if confirm and (si is None or str(si.source_id.zid) != sender):
+                sender = ""  # no proof that the session in the key sent it
+            callback(Sample(base, s.payload.to_bytes(), identity_chunk(sender),
+                            None if si is None else si.source_sn))
+
+        def unsigned(s) -> None:  # the first protocol version's key: no identity
+            callback(Sample(str(s.key_expr), s.payload.to_bytes(), None, None))
+
+        return _Declared(self.session.declare_subscriber(f"{key}/*", signed),
+                         self.session.declare_subscriber(key, unsigned))
 
     # ---- query / reply ---------------------------------------------------------------------
     def queryable(self, key: str, callback: Callable[[Query], None]) -> _Declared:
-        def on_query(q) -> None:
+        mine = f"{key}/{self.id}/"
+
+        def handle(q, querier: str | None) -> None:
             def answer(ok: bool, payload: bytes) -> None:
-                if ok:
-                    q.reply(key, payload, encoding=M.CONTENT_TYPE)
+                if ok and querier is not None:
+                    q.reply(mine + querier, payload, encoding=M.CONTENT_TYPE)
                 else:
                     q.reply_err(payload)
 
             payload = q.payload.to_bytes() if q.payload is not None else None
-            callback(Query(str(q.key_expr), dict(q.parameters), payload, _sender(q), answer))
+            callback(Query(key, dict(q.parameters), payload, querier, answer))
 
-        return _Declared(self.session.declare_queryable(key, on_query))
+        confirm = self._confirm
 
-    def query(self, selector: str, payload: bytes | None = None, *, sn: int = 0,
-              timeout: float = 1.0) -> list[Reply]:
+        def signed(q) -> None:
+            k = str(q.key_expr)
+            who = k.rsplit("/", 1)[1] if k.count("/") == key.count("/") + 2 else ""
+            if confirm:
+                si = q.source_info
+                if si is None or str(si.source_id.zid) != who:
+                    who = ""
+            handle(q, identity_chunk(who))
+
+        return _Declared(self.session.declare_queryable(mine + "*", signed),
+                         self.session.declare_queryable(key, lambda q: handle(q, None)))
+
+    def query(self, selector: str, payload: bytes | None = None, *, to: str | None = None,
+              sn: int = 0, timeout: float = 1.0) -> list[Reply]:
         import zenoh
 
+        key, params = split_selector(selector)
+        if to is not None and identity_chunk(to) is None:
+            raise TransportError(f"query to '{to}': not an identity")
         entity = self._entity if self._entity is not None else self.session.id
+        depth = key.count("/") + 2
         out = []
-        for r in self.session.get(selector, payload=payload,
+        for r in self.session.get(f"{key}/{to or '*'}/{self.id}{params}", payload=payload,
                                   source_info=zenoh.SourceInfo(entity, int(sn) & _SN_MASK),
                                   target=zenoh.QueryTarget.ALL,
                                   consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout):
-            rid = None if r.replier_id is None else str(r.replier_id.zid)
-            if r.ok is None and rid is None:
-                continue  # Zenoh's own end of the query (a timeout), nobody's answer
             if r.ok is not None:
-                out.append(Reply(rid, r.ok.payload.to_bytes(), True, str(r.ok.key_expr)))
-            else:
-                out.append(Reply(rid, r.err.payload.to_bytes(), False))
+                k = str(r.ok.key_expr).split("/")
+                who = k[-2] if len(k) == depth + 1 else ""
+                if self._confirm and (r.replier_id is None or str(r.replier_id.zid) != who):
+                    who = ""
+                out.append(Reply(identity_chunk(who), r.ok.payload.to_bytes(), True, key))
+            elif r.replier_id is not None:  # (none: Zenoh's own end of the query, a timeout)
+                out.append(Reply(None, r.err.payload.to_bytes(), False))
         return out
 
     # ---- liveliness ------------------------------------------------------------------------

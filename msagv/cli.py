@@ -20,6 +20,7 @@ COMMANDS = {
     "controller": "the MPC as a Zenoh process",
     "ros2": "ros2 controller | ros2 plant: the MPC and the plant as ROS 2 nodes (docs/ROS2.md)",
     "router": "a Zenoh router for plants and controllers on several machines",
+    "arm": "arm --id ID [--controller NAME]: re-arm a vehicle latched after losing its controller",
     "certs": "certs DIR: a CA and per-role certificates for --secure (mutual TLS, access control)",
     "run": "in-process closed loop (controller at 100 Hz on the stepping plant)",
     "report": "the paper's metrics and plots from a recording",
@@ -32,7 +33,7 @@ COMMANDS = {
 
 
 SUBCOMMANDS = {"fmu": ("build", "simulate"), "plant": ("replay",), "vehicle": ("show",)}
-PROCESSES = ("plant", "controller", "router")  # long-running, with their own logging
+PROCESSES = ("plant", "controller", "router", "arm")  # they log their own way
 
 
 def _usage() -> str:
@@ -61,6 +62,9 @@ def _dispatch(cmd: str, rest: list[str]) -> int:
     if cmd == "ros2":
         from .ros2_cli import main as ros2_main
         return ros2_main(rest)
+    if cmd == "arm":
+        from .nodes import arm_main
+        return arm_main(rest)
     if cmd == "certs":
         from .certs import main as certs_main
         return certs_main(rest)

@@ -1,4 +1,5 @@
-"""``msagv plant``, ``msagv controller`` and ``msagv router``: the Zenoh processes.
+"""``msagv plant``, ``msagv controller``, ``msagv router`` and ``msagv arm``: the Zenoh
+processes, and the operator's re-arm of a latched vehicle.
 
 Each command parses its options, builds its part of the scenario
 (:class:`experiments.scenario.Scenario`) and hands typed objects to the transport
@@ -15,6 +16,7 @@ import logging
 import os
 import sys
 import threading
+import time
 
 from msagv.bridge import messages as M
 from msagv.bridge.loss import STALE_MS
@@ -116,8 +118,13 @@ def plant_parser() -> argparse.ArgumentParser:
                          f"(default {d.safe_decel:g})")
     ap.add_argument("--wheel-wear", choices=list(WHEEL_WEAR_MODES), default=d.wheel_wear,
                     help="per-wheel wear work in the state (W_s_ij, ...): auto = when the "
-                         "controller's params query asks for it, on, off "
+                         "owner's claim asks for it, on, off "
                          f"(default {d.wheel_wear})")
+    ap.add_argument("--rearm", default=d.rearm, metavar="POLICY",
+                    help="how a vehicle that lost its controller is driven again: manual = "
+                         "only by an operator's 'msagv arm'; same:N = also by the same "
+                         "controller identity claiming it again N periods after the loss "
+                         f"(default {d.rearm}; docs/PROTOCOL.md section 4.7)")
     add_record_args(ap)
     add_view_args(ap)  # --view, --view-save, --view-port: the running plant in Rerun
     add_foxglove_args(ap)  # --foxglove: the running plant in Foxglove
@@ -150,7 +157,7 @@ def plant_main(argv: list[str]) -> int:
                           steps=int(round(duration / a.period)) if duration > 0 else 0,
                           timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
                           safe_decel=a.safe_decel, resume_periods=a.resume_periods,
-                          wheel_wear=a.wheel_wear)
+                          wheel_wear=a.wheel_wear, rearm=a.rearm)
         from msagv.experiments.results import scenario_info
 
         header = {"role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),
@@ -211,6 +218,11 @@ def _plant_report(s: dict, as_json: bool) -> None:
         sf = s["safe"]
         lines.append(f"  safe       events {sf['events']}, periods {sf['periods']}, "
                      f"resumes {sf['resumes']}")
+    o = s["ownership"]
+    lines.append(f"  ownership  {o['state']}; grants {o['grants']}, refused {o['refused']}, "
+                 f"losses {o['losses']}, latches {o['latches']}, arms {len(o['arms'])}"
+                 + "".join(f"; armed at t = {x['t']:.2f} s by {x['by']} for "
+                           f"{x['controller'] or 'the first claimer'}" for x in o["arms"][:3]))
     rec = s.get("recording")
     if rec:
         lines.append(f"  recording  {rec['path']}: {rec['records']} records in {len(rec['files'])} "
@@ -340,3 +352,71 @@ def router_main(argv: list[str]) -> int:
         print(f"msagv router: {e}", file=sys.stderr)
         return EXIT_USAGE
     return serve(opts, sig.event) or EXIT_OK
+
+
+# ---- msagv arm ----------------------------------------------------------------------------
+ARM_WAIT_S = 10.0
+
+
+def arm_main(argv: list[str]) -> int:
+    """``msagv arm --id ID [--controller NAME]``: an operator re-arms a latched vehicle."""
+    from msagv.bridge.ownership import ARMED, arm
+    from msagv.bridge.process import EXIT_RUNTIME
+    from msagv.bridge.session import Keys
+    from msagv.bridge.zenoh_transport import ZenohTransport
+
+    ap = argparse.ArgumentParser(
+        prog="msagv arm",
+        description="Re-arm a vehicle that is latched after losing its controller "
+                    "(docs/PROTOCOL.md section 4.7): the named controller (or, without "
+                    "--controller, the first controller that claims it) may then drive it. "
+                    "With --secure the operator's certificate is used (msagv certs).")
+    ap.add_argument("--controller", metavar="NAME",
+                    help="the identity of the controller that may claim the vehicle next (its "
+                         "certificate's common name with --secure, else its session id, as "
+                         "the controller and the plant log it)")
+    ap.add_argument("--wait", type=float, default=ARM_WAIT_S, metavar="S",
+                    help=f"wait this long for the plant to answer (default {ARM_WAIT_S:g})")
+    ap.add_argument("--json", action="store_true", help="print the plants' answers as JSON")
+    add_common_args(ap)
+    add_session_args(ap)
+    a = ap.parse_args(argv)
+    setup_logging("msagv arm", a.id, a.quiet, a.verbose)
+    try:
+        opts = options_from_args(a)
+        if a.controller is not None:
+            from msagv.bridge.zenoh_transport import identity_chunk
+
+            if identity_chunk(a.controller) is None:
+                raise OptionError(f"--controller: '{a.controller}' is not an identity (one key "
+                                  f"chunk of A-Z a-z 0-9 _ . -)")
+        if not a.wait > 0:
+            raise OptionError(f"--wait must be > 0, got {a.wait:g}")
+        t = ZenohTransport.open(opts, "operator")
+    except USAGE_ERRORS as e:
+        print(f"msagv arm: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    keys = Keys(opts.id)
+    answers: list = []
+    with t:
+        deadline = time.monotonic() + a.wait
+        while not answers and time.monotonic() < deadline:
+            answers = arm(t, keys, a.controller, timeout=min(2.0, a.wait))
+            if not answers:
+                time.sleep(0.25)
+    out = [{"plant": p, "armed": bool(r and r["armed"]), "reason": r["reason"] if r else
+            "malformed reply"} for p, r in answers]
+    if a.json:
+        print(json.dumps({"id": opts.id, "controller": a.controller, "by": t.id,
+                          "answers": out}), flush=True)
+    if not out:
+        print(f"msagv arm: no plant of vehicle '{opts.id}' answered within {a.wait:g} s",
+              file=sys.stderr)
+        return EXIT_RUNTIME
+    for x in out:
+        print(f"msagv arm: vehicle {opts.id}, plant {x['plant']}: "
+              + (f"re-armed for {a.controller or 'the first controller that claims it'}"
+                 if x["armed"] else f"refused ({x['reason']}: "
+                 + ("a controller owns it" if x["reason"] == "owned" else x["reason"]) + ")"),
+              file=sys.stderr)
+    return EXIT_OK if all(x["armed"] and x["reason"] == ARMED for x in out) else EXIT_RUNTIME

@@ -256,6 +256,7 @@ class LoopbackPlant:
         self.ownership = Ownership()
         self.granting = granting
         self.claims = 0  # claims answered
+        self.claims_seen: list[dict] = []  # the claim maps received
         self.cmds: list = []  # the samples received on cmd
         self.t.subscribe(self.keys.cmd, self.cmds.append)
         self._claims = self.t.queryable(self.keys.claim, self._on_claim)
@@ -266,11 +267,13 @@ class LoopbackPlant:
         from msagv.bridge.ownership import decode_claim, encode_grant
 
         if self.granting:
-            granted, owner = self.ownership.claim(q.sender, decode_claim(q.payload))
+            g = self.ownership.claim(q.sender, decode_claim(q.payload)["action"])
+            granted, reason = g.granted, g.reason
         else:
-            granted, owner = False, None
+            granted, reason = False, "owned"
         self.claims += 1
-        q.reply(encode_grant(granted, owner))
+        self.claims_seen.append(decode_claim(q.payload))
+        q.reply(encode_grant(granted, reason))
 
     def publish(self, seq: int, payload: bytes) -> None:
         self.pub.put(payload, seq)

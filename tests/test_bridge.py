@@ -59,7 +59,7 @@ def owner(bus, plant_node):
     states: list = []
     c.subscribe(K.state, states.append)
     token = c.declare_token(K.controller_token("c1"))
-    assert claim(c, K, 0) == [("p1", {"v": M.VERSION, "granted": True, "owner": "c1"})]
+    assert claim(c, K, 0) == [("p1", {"v": 2, "granted": True, "reason": "granted"})]
     plant_node.publish_state(0)
     pub = c.publisher(K.cmd)
     return SimpleNamespace(endpoint=c, states=states, token=token,
@@ -211,14 +211,20 @@ def test_controller_same_seed_same_commands_after_a_new_run(make_ctl, vehicle):
     assert ctl.stats.new_runs == 2
 
 
-def test_controller_ignores_duplicates_and_does_not_answer_the_end(make_ctl, vehicle):
+def test_controller_answers_a_state_sent_again_with_the_same_command_not_the_end(make_ctl,
+                                                                                 vehicle):
     ctl, plant = make_ctl()
     st = M.decode_state(_state_payload(0, vehicle), 4)
     assert ctl.step(st, time.perf_counter()) == "sent"
-    assert ctl.step(st, time.perf_counter()) == "duplicate"
+    # the plant sent it again (a lockstep plant does when the answer does not come): the
+    # same command again, byte for byte, without a new solve
+    assert ctl.step(st, time.perf_counter()) == "resent"
+    assert plant.cmds[1].payload == plant.cmds[0].payload and len(ctl.stats.solve_ms) == 1
+    assert ctl.stats.resent == 1 and ctl.stats.duplicates == 0
     end = M.decode_state(_state_payload(1, vehicle, end=True), 4)
     assert ctl.step(end, time.perf_counter()) == "end"
-    assert len(plant.cmds) == 1
+    assert ctl.step(end, time.perf_counter()) == "duplicate"  # never answered: not resent
+    assert len(plant.cmds) == 2
 
 
 def test_controller_never_commands_a_plant_that_is_gone(make_ctl, vehicle, bus):
@@ -321,10 +327,16 @@ def test_controller_takes_a_new_reference_relative_to_the_next_state(make_ctl, v
     assert ref.name == "line" and ref.t[0] == pytest.approx(0.07) and ctl.stats.references == 1
 
 
-def test_both_nodes_over_the_loopback_bus_give_the_in_process_loops_commands(vehicle, mpc, bus):
+@pytest.mark.parametrize("lose", [None, "state", "cmd"])
+def test_both_nodes_over_the_loopback_bus_give_the_in_process_loops_commands(vehicle, mpc, bus,
+                                                                             lose):
     """The plant and controller nodes, each on its own endpoint, run a lockstep run: the
     commands on the bus are those of the in-process loop (controller.loop.closed_loop) with
-    the same MPC, reference and initial state, and the plant ends where that loop ends."""
+    the same MPC, reference and initial state, and the plant ends where that loop ends.
+    ``lose``: one state (or one command) is lost on the way, as with a link closed under a
+    stopped process (issue 22, the lockstep stall): the plant sends the unanswered state
+    again after ``resend_s``, the controller answers it (a lost command: the same command
+    again), and the run is still the in-process one."""
     from msagv.controller.loop import closed_loop
     from msagv.controller.reference import case1_curve
 
@@ -336,10 +348,17 @@ def test_both_nodes_over_the_loopback_bus_give_the_in_process_loops_commands(veh
                       on_step=lambda k, st, c: want.__setitem__(k, c.omega_w.tolist()))
     watch = bus.endpoint("watch")
     got: dict[int, list] = {}
-    watch.subscribe(K.cmd, lambda s: got.setdefault(*(lambda c: (c["state_seq"], c["omega_w"]))(
-        M.decode_cmd(s.payload, 4))))
+
+    def on_cmd(smp):
+        c = M.decode_cmd(smp.payload, 4)
+        got.setdefault(c["state_seq"], c["omega_w"])
+        if c["state_seq"] == 5 and lose is not None and not bus.dropped:
+            bus.drop(K.state if lose == "state" else K.cmd)  # state 6, or the answer to it
+
+    watch.subscribe(K.cmd, on_cmd)
     pn = PlantNode(Plant(vehicle, initial=ref.initial_state(vehicle)), K,
-                   PlantConfig(run_mode="lockstep", steps=steps, timeout_s=30.0, linger_s=0.0))
+                   PlantConfig(run_mode="lockstep", steps=steps, timeout_s=30.0, linger_s=0.0,
+                               resend_s=0.3))
     cn = ControllerNode(mpc, K, ControllerConfig(exit_at_end=True), plant_zid="p1")
     mpc.set_reference(ref)
     pn.open(bus.endpoint("p1"))
@@ -354,9 +373,12 @@ def test_both_nodes_over_the_loopback_bus_give_the_in_process_loops_commands(veh
         pn.close()
     assert s["completed"] and s["commands"]["accepted"] == steps and s["rejected"]["total"] == 0
     assert s["ownership"]["owner"] == "c1" and s["ownership"]["grants"] == 1
-    o = pn.ownership.summary()  # the controller released the vehicle as it closed
+    o = pn.ownership.summary()  # the controller released the vehicle as it closed: latched
     assert o["owner"] is None and o["releases"] == 1 and o["refused"] == 0
+    assert o["state"] == "latched" and o["latches"] == 1
     assert got == want
+    assert bus.dropped == (lose is not None) and s["resent_states"] == (lose is not None)
+    assert ctl_loop.result["resent"] == (lose == "cmd")
     for k in ("x", "y", "phi", "vx", "vy", "r", "W_s", "W_alpha", "W_t"):
         assert s["final_state"][k] == log.final_state[k], k
 

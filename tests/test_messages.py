@@ -111,15 +111,15 @@ def test_every_malformed_case_is_rejected_with_its_reason(kind, cases):
 
 def test_fault_cases_cover_every_kind_the_issue_names():
     reasons = {r for _, r in faults.cmd_cases(NW)} | {r for _, r in faults.state_cases(NW)}
-    for r in (M.NOT_MSGPACK, M.VERSION_MISMATCH, M.MISSING_FIELD, M.EXTRA_FIELD, M.BAD_LENGTH,
-              M.NON_FINITE, M.NEGATIVE_WHEEL_SPEED, M.UNKNOWN_STATE):
+    for r in (M.NOT_MSGPACK, M.TOO_LARGE, M.VERSION_MISMATCH, M.MISSING_FIELD, M.EXTRA_FIELD,
+              M.BAD_LENGTH, M.NON_FINITE, M.NEGATIVE_WHEEL_SPEED, M.UNKNOWN_STATE):
         assert r in reasons
 
 
 @pytest.mark.parametrize("payload,reason", [
     (b"\x93\x01\x02", M.NOT_MSGPACK),  # truncated array
     (msgpack.packb({"v": 1}) + b"\x00", M.NOT_MSGPACK),
-    (b"\x00" * (M.MAX_STATE_BYTES + 1), M.NOT_MSGPACK),
+    (b"\x00" * (M.MAX_STATE_BYTES + 1), M.TOO_LARGE),  # before any decoding
     (msgpack.packb("state"), M.NOT_A_MAP),
     (msgpack.packb({"v": 2}), M.VERSION_MISMATCH),
     (msgpack.packb({"v": True}), M.VERSION_MISMATCH),

@@ -18,54 +18,135 @@ import pytest
 
 from msagv.bridge import messages as M
 from msagv.bridge.loss import HOLD, LOST, PRESENT, RUN, SAFE, SUSPECT, CommandWatch, LossTimer
-from msagv.bridge.ownership import CLAIM, RELEASE, Ownership
+from msagv.bridge.ownership import CLAIM, RELEASE, Ownership, RearmPolicy
 from helpers import LoopbackPlant, ep, free_port, msagv, wait_until
 
 T = 0.01
 
 
 # ---- the plant's owner ----------------------------------------------------------------------
-def test_the_first_claim_wins_and_the_vehicle_changes_hands_only_on_release_or_loss():
+def _g(grant):
+    return grant.granted, grant.reason
+
+
+def test_the_first_claim_wins_and_a_release_before_the_run_frees_the_vehicle():
     o = Ownership()
-    assert o.claim("a", now=0.0) == (True, "a")
-    assert o.claim("b", now=0.1) == (False, "a")  # owned
+    assert _g(o.claim("a", now=0.0)) == (True, "granted")
+    assert _g(o.claim("a", now=0.1)) == (True, "granted")  # a repeated claim by the owner
+    assert _g(o.claim("b", now=0.1)) == (False, "owned")  # never who owns it
     o.token("a", True)
-    assert o.claim("b", now=10.0) == (False, "a")  # still owned: its token is present
+    assert _g(o.claim("b", now=10.0)) == (False, "owned")  # its token is there: still owned
     o.token("b", False)  # not the owner's token: nothing happens
     assert o.accepts("a") and not o.accepts("b") and not o.accepts(None)
-    assert o.claim("b", RELEASE) == (False, "a")  # only the owner releases
-    assert o.claim("a", RELEASE) == (False, None)
-    assert o.claim("b", now=11.0) == (True, "b")
-    o.token("b", True)
-    o.token("b", False)  # the owner lost
-    assert o.owner is None and o.claim("c", now=12.0) == (True, "c")
-    assert o.claim(None) == (False, "c")  # a claim without source info
+    assert _g(o.claim("b", RELEASE)) == (False, "not_owner")  # only the owner releases
+    assert _g(o.claim("a", RELEASE)) == (False, "released")
+    assert o.state == "free"  # before the run started: nothing was driven
+    assert _g(o.claim("b", now=11.0)) == (True, "granted")
+    assert _g(o.claim(None)) == (False, "bad_claim")  # a claim without identity
     s = o.summary()
-    assert s == {"owner": "c", "grants": 3, "refused": 3, "releases": 1, "losses": 1,
-                 "banned": 0}
+    assert (s["state"], s["owner"], s["grants"], s["refused"], s["releases"], s["losses"],
+            s["latches"], s["arms"], s["banned"], s["rearm"]) == (
+        "owned", "b", 2, 3, 1, 0, 0, [], 0, "manual")
 
 
-def test_a_session_that_commands_while_another_owns_the_vehicle_is_never_granted_it():
+def test_once_the_run_started_a_lost_owner_latches_the_vehicle_until_an_operator_arms_it():
+    events = []
+    o = Ownership(on_event=lambda name, f: events.append((name, f)))
+    assert o.claim("a", now=0.0, token_present=True).granted
+    o.start()
+    o.token("a", False, now=1.0)  # the owner's token is gone (killed)
+    assert o.state == "latched" and o.owner is None and o.losses == 1 and o.latches == 1
+    assert events == [("latched", {"why": "owner a lost (its token is gone)", "previous": "a"})]
+    for who in ("rogue", "a", "b"):  # nobody: not even the lost owner (strict)
+        assert _g(o.claim(who, now=100.0)) == (False, "latched")
+    assert o.arm("op", "b", t=1.5) == (True, "armed")  # the operator names b
+    assert events[-1] == ("armed", {"by": "op", "controller": "b"})
+    assert _g(o.claim("rogue", now=101.0)) == (False, "armed_for_another")
+    assert _g(o.claim("b", now=101.0, token_present=True)) == (True, "granted")
+    assert o.arm("op", "c") == (False, "owned")  # b owns it: an arm does not take it away
+    assert _g(o.claim("b", RELEASE, now=102.0)) == (False, "released")  # a release latches too
+    assert o.state == "latched"
+    assert o.arm("op") == (True, "armed")  # for the first controller that claims it
+    assert _g(o.claim("c", now=103.0)) == (True, "granted")
+    s = o.summary()
+    assert s["arms"] == [{"t": 1.5, "by": "op", "controller": "b"},
+                         {"t": None, "by": "op", "controller": None}]
+    assert (s["grants"], s["latches"], s["losses"], s["releases"]) == (3, 2, 1, 1)
+
+
+def test_the_same_policy_lets_only_the_lost_owner_back_and_only_after_n_periods():
+    o = Ownership(policy=RearmPolicy.parse("same:50"), period=0.01)
+    assert o.claim("a", now=0.0, token_present=True).granted
+    o.start()
+    o.token("a", False, now=10.0)
+    assert _g(o.claim("a", now=10.49)) == (False, "latched")  # 49 periods
+    assert _g(o.claim("b", now=11.0)) == (False, "latched")  # another identity: an arm
+    assert _g(o.claim("a", now=10.5)) == (True, "granted")  # 50 periods after the latch
+    assert str(o.policy) == "same:50" and o.summary()["rearm"] == "same:50"
+
+
+@pytest.mark.parametrize("text", ["", "same", "same:0", "same:-1", "same:x", "auto", "same:1e3"])
+def test_a_bad_rearm_policy_is_refused_naming_the_option(text):
+    from msagv.bridge.plant_node import PlantConfig
+
+    with pytest.raises(ValueError, match="--rearm: expected manual or same:N"):
+        PlantConfig(rearm=text)
+
+
+def test_an_identity_that_commands_while_another_owns_the_vehicle_is_never_granted_it():
     o = Ownership()
     o.violation("r")  # nobody owns it: not a violation
-    assert o.claim("a")[0]
+    assert o.claim("a").granted
     o.violation("r")
     o.violation("a")  # the owner itself: not a violation
     o.claim("a", RELEASE)
-    assert o.claim("r") == (False, None)
-    assert o.claim("b") == (True, "b")
+    assert _g(o.claim("r")) == (False, "banned")
+    assert _g(o.claim("b")) == (True, "granted")
     assert o.summary()["banned"] == 1
+    o.start()
+    o.claim("b", RELEASE)
+    assert o.arm("op", "r") == (True, "armed")  # a deliberate act overrides the ban
+    assert _g(o.claim("r")) == (True, "granted") and o.summary()["banned"] == 0
 
 
 def test_a_grant_whose_owner_never_shows_its_token_is_void_after_a_while():
     o = Ownership()
-    assert o.claim("a", now=0.0)[0]
-    assert o.claim("b", now=1.0) == (False, "a")
-    assert o.claim("b", now=10.0) == (True, "b")
+    assert o.claim("a", now=0.0).granted
+    assert _g(o.claim("b", now=1.0)) == (False, "owned")
+    assert _g(o.claim("b", now=10.0)) == (True, "granted")  # the grant to a was void
     # an owner whose token was already visible when it claimed is never void
-    assert o.claim("b", RELEASE) == (False, None)
-    assert o.claim("c", now=20.0, token_present=True) == (True, "c")
-    assert o.claim("d", now=100.0) == (False, "c")
+    o.claim("b", RELEASE)
+    assert o.claim("c", now=20.0, token_present=True).granted
+    assert _g(o.claim("d", now=100.0)) == (False, "owned")
+    # a void grant after an arm returns to the arm: only the armed controller
+    o2 = Ownership()
+    o2.start()
+    o2.arm("op", "x")
+    assert o2.claim("x", now=0.0).granted
+    assert _g(o2.claim("y", now=10.0)) == (False, "armed_for_another")
+    assert o2.state == "armed" and o2.armed_for == "x"
+
+
+def test_claim_and_grant_maps_are_schema_2_and_a_refused_grant_names_nobody():
+    from msagv.bridge.ownership import (decode_arm, decode_claim, decode_grant, encode_arm,
+                                        encode_claim, encode_grant)
+
+    assert decode_claim(encode_claim(CLAIM, True)) == {"v": 2, "action": "claim",
+                                                        "wheel_wear": True}
+    assert decode_claim(encode_claim(RELEASE)) == {"v": 2, "action": "release"}
+    assert msgpack.unpackb(encode_grant(False, "owned")) == {"v": 2, "granted": False,
+                                                             "reason": "owned"}
+    assert decode_arm(encode_arm("c1")) == {"v": 2, "controller": "c1"}
+    for bad, reason in ((msgpack.packb({"v": 1, "action": "claim"}), M.VERSION_MISMATCH),
+                        (msgpack.packb({"v": 2, "action": "steal"}), M.BAD_VALUE),
+                        (msgpack.packb({"v": 2, "action": "claim", "owner": "x"}), M.EXTRA_FIELD),
+                        (msgpack.packb({"v": 2, "action": "claim", "wheel_wear": 1}), M.BAD_TYPE),
+                        (b"\x00" * 2000, M.TOO_LARGE)):
+        with pytest.raises(M.MessageError) as e:
+            decode_claim(bad)
+        assert e.value.reason == reason
+    with pytest.raises(M.MessageError):
+        decode_grant(msgpack.packb({"v": 2, "granted": True}))  # the reason is required
 
 
 # ---- the realtime plant's state machine ----------------------------------------------------
@@ -145,7 +226,7 @@ def _cmd(state_seq, seq=0):
     return M.encode_cmd(seq, state_seq * T, state_seq, [8.0] * 4, [0.0] * 4, solve_ms=1.0)
 
 
-def test_plant_rejects_commands_not_from_its_owner(plant_node, bus):
+def test_plant_rejects_commands_not_from_its_owner_before_decoding_them(plant_node, bus):
     from msagv.bridge.ownership import claim
     from msagv.bridge.session import Keys
 
@@ -153,20 +234,139 @@ def test_plant_rejects_commands_not_from_its_owner(plant_node, bus):
     rogue, ctl = bus.endpoint("rogue"), bus.endpoint("ctl")
     rogue_cmd = rogue.publisher(k.cmd)
     rogue_cmd.put(_cmd(0), 0)  # nobody owns the vehicle yet
-    assert claim(ctl, k, 0) == [("p1", {"v": M.VERSION, "granted": True, "owner": "ctl"})]
-    rogue_cmd.put(_cmd(0), 1)  # another session owns it: the rogue is banned
-    bus.inject(k.cmd, _cmd(0))  # a command without the sender's identity
-    rogue_cmd.put(M.pack({"v": 1}), 2)
+    assert claim(ctl, k, 0) == [("p1", {"v": 2, "granted": True, "reason": "granted"})]
+    rogue_cmd.put(_cmd(0), 1)  # another identity owns it: the rogue is banned
+    bus.inject(k.cmd, _cmd(0))  # a command without the sender's identity (protocol 1)
+    rogue_cmd.put(M.pack({"v": 1}), 2)  # malformed, but the sender decides first
     assert n._newest is None and n.stats.accepted == 0
-    ctl.publisher(k.cmd).put(_cmd(0), 0)
+    owner = ctl.publisher(k.cmd)
+    owner.put(M.pack({"v": 1}), 0)  # the owner's malformed command: counted by its reason
+    owner.put(_cmd(0), 1)
     assert n.stats.accepted == 1 and n._newest.state_seq == 0
-    assert n.rej.summary()["by_reason"] == {M.NOT_OWNER: 3, M.MISSING_FIELD: 1}
-    # the rogue is never granted the vehicle, not even once the owner releases it
-    assert claim(rogue, k, 1) == [("p1", {"v": M.VERSION, "granted": False, "owner": "ctl"})]
-    claim(ctl, k, 1, RELEASE)
-    assert claim(rogue, k, 2) == [("p1", {"v": M.VERSION, "granted": False})]
-    assert n.ownership.summary() == {"owner": None, "grants": 1, "refused": 2, "releases": 1,
-                                     "losses": 0, "banned": 1}
+    assert n.rej.summary()["by_reason"] == {M.NOT_OWNER: 4, M.MISSING_FIELD: 1}
+    # the rogue is never granted the vehicle, and never told who owns it
+    assert claim(rogue, k, 1) == [("p1", {"v": 2, "granted": False, "reason": "owned"})]
+    claim(ctl, k, 1, RELEASE)  # the owner leaves during the run: latched
+    assert claim(rogue, k, 2) == [("p1", {"v": 2, "granted": False, "reason": "latched"})]
+    s = n.ownership.summary()
+    assert (s["state"], s["owner"], s["grants"], s["refused"], s["releases"], s["banned"]) == (
+        "latched", None, 1, 2, 1, 1)
+
+
+class Events:
+    """What a node records, events only (the recorder's ``event``/``message`` calls)."""
+
+    def __init__(self):
+        self.events: list[tuple[str, dict]] = []
+
+    def event(self, name, **fields):
+        self.events.append((name, fields))
+
+    def message(self, *args, **kw):
+        pass
+
+    def maybe_flush(self):
+        pass
+
+
+def test_a_latched_plant_grants_nothing_until_an_operator_arms_it_for_a_named_controller(bus):
+    """Issue 22, item 1: the owner lost during the run latches the vehicle; neither a rogue
+    nor the lost owner gets it back; an operator's arm naming c2 lets only c2 drive; the
+    latch, the arm and the new owner are recorded and in the summary."""
+    from msagv.bridge.ownership import arm, claim
+    from msagv.bridge.plant_node import PlantConfig, PlantNode
+    from msagv.bridge.session import Keys
+    from msagv.plant import Plant, default_vehicle
+
+    k, rec = Keys("t0"), Events()
+    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
+                  PlantConfig(run_mode="realtime", steps=10), recorder=rec)
+    n.open(bus.endpoint("p1"))
+    try:
+        c1 = bus.endpoint("c1")
+        token = c1.declare_token(k.controller_token("c1"))
+        assert claim(c1, k, 0, to="p1")[0][1]["granted"]
+        n.publish_state(0)  # the run has started
+        assert n.controller_present
+        assert bus.vanish(k.controller_token("c1")) == 1  # killed: its lease expired
+        wait_until(lambda: n.ownership.state == "latched" and not n.controller_present, 5.0,
+                   "the latch")
+        rogue = bus.endpoint("rogue")
+        rogue.declare_token(k.controller_token("rogue"))
+        for who in (rogue, c1):
+            assert claim(who, k, 1) == [("p1", {"v": 2, "granted": False, "reason": "latched"})]
+        assert n.ownership.owner is None
+        op = bus.endpoint("op")
+        assert arm(op, k, "c2") == [("p1", {"v": 2, "armed": True, "reason": "armed"})]
+        assert claim(rogue, k, 2)[0][1]["reason"] == "armed_for_another"
+        c2 = bus.endpoint("c2")
+        t2 = c2.declare_token(k.controller_token("c2"))
+        assert claim(c2, k, 0)[0][1] == {"v": 2, "granted": True, "reason": "granted"}
+        assert n.controller_present and n.ownership.owner == "c2"
+        assert arm(op, k) == [("p1", {"v": 2, "armed": False, "reason": "owned"})]
+        o = n.summary()["ownership"]
+        assert (o["state"], o["owner"], o["latches"], o["losses"], o["grants"]) == (
+            "owned", "c2", 1, 1, 2)
+        assert o["arms"] == [{"t": 0.0, "by": "op", "controller": "c2"}]
+        names = [e for e, _ in rec.events]
+        assert names.index("latched") < names.index("armed") < len(names) - names[::-1].index("owner")
+        assert ("armed", {"t": 0.0, "by": "op", "controller": "c2"}) in rec.events
+        assert rec.events[names.index("latched")][1]["previous"] == "c1"
+        del token, t2
+    finally:
+        n.close()
+
+
+def test_params_are_read_only_and_only_the_owners_claim_asks_for_the_wheel_wear(bus):
+    """Issue 22, item 3: an observer's params query changes nothing the controller receives;
+    the per-wheel wear goes out when the owner's claim asks for it."""
+    from msagv.bridge.controller_node import fetch_params
+    from msagv.bridge.ownership import claim
+    from msagv.bridge.plant_node import PlantConfig, PlantNode
+    from msagv.bridge.session import Keys
+    from msagv.plant import Plant, default_vehicle
+
+    k = Keys("t0")
+    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
+                  PlantConfig(run_mode="lockstep", steps=10))
+    n.open(bus.endpoint("p1"))
+    try:
+        states = []
+        c1 = bus.endpoint("c1")
+        c1.subscribe(k.state, states.append)
+        obs = bus.endpoint("observer")
+        p, who = fetch_params(obs, k, 1.0, threading.Event())
+        assert who == "p1" and p["id"] == "t0" and not n.wheel_wear
+        assert claim(c1, k, 0, wheel_wear=True)[0][1]["granted"] and n.wheel_wear
+        n.publish_state(0)
+        for _ in range(3):  # observers' params queries and claims: nothing changes
+            fetch_params(obs, k, 1.0, threading.Event())
+            assert claim(obs, k, 0, wheel_wear=False)[0][1]["reason"] == "owned"
+        n.publish_state(1)
+        assert n.wheel_wear
+        assert all("W_s_ij" in M.decode_state(x.payload, 4) for x in states)
+        claim(c1, k, 1, wheel_wear=False)  # the owner itself may switch it off
+        n.publish_state(2)
+        assert not n.wheel_wear and "W_s_ij" not in M.decode_state(states[-1].payload, 4)
+    finally:
+        n.close()
+
+
+def test_a_client_of_the_first_protocol_version_is_told_why_it_is_refused(plant_node, bus):
+    """Issue 22, item 8: a query without an identity (the first version asked on the bare
+    keys) gets an error reply that says so; a command without one is rejected with the
+    reason in the log and the summary, never silently."""
+    from msagv.bridge.session import Keys
+
+    k = Keys("t0")
+    for key in (k.params, k.claim, k.arm):
+        r = bus.inject_query(key, b"")
+        assert len(r) == 1 and not r[0].ok and r[0].sender is None
+        text = r[0].payload.decode()
+        assert "protocol 2" in text and f"ask {key}/*/{{your identity}}" in text
+    bus.inject(k.cmd, _cmd(0))
+    assert plant_node.rej.summary()["by_reason"] == {M.NOT_OWNER: 1}
+    assert plant_node.summary()["old_clients"] == 3 and plant_node.ownership.grants == 0
 
 
 def test_plant_counts_a_command_that_arrives_after_its_step_as_late(plant_node, bus):
@@ -277,10 +477,12 @@ def test_a_controller_between_two_plants_claims_only_once_bound_to_the_next(bus)
 
 # ---- processes: a rogue peer against the real-time plant -------------------------------------
 class Rogue:
-    """A peer that joins a running system: once it has seen the owner's first command, it
-    answers every state first (steering at the limit, wheels at 20 rad/s), declares the
-    owner's token (the owner's zid read from its commands; and the key of the first
-    protocol version) and claims the vehicle every 50 ms."""
+    """A peer that joins a running system. Once it knows the owner's identity (the last
+    chunk of its commands' keys: on a plain bus anyone reads it), it answers every state
+    first (steering at the limit, wheels at 20 rad/s) three ways: under its own identity,
+    under the owner's (a key naming the owner, put from the rogue's session) and on the bare
+    key of protocol version 1; it declares the owner's token (and version 1's) and claims
+    the vehicle every 50 ms, as itself and in the owner's name."""
 
     def __init__(self, port: int, vid: str = "agv0"):
         import zenoh
@@ -290,7 +492,8 @@ class Rogue:
         self.keys = Keys(vid)
         self.port = port
         self.session = open_session(SessionOptions(id=vid, listen=[ep(port)]), "tool")
-        self.pub = self.session.declare_publisher(self.keys.cmd)
+        self.me = str(self.session.zid())
+        self.pubs = {}  # key -> publisher: its own, the owner's name, version 1's
         self.states: list[tuple[float, dict]] = []
         self.sent = 0
         self.granted = 0  # claims of the rogue the plant granted
@@ -299,8 +502,10 @@ class Rogue:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._zenoh = zenoh
-        self._subs = [self.session.declare_subscriber(self.keys.state, self._on_state),
-                      self.session.declare_subscriber(self.keys.cmd, self._on_cmd)]
+        self._subs = [self.session.declare_subscriber(f"{self.keys.state}/*", self._on_state),
+                      self.session.declare_subscriber(f"{self.keys.cmd}/*", self._on_cmd)]
+        for key in (f"{self.keys.cmd}/{self.me}", self.keys.cmd):
+            self.pubs[key] = self.session.declare_publisher(key)
         self._claimer = threading.Thread(target=self._claim, daemon=True)
         self._claimer.start()
 
@@ -314,30 +519,38 @@ class Rogue:
         if st.get("end") or self.owner is None:  # joins a running system
             return
         c = M.encode_cmd(10 ** 9 + self.sent, st["t"], st["seq"], [20.0] * 4, [0.8] * 4)
-        self.pub.put(c, source_info=self._zenoh.SourceInfo(self.pub.id, self.sent))
-        self.pub.put(c)  # and once without source info
-        self.sent += 2
+        for pub in list(self.pubs.values()):
+            pub.put(c, source_info=self._zenoh.SourceInfo(pub.id, self.sent))
+            self.sent += 1
 
-    def _on_cmd(self, s):  # learn the owner's zid from its commands
-        if self.owner is None and s.source_info is not None:
-            self.owner = str(s.source_info.source_id.zid)
+    def _on_cmd(self, s):  # learn the owner's identity from its commands' keys
+        who = str(s.key_expr).rsplit("/", 1)[1]
+        if self.owner is None and who != self.me:
+            self.owner = who
             self.tokens.append(self.session.liveliness().declare_token(
-                self.keys.controller_token(self.owner)))
+                self.keys.controller_token(who)))
+            key = f"{self.keys.cmd}/{who}"
+            self.pubs[key] = self.session.declare_publisher(key)
 
     def _claim(self):
-        from msagv.bridge.ownership import claim
+        from msagv.bridge.ownership import claim, encode_claim
         from msagv.bridge.zenoh_transport import ZenohTransport
 
         bus = ZenohTransport(self.session, owns=False)
-
         n = 0
         while not self._stop.wait(0.05):
             if self.owner is None:
                 continue
             try:
-                for _, g in claim(bus, self.keys, n,
-                                  timeout=0.2):
+                for _, g in claim(bus, self.keys, n, timeout=0.2):
                     if g is not None and g["granted"]:
+                        self.granted += 1
+                # in the owner's name: the plant sees no identity (the session is ours)
+                for r in self.session.get(f"{self.keys.claim}/*/{self.owner}",
+                                          payload=encode_claim(), timeout=0.2,
+                                          source_info=self._zenoh.SourceInfo(
+                                              self.pubs[self.keys.cmd].id, n)):
+                    if r.ok is not None and M.unpack(r.ok.payload.to_bytes(), 1024)["granted"]:
                         self.granted += 1
             except Exception:
                 pass
@@ -350,7 +563,7 @@ class Rogue:
     def close(self):
         self._stop.set()
         self._claimer.join(2)
-        for x in self.tokens + self._subs + [self.pub]:
+        for x in self.tokens + self._subs + list(self.pubs.values()):
             x.undeclare()
         self.session.close()
 
@@ -382,7 +595,7 @@ def _rogue_run(procs, duration: float, kill_after: float):
 
 def _check_rogue_run(s, states, k_kill, sent, owner, duration):
     steps = int(round(duration / T))
-    assert owner is not None  # the rogue learned the owner's zid and forged its token
+    assert owner is not None  # the rogue learned the owner's identity and forged its token
     assert s["completed"] and s["steps"] == steps
     c = s["commands"]
     # before the kill: the rogue answered first, yet no command of it was accepted (an
@@ -427,8 +640,11 @@ def test_rogue_peer_long(procs):
 @pytest.mark.timeout(300)
 def test_a_stalled_controller_carries_on_with_a_live_plant(procs):
     P = free_port()
+    # the stalled controller's token is lost (2 s > the 1 s lease): the vehicle is latched;
+    # --rearm same:50 lets the same identity (its session survived) claim it again after
+    # 50 periods, with no operator
     procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 12,
-                               "--listen", ep(P), "--json", "-q"))
+                               "--listen", ep(P), "--rearm", "same:50", "--json", "-q"))
     ctl = procs.start("ctl", msagv("controller", "--connect", ep(P), "--on-plant-loss",
                                    "exit", "--exit-at-end", "--json"))
     t0 = time.monotonic()
@@ -445,6 +661,9 @@ def test_a_stalled_controller_carries_on_with_a_live_plant(procs):
     s, c = procs.json("plant"), procs.json("ctl")
     assert s["completed"] and s["safe"]["events"] >= 1 and s["safe"]["resumes"] >= 1
     assert c["exit_reason"] == "end of run"
+    o = s["ownership"]
+    assert o["latches"] >= 1 and o["arms"] == []  # no operator: the policy let it back
+    assert o["rearm"] == "same:50" and o["grants"] >= 2  # granted again after the latch
     print(f"\nstall: plant safe {s['safe']}, ownership {s['ownership']}, controller loss "
           f"{c['loss']}")
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -34,7 +35,8 @@ T = 0.01
 
 
 class Bus:
-    """The test's own session: listens on ``port``; collects states and commands of ``vid``."""
+    """The test's own session: listens on ``port``; collects states and commands of ``vid``
+    (protocol 2: on ``state/*`` and ``cmd/*``, the senders' identities in the last chunk)."""
 
     def __init__(self, port: int, vid: str = "agv0"):
         self.port = port
@@ -44,8 +46,9 @@ class Bus:
         self.cmds: list[tuple[float, dict]] = []
         self._cond = threading.Condition()
         self._subs = [
-            self.session.declare_subscriber(self.keys.state, self._on_state),
-            self.session.declare_subscriber(self.keys.cmd, self._on_cmd)]
+            self.session.declare_subscriber(f"{self.keys.state}/*", self._on_state),
+            self.session.declare_subscriber(f"{self.keys.cmd}/*", self._on_cmd)]
+        self.transport = ZenohTransport(self.session, owns=False)  # for the faults' floods
         # any plant's and any controller's token (alive/plant/{zid}, alive/controller/{zid})
         bus = ZenohTransport(self.session, owns=False)
         self.plant = Presence(bus, self.keys.plant_token())
@@ -205,15 +208,16 @@ def _flood_run(procs, bus, tmp_path, n: int, duration: float):
                                ep(bus.port), "--record", rec, "--json", "-q"))
     bus.wait_present("plant", 60)
     time.sleep(0.2)  # let the plant's subscriber be known to our publisher
-    sent_plant = faults.flood(bus.session, "agv0", "cmd", 4, n)["sent"]
+    sent_plant = faults.flood(bus.transport, "agv0", "cmd", 4, n)["sent"]
     procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
                              "--json", "-q"))
     bus.wait_present("controller", 120)
     time.sleep(0.2)
     t0 = time.monotonic()
-    sent_plant += faults.flood(bus.session, "agv0", "cmd", 4, n)["sent"]
-    sent_ctl = faults.flood(bus.session, "agv0", "state", 4, n)["sent"]
-    sent_ctl += faults.flood(bus.session, "agv0", "reference", 4, n)["sent"]
+    sent_plant += faults.flood(bus.transport, "agv0", "cmd", 4, n)["sent"]
+    sent_ctl = faults.flood(bus.transport, "agv0", "state", 4, n)["sent"]
+    refs = faults.flood(bus.transport, "agv0", "reference", 4, n)
+    sent_ctl += refs["sent"]
     flood_s = time.monotonic() - t0
     assert procs.wait("plant", 600) == 0, procs.err("plant")
     time.sleep(2.0)  # the controller takes what is still queued, then stops on SIGTERM
@@ -221,9 +225,13 @@ def _flood_run(procs, bus, tmp_path, n: int, duration: float):
     procs.p["ctl"].send_signal(signal.SIGTERM)
     assert procs.wait("ctl", 30) == 0, procs.err("ctl")
     ps, cs = procs.json("plant"), procs.json("ctl")
+    # the sender is checked first: from the tool, every command is not_owner and every
+    # state not_bound; references (anyone may send one) are counted by their malformation
     assert ps["rejected"]["total"] == sent_plant == 2 * n
     assert ps["rejected"]["by_key"] == {"msagv/agv0/cmd": 2 * n}
+    assert ps["rejected"]["by_reason"] == {M.NOT_OWNER: 2 * n}
     assert cs["rejected"]["total"] == sent_ctl == 2 * n
+    assert cs["rejected"]["by_reason"] == dict(refs["by_reason"], **{M.NOT_BOUND: n})
     steps = int(round(duration / T))
     assert cs["references"] == 0 and cs["answered"] == steps and ps["steps"] == steps
     _assert_same_as_in_process(rec, ps, in_process(duration))
@@ -289,8 +297,9 @@ def test_realtime_short_run(procs, bus, tmp_path):
 @pytest.mark.timeout(300)
 def test_controller_killed_then_restarted_plant_goes_safe_and_resumes(procs, bus, tmp_path):
     """Realtime: SIGKILL the controller; the plant holds the steering and ramps the wheels
-    down, reports it, and resumes with a new controller. Then SIGTERM stops the plant
-    promptly with its recording intact."""
+    down, reports it, and stays safe (latched: issue 22) while a new controller claims in
+    vain; an operator's ``msagv arm`` naming the new controller lets it drive, and the plant
+    resumes. Then SIGTERM stops the plant promptly with its recording intact."""
     P = free_port()
     rec = tmp_path / "plant.rec"
     procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 120,
@@ -301,10 +310,23 @@ def test_controller_killed_then_restarted_plant_goes_safe_and_resumes(procs, bus
     bus.wait_for(lambda st: st and st[-1][1]["seq"] >= 150, 120, "1.5 s of realtime steps")
     a.kill()
     bus.wait_for(lambda st: st and st[-1][1].get("safe"), 30, "the plant to go safe")
-    procs.start("ctl_b", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
-                               "-q"))
-    bus.wait_for(lambda st: any(m.get("safe") for _, m in st) and not st[-1][1].get("safe")
-                 and st[-1][1]["seq"] > 0, 120, "the plant to resume")
+    b = procs.start("ctl_b", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
+                                   "-q"))
+    # latched: B is refused and told how to be re-armed; the plant stays safe meanwhile
+    hint = re.compile(r"msagv arm --id agv0 --controller (\S+)")
+    t0 = time.monotonic()
+    while not hint.search(procs.err("ctl_b")):
+        assert time.monotonic() - t0 < 180 and b.poll() is None, procs.err("ctl_b")[-2000:]
+        time.sleep(0.05)
+    b_id = hint.search(procs.err("ctl_b")).group(1)
+    k_armed = bus.states[-1][1]["seq"]
+    assert all(m.get("safe") for _, m in bus.states[-20:])
+    arm = subprocess.run(msagv("arm", "--connect", ep(P), "--controller", b_id, "--json"),
+                         capture_output=True, text=True, timeout=120)
+    assert arm.returncode == 0, arm.stderr
+    assert json.loads(arm.stdout)["answers"][0]["armed"] is True
+    bus.wait_for(lambda st: not st[-1][1].get("safe") and st[-1][1]["seq"] > k_armed, 120,
+                 "the plant to resume")
     resumed_at = bus.states[-1][1]["seq"]
     bus.wait_for(lambda st: st[-1][1]["seq"] >= resumed_at + 50, 30, "0.5 s after resuming")
     t0 = time.monotonic()
@@ -314,6 +336,9 @@ def test_controller_killed_then_restarted_plant_goes_safe_and_resumes(procs, bus
     s = procs.json("plant")
     assert s["stopped_by"] == "SIGTERM"
     assert s["safe"]["events"] >= 1 and s["safe"]["resumes"] >= 1 and s["controller_losses"] >= 1
+    o = s["ownership"]
+    assert o["owner"] == b_id and o["latches"] == 1 and o["grants"] == 2
+    assert [x["controller"] for x in o["arms"]] == [b_id] and o["refused"] >= 1
     err = procs.err("plant")
     assert "SAFE at t =" in err and "resumed normal operation" in err
     # the safe behaviour, from the states on the bus: steering held, wheels ramped down
@@ -330,6 +355,10 @@ def test_controller_killed_then_restarted_plant_goes_safe_and_resumes(procs, bus
     h, recs, summary = read_recording(rec)
     assert summary is not None and summary["stopped_by"] == "SIGTERM"
     assert any(r.get("ev") == "safe" and r["on"] for r in recs)
+    evs = [r["ev"] for r in recs if r.get("ev") in ("latched", "armed", "owner")]
+    # the grant to A, the loss (latched, no owner), the re-arm, the grant to B
+    assert evs == ["owner", "latched", "owner", "armed", "owner"], evs
+    assert [r for r in recs if r.get("ev") == "armed"][0]["controller"] == b_id
     print(f"\ncontroller kill/restart: safe {s['safe']}; plant stopped {stop_s:.2f} s after "
           f"SIGTERM (incl. process exit)")
 

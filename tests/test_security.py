@@ -28,25 +28,31 @@ def tls(port: int) -> str:
 
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory):
-    """A CA and the plant, controller, router identities, an observer and a second
-    controller identity."""
+    """A CA; plant and controller identities for agv0 and agv1, a router and an operator;
+    an observer of every vehicle and a second controller identity for agv0."""
     d = tmp_path_factory.mktemp("certs")
-    create_certs(d, [parse_extra("monitor"), parse_extra("spare:controller")])
+    create_certs(d, [parse_extra("monitor"), parse_extra("spare:controller:agv0")],
+                 vehicles=("agv0", "agv1"))
     return d
 
 
 # ---- certificates ------------------------------------------------------------------------------
-def test_certs_have_one_identity_per_role_and_private_keys_only_for_the_owner(certs):
+def test_certs_have_one_identity_per_role_and_vehicle_and_private_keys_only_for_the_owner(certs):
     from cryptography import x509
     from cryptography.x509.oid import NameOID
 
     m = read_manifest(certs)
     assert m["identities"] == {
-        "plant": {"cn": "msagv-plant", "role": "plant"},
-        "controller": {"cn": "msagv-controller", "role": "controller"},
-        "router": {"cn": "msagv-router", "role": "router"},
-        "monitor": {"cn": "monitor", "role": "observer"},
-        "spare": {"cn": "spare", "role": "controller"}}
+        "plant-agv0": {"cn": "msagv-plant-agv0", "role": "plant", "vehicles": ["agv0"]},
+        "controller-agv0": {"cn": "msagv-controller-agv0", "role": "controller",
+                            "vehicles": ["agv0"]},
+        "plant-agv1": {"cn": "msagv-plant-agv1", "role": "plant", "vehicles": ["agv1"]},
+        "controller-agv1": {"cn": "msagv-controller-agv1", "role": "controller",
+                            "vehicles": ["agv1"]},
+        "router": {"cn": "msagv-router", "role": "router", "vehicles": ["*"]},
+        "operator": {"cn": "msagv-operator", "role": "operator", "vehicles": ["*"]},
+        "monitor": {"cn": "monitor", "role": "observer", "vehicles": ["*"]},
+        "spare": {"cn": "spare", "role": "controller", "vehicles": ["agv0"]}}
     ca = x509.load_pem_x509_certificate((certs / "ca.pem").read_bytes())
     for name, v in m["identities"].items():
         c = x509.load_pem_x509_certificate((certs / f"{name}.pem").read_bytes())
@@ -60,18 +66,34 @@ def test_certs_have_one_identity_per_role_and_private_keys_only_for_the_owner(ce
 def test_certs_complete_a_directory_with_the_same_ca(tmp_path):
     create_certs(tmp_path)
     ca = (tmp_path / "ca.pem").read_bytes()
-    plant = (tmp_path / "plant.pem").read_bytes()
-    create_certs(tmp_path, [("dash", "observer")])
+    plant = (tmp_path / "plant-agv0.pem").read_bytes()
+    create_certs(tmp_path, [("dash", "observer")], vehicles=("agv0", "agv7"))
     assert (tmp_path / "ca.pem").read_bytes() == ca
-    assert (tmp_path / "plant.pem").read_bytes() == plant  # kept
-    assert "dash" in read_manifest(tmp_path)["identities"]
+    assert (tmp_path / "plant-agv0.pem").read_bytes() == plant  # kept
+    ids = read_manifest(tmp_path)["identities"]
+    assert "dash" in ids and ids["plant-agv7"]["vehicles"] == ["agv7"]
     with pytest.raises(SecurityError, match="role observer, not plant"):
         create_certs(tmp_path, [("dash", "plant")])
+    with pytest.raises(SecurityError, match="per vehicle"):
+        create_certs(tmp_path, vehicles=("*",))
+
+
+def test_a_directory_of_the_first_version_serves_every_vehicle(tmp_path):
+    """roles.json without vehicles (msagv certs before per-vehicle certificates): read as
+    every vehicle, so such a deployment keeps working (and keeps its limit: SECURITY.md)."""
+    create_certs(tmp_path)
+    m = json.loads((tmp_path / "roles.json").read_text())
+    for v in m["identities"].values():
+        del v["vehicles"]
+    (tmp_path / "roles.json").write_text(json.dumps(m))
+    assert {v["vehicles"][0] for v in read_manifest(tmp_path)["identities"].values()} == {"*"}
 
 
 @pytest.mark.parametrize("args,msg", [
     (["--extra", "a/b"], "not a valid identity name"),
     (["--extra", "x:pilot"], "role must be one of"),
+    (["--extra", "x:observer:a/b"], "is not a vehicle id"),
+    (["--vehicle", "a b"], "is not a vehicle id"),
     (["--san", "bad host"], "neither an IP address nor a host name"),
     (["--days", "0"], "--days must be 1..36500"),
 ])
@@ -82,28 +104,59 @@ def test_msagv_certs_bad_input_one_line_and_nothing_written(tmp_path, args, msg)
     assert not (tmp_path / "d" / "roles.json").exists()
 
 
-def test_acl_lets_each_role_send_only_its_own_messages(certs):
+def _may(acl, cn: str, message: str, key: str, flow: str = "ingress") -> bool:
+    """Whether ``acl`` lets the certificate ``cn`` send ``message`` on ``key`` (Zenoh's rule:
+    a rule applies when its key expression includes the message's, zenoh.KeyExpr)."""
+    import zenoh
+
+    rules = {r["id"]: r for r in acl["rules"]}
+    subj = {x["id"] for x in acl["subjects"] if cn in x["cert_common_names"]}
+    k = zenoh.KeyExpr(key)
+    return any(message in rules[r]["messages"] and rules[r]["flows"] == [flow]
+               and any(zenoh.KeyExpr(e).includes(k) for e in rules[r]["key_exprs"])
+               for p in acl["policies"] if subj & set(p["subjects"]) for r in p["rules"])
+
+
+def test_acl_lets_each_certificate_send_only_under_its_own_name_for_its_vehicle(certs):
     acl = acl_config(read_manifest(certs))
     assert acl["enabled"] and acl["default_permission"] == "deny"
-    rules = {r["id"]: r for r in acl["rules"]}
-    pol = {p["subjects"][0]: p["rules"] for p in acl["policies"]}
-    subj = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
-    assert subj["controller"] == ["msagv-controller", "spare"]
-    assert subj["observer"] == ["monitor"]
-
-    def may_send(role, message, key):
-        return any(message in rules[r]["messages"] and rules[r]["flows"] == ["ingress"]
-                   and key in rules[r]["key_exprs"] for r in pol[role])
-
-    assert may_send("plant", "put", "msagv/*/state") and not may_send("plant", "put", "msagv/*/cmd")
-    assert may_send("controller", "put", "msagv/*/cmd")
-    assert not may_send("controller", "put", "msagv/*/state")
-    assert not may_send("controller", "reply", "msagv/*/params")
-    assert may_send("controller", "liveliness_token", "msagv/*/alive/controller/*")
-    assert not may_send("controller", "liveliness_token", "msagv/*/alive/plant/*")
-    assert not any(may_send("observer", m, k) for m in ("put", "reply", "liveliness_token")
-                   for k in ("msagv/*/cmd", "msagv/*/state", "msagv/*/params",
-                             "msagv/*/alive/controller/*"))
+    may = lambda cn, m, k: _may(acl, cn, m, k)  # noqa: E731
+    C0, C1, P0 = "msagv-controller-agv0", "msagv-controller-agv1", "msagv-plant-agv0"
+    # a controller: its vehicle's cmd under its own name, claims and params of its vehicle
+    assert may(C0, "put", f"msagv/agv0/cmd/{C0}")
+    assert not may(C0, "put", f"msagv/agv0/cmd/{C1}")  # another's name
+    assert not may(C0, "put", "msagv/agv0/cmd/spare") and not may(C0, "put", "msagv/agv0/cmd/*")
+    assert not may(C1, "put", f"msagv/agv0/cmd/{C1}")  # another vehicle
+    assert not may(C0, "put", f"msagv/agv0/state/{C0}")
+    assert may(C0, "query", f"msagv/agv0/claim/*/{C0}") and may(C0, "query", f"msagv/agv0/claim/{P0}/{C0}")
+    assert not may(C0, "query", f"msagv/agv0/claim/*/{C1}") and not may(C0, "query", "msagv/agv0/claim/**")
+    assert not may(C1, "query", f"msagv/agv0/claim/*/{C1}")
+    assert not may(C0, "query", f"msagv/agv0/arm/*/{C0}")  # only an operator arms
+    assert not may(C0, "reply", f"msagv/agv0/params/{C0}/x")
+    assert may(C0, "liveliness_token", f"msagv/agv0/alive/controller/{C0}")
+    assert not may(C0, "liveliness_token", f"msagv/agv0/alive/controller/{C1}")
+    assert not may(C0, "liveliness_token", f"msagv/agv0/alive/plant/{C0}")
+    assert may("spare", "put", "msagv/agv0/cmd/spare") and not may("spare", "put", f"msagv/agv0/cmd/{C0}")
+    # a plant: its states, its answers, its token; nothing of another vehicle
+    assert may(P0, "put", f"msagv/agv0/state/{P0}") and not may(P0, "put", f"msagv/agv0/cmd/{P0}")
+    assert may(P0, "reply", f"msagv/agv0/claim/{P0}/{C0}") and may(P0, "declare_queryable",
+                                                                     f"msagv/agv0/arm/{P0}/*")
+    assert not may(P0, "reply", f"msagv/agv0/claim/msagv-plant-agv1/{C0}")
+    assert not may(P0, "put", "msagv/agv1/state/msagv-plant-agv0")
+    # an operator arms any vehicle; an observer only reads and asks params
+    assert may("msagv-operator", "query", "msagv/agv1/arm/*/msagv-operator")
+    assert not may("msagv-operator", "put", "msagv/agv1/cmd/msagv-operator")
+    assert may("monitor", "query", "msagv/agv0/params/*/monitor")
+    assert may("monitor", "declare_subscriber", "msagv/agv0/state/*")
+    assert not any(may("monitor", m, k) for m in ("put", "reply", "liveliness_token")
+                   for k in (f"msagv/agv0/cmd/monitor", "msagv/agv0/state/monitor",
+                             "msagv/agv0/params/monitor/x", "msagv/agv0/alive/controller/monitor"))
+    assert not may("monitor", "query", "msagv/agv0/claim/*/monitor")
+    # a client of version 1 (bare keys) reaches the plant, to be told why it is refused
+    assert may(C0, "put", "msagv/agv0/cmd") and may(C0, "query", "msagv/agv0/claim")
+    # what the plant sends a controller of another vehicle: nothing of agv0
+    assert not _may(acl, C1, "put", f"msagv/agv0/state/{P0}", flow="egress")
+    assert _may(acl, C0, "put", f"msagv/agv0/state/{P0}", flow="egress")
 
 
 # ---- session configuration ------------------------------------------------------------------
@@ -119,8 +172,19 @@ def test_secure_config_needs_tls_endpoints_and_a_complete_directory(certs, tmp_p
                     "controller")
     with pytest.raises(SessionError, match="not a directory"):
         make_config(SessionOptions(secure_dir=str(tmp_path / "nope")), "plant")
-    with pytest.raises(SessionError, match="no identity 'tool'"):
+    with pytest.raises(SessionError, match="no identity for a tool of vehicle 'agv0'"):
         make_config(SessionOptions(secure_dir=str(certs)), "tool")
+    # a process uses ROLE-ID: the plant of agv1 gets agv1's certificate
+    from msagv.bridge.session import secure_identity
+
+    assert secure_identity(SessionOptions(id="agv1", secure_dir=str(certs)), "plant") == \
+        "msagv-plant-agv1"
+    assert secure_identity(SessionOptions(secure_dir=str(certs)), "operator") == "msagv-operator"
+    with pytest.raises(SessionError, match="no identity for a plant of vehicle 'agv2'"):
+        make_config(SessionOptions(id="agv2", secure_dir=str(certs)), "plant")
+    with pytest.raises(SessionError, match="serves vehicle.s. agv0, not 'agv1'"):
+        make_config(SessionOptions(id="agv1", secure_dir=str(certs), identity="spare"),
+                    "controller")
 
 
 def test_a_config_file_is_merged_with_the_safe_defaults(tmp_path):
@@ -148,12 +212,18 @@ def test_a_config_file_is_merged_with_the_safe_defaults(tmp_path):
 
 
 # ---- processes ----------------------------------------------------------------------------
+OWNER = "msagv-controller-agv0"  # the controller's certificate: its name on the bus
+
+
 class Peer:
     """A session that is not an msagv process: TLS with ``identity``'s certificate (None:
-    no certificate), no access-control rules of its own. It answers every state it sees
-    with a command (carrying its source info) and claims the vehicle."""
+    no certificate), no access-control rules of its own, the Zenoh session id ``zid``
+    (None: its own). It answers every state it sees with a command under its own name and
+    under the owner's, claims the vehicle as itself and in the owner's name, declares its
+    own token and the owner's, and asks ``params`` (``wheel_wear`` could be set that way
+    in version 1)."""
 
-    def __init__(self, certs, identity: str | None, port: int):
+    def __init__(self, certs, identity: str | None, port: int, zid: str | None = None):
         import zenoh
 
         conf = zenoh.Config()
@@ -161,6 +231,8 @@ class Peer:
                      ("listen/endpoints", "[]"), ("scouting/multicast/enabled", "false"),
                      ("scouting/gossip/enabled", "false")):
             conf.insert_json5(k, v)
+        if zid is not None:
+            conf.insert_json5("id", json.dumps(zid))
         t = {"root_ca_certificate": str(certs / "ca.pem"), "enable_mtls": True}
         if identity is not None:
             key, pem = str(certs / f"{identity}.key"), str(certs / f"{identity}.pem")
@@ -168,15 +240,18 @@ class Peer:
                      listen_private_key=key, listen_certificate=pem)
         conf.insert_json5("transport/link/tls", json.dumps(t))
         self.keys = Keys("agv0")
+        self.name = read_manifest(certs)["identities"][identity]["cn"] if identity else "nobody"
         self.session = zenoh.open(conf)
-        self.pub = self.session.declare_publisher(self.keys.cmd)
+        self.pubs = [self.session.declare_publisher(f"{self.keys.cmd}/{n}")
+                     for n in (self.name, OWNER)]
         self.states = 0
+        self.wheel_wear_states = 0
         self.sent = 0
         self.granted = 0
-        self._z = zenoh
-        self._sub = self.session.declare_subscriber(self.keys.state, self._on_state)
-        self.token = self.session.liveliness().declare_token(
-            self.keys.controller_token(str(self.session.zid())))
+        self.answers = 0  # ok replies to its params queries
+        self._sub = self.session.declare_subscriber(f"{self.keys.state}/*", self._on_state)
+        self.tokens = [self.session.liveliness().declare_token(self.keys.controller_token(n))
+                       for n in (self.name, OWNER)]
         self._stop = threading.Event()
         self._t = threading.Thread(target=self._claim, daemon=True)
         self._t.start()
@@ -187,49 +262,56 @@ class Peer:
         except M.MessageError:
             return
         self.states += 1
+        self.wheel_wear_states += "W_s_ij" in st
         if not st.get("end"):
-            self.pub.put(M.encode_cmd(10 ** 9 + self.sent, st["t"], st["seq"], [20.0] * 4,
-                                      [0.8] * 4),
-                         source_info=self._z.SourceInfo(self.pub.id, self.sent))
-            self.sent += 1
+            c = M.encode_cmd(10 ** 9 + self.sent, st["t"], st["seq"], [20.0] * 4, [0.8] * 4)
+            for pub in self.pubs:
+                pub.put(c)
+                self.sent += 1
 
     def _claim(self):
-        from msagv.bridge.ownership import claim
-        from msagv.bridge.zenoh_transport import ZenohTransport
+        from msagv.bridge.ownership import encode_claim
 
-        bus = ZenohTransport(self.session, owns=False)
-
-        n = 0
         while not self._stop.wait(0.1):
-            try:
-                for _, g in claim(bus, self.keys, n, timeout=0.3):
-                    if g is not None and g["granted"]:
-                        self.granted += 1
-            except Exception:
-                pass
-            n += 1
+            for name in (self.name, OWNER):
+                try:
+                    for r in self.session.get(f"{self.keys.claim}/*/{name}", timeout=0.3,
+                                              payload=encode_claim("claim", False)):
+                        if r.ok is not None and M.unpack(r.ok.payload.to_bytes(), 1024)["granted"]:
+                            self.granted += 1
+                except Exception:
+                    pass
+            self.answers += self.params()
 
     def params(self) -> int:
-        return sum(1 for r in self.session.get(self.keys.params, timeout=1.0) if r.ok)
+        return sum(1 for r in self.session.get(f"{self.keys.params}/*/{self.name}", timeout=0.5)
+                   if r.ok)
 
     def close(self):
         self._stop.set()
         self._t.join(2)
-        self.token.undeclare()
-        self._sub.undeclare()
-        self.pub.undeclare()
+        for x in self.tokens + [self._sub] + self.pubs:
+            x.undeclare()
         self.session.close()
 
 
 @pytest.mark.timeout(300)
 def test_secure_run_refuses_peers_without_a_certificate_or_of_the_wrong_role(procs, certs):
+    """Issue 22, item 2: with --secure, a peer without a certificate gets no link; one with
+    the CA's observer certificate, the plant's, or another vehicle's controller's answers
+    every state under its own name and the owner's, claims as itself and as the owner and
+    declares the owner's token: none of it reaches the plant (the access control drops it),
+    the controller's 300 commands are the only ones, and the observer's params queries
+    (answered) change nothing it receives. (A second controller certificate of this
+    vehicle may claim it: the first claim wins; under the owner's name it may not send,
+    test_acl_lets_each_certificate_send_only_under_its_own_name_for_its_vehicle.)"""
     P = free_port()
     procs.start("plant", msagv("plant", "--secure", certs, "--run-mode", "lockstep",
                                "--duration", 3, "--listen", tls(P), "--json", "-q"))
     peers = {}
     try:
-        # no certificate, and the wrong roles: an observer and the plant's own identity
-        for name, ident in (("nocert", None), ("observer", "monitor"), ("plant_cert", "plant")):
+        for name, ident in (("nocert", None), ("observer", "monitor"),
+                            ("plant_cert", "plant-agv0"), ("other_vehicle", "controller-agv1")):
             peers[name] = Peer(certs, ident, P)
         time.sleep(1.0)
         procs.start("ctl", msagv("controller", "--secure", certs, "--connect", tls(P),
@@ -238,22 +320,27 @@ def test_secure_run_refuses_peers_without_a_certificate_or_of_the_wrong_role(pro
         assert procs.wait("ctl", 30) == 0, procs.err("ctl")
         s, c = procs.json("plant"), procs.json("ctl")
         assert s["completed"] and s["steps"] == 300 and c["answered"] == 300
+        assert c["plant_zid"] == "msagv-plant-agv0"  # bound to the plant's certificate
         cm = s["commands"]
         assert cm["accepted"] == 300 and cm["duplicate"] == 0 and cm["stale"] == 0
         # nothing of the refused peers reached the plant: no command, no claim, no token
         assert s["rejected"]["total"] == 0, s["rejected"]
-        assert s["ownership"]["grants"] == 1 and s["ownership"]["refused"] == 0
-        assert s["ownership"]["banned"] == 0
+        o = s["ownership"]
+        assert o["grants"] == 1 and o["refused"] == 0 and o["banned"] == 0, o
+        assert s["old_clients"] == 0
         nc = peers["nocert"]
         assert nc.states == 0 and nc.params() == 0 and not list(nc.session.info.peers_zid())
-        for name in ("observer", "plant_cert"):
-            p = peers[name]
-            assert p.granted == 0
-        # the observer may read: it saw the states and answered them (denied at the plant)
-        assert peers["observer"].states > 0 and peers["observer"].sent > 0
-        print(f"\nsecure run: {cm['accepted']} commands accepted; observer answered "
-              f"{peers['observer'].sent} states, plant-cert peer {peers['plant_cert'].sent}, "
-              f"none reached the plant; no-certificate peer saw {nc.states} states")
+        assert all(p.granted == 0 for p in peers.values())
+        # the observer may read and ask params: it saw the states, its queries were
+        # answered, and the per-wheel wear the controller asked for went out throughout
+        ob = peers["observer"]
+        assert ob.states > 0 and ob.sent > 0 and ob.answers > 0
+        assert ob.wheel_wear_states == 301  # taken with the grant: from state 0 on
+        # another vehicle's controller gets nothing of agv0 (the plant's egress rules)
+        assert peers["other_vehicle"].states == 0
+        print(f"\nsecure run: {cm['accepted']} commands accepted; "
+              + ", ".join(f"{n} sent {p.sent}" for n, p in peers.items())
+              + f"; none reached the plant; observer's params answered {ob.answers} times")
     finally:
         for p in peers.values():
             p.close()
@@ -261,6 +348,9 @@ def test_secure_run_refuses_peers_without_a_certificate_or_of_the_wrong_role(pro
 
 @pytest.mark.timeout(300)
 def test_secure_plant_and_controller_through_a_secure_router(procs, certs):
+    """Through ``msagv router --secure``. The plant and the controller are started with
+    the router, not after it: a client's session open waits for its router (it used to
+    exit 2 when it came first, a flaky failure on a loaded machine)."""
     R = free_port()
     procs.start("router", msagv("router", "--secure", certs, "--listen", tls(R)))
     procs.start("plant", msagv("plant", "--secure", certs, "--mode", "client", "--connect",
@@ -310,32 +400,44 @@ def test_secure_demo_20s_100hz(tmp_path):
     assert tr["missed_periods"] == 0
 
 
-# ---- the transport's message size limit ---------------------------------------------------
+# ---- the transport's message size limit ----------------------------------------------------
 @pytest.mark.timeout(300)
-def test_a_50_mb_command_is_dropped_before_it_reaches_the_realtime_plant(procs):
+def test_a_50_mb_message_is_dropped_before_it_reaches_the_realtime_plant_or_controller(procs):
+    """Issue 22, item 4: Zenoh's limit (1 MiB + 64 KiB) drops a 50 MB command and a 50 MB
+    state before they are buffered beyond it: neither reaches a process; a 200 KB command
+    (over the protocol's 64 KiB, under Zenoh's limit) reaches the plant and is counted
+    (from this tool: not_owner, the sender is checked first). Periods and safe events are
+    printed (timing on a loaded machine is not asserted; the slow flood test is)."""
+    from msagv.bridge.zenoh_transport import ZenohTransport
+
     P = free_port()
     procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 6, "--listen",
                                f"tcp/127.0.0.1:{P}", "--json", "-q"))
     procs.start("ctl", msagv("controller", "--connect", f"tcp/127.0.0.1:{P}", "--exit-at-end",
-                             "-q"))
-    with open_session(SessionOptions(connect=[f"tcp/127.0.0.1:{P}"]), "tool") as s:
+                             "--json", "-q"))
+    with ZenohTransport.open(SessionOptions(connect=[f"tcp/127.0.0.1:{P}"]), "tool") as t:
         keys = Keys("agv0")
         states = []
-        sub = s.declare_subscriber(keys.state, lambda x: states.append(1))
+        sub = t.subscribe(keys.state, lambda x: states.append(1))
         t0 = time.monotonic()
         while len(states) < 150:  # 1.5 s into the real-time run
             assert time.monotonic() - t0 < 180, procs.err("plant")
             time.sleep(0.02)
-        s.put(keys.cmd, M.pack({"v": 1}))  # a small malformed command: it arrives
+        cmd, state = t.publisher(keys.cmd), t.publisher(keys.state)
+        cmd.put(M.pack({"v": 1}), 0)  # a small malformed command: it arrives
+        cmd.put(b"\x80" + b"\x00" * (200 << 10), 1)  # 200 KB: it arrives
         time.sleep(0.2)
         big = b"\x00" * (50 * 1024 * 1024)
         assert len(big) > MAX_MESSAGE_BYTES
-        s.put(keys.cmd, big)
+        cmd.put(big, 2)
+        state.put(big, 3)
         assert procs.wait("plant", 120) == 0, procs.err("plant")
-        sub.undeclare()
-    st = procs.json("plant")
+        assert procs.wait("ctl", 60) == 0, procs.err("ctl")
+        sub.close()
+    st, c = procs.json("plant"), procs.json("ctl")
     assert st["completed"] and st["steps"] == 600
-    # the small message reached the plant and was rejected; the 50 MB one never reached it
-    assert st["rejected"]["total"] == 1 and st["rejected"]["by_reason"] == {M.MISSING_FIELD: 1}
-    print(f"\n50 MB on cmd: missed periods {st['missed_periods']}, lateness "
+    # the small ones reached the plant and were rejected; the 50 MB ones reached nobody
+    assert st["rejected"]["total"] == 2 and st["rejected"]["by_reason"] == {M.NOT_OWNER: 2}
+    assert c["rejected"]["total"] == 0
+    print(f"\n50 MB on cmd and state: missed periods {st['missed_periods']}, lateness "
           f"{st['lateness_ms']}, safe {st['safe']}")
