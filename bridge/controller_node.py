@@ -313,7 +313,17 @@ class ControllerNode:
 
     # ---- incoming ----------------------------------------------------------------------
     def _on_state_sample(self, sample: Sample) -> None:
-        self.handle_state(sample.payload, time.perf_counter(), sample.sender)
+        sender = sample.sender
+        if sender is None or sender != self.plant_zid:  # counted and dropped first
+            self.rej.add_reason(M.NOT_BOUND, self.keys.state, lambda: self._not_bound(sender))
+            if self.rec is not None:
+                self.rec.message("rx", self.keys.state, sample.payload, why=M.NOT_BOUND)
+            return
+        self.handle_state(sample.payload, time.perf_counter(), sender)
+
+    def _not_bound(self, sender: str | None) -> str:
+        who = sender or "a sender without identity (protocol version 1)"
+        return f"from {who}; bound to plant {self.plant_zid or '(none yet)'}"
 
     def handle_state(self, payload: bytes, rx_perf: float, sender: str | None) -> dict | None:
         """Validate a state; the newest valid one is solved next. Returns it, or None.
@@ -322,9 +332,7 @@ class ControllerNode:
         key = self.keys.state
         try:
             if sender is None or sender != self.plant_zid:
-                who = sender or "a sender without identity (protocol version 1)"
-                raise M.MessageError(M.NOT_BOUND, f"from {who}; bound to plant "
-                                                  f"{self.plant_zid or '(none yet)'}")
+                raise M.MessageError(M.NOT_BOUND, self._not_bound(sender))
             st = M.decode_state(payload, self.nw)
         except M.MessageError as e:
             self.rej.add(e, key)

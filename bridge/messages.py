@@ -303,15 +303,20 @@ class Rejections:
         self._lock = threading.Lock()
 
     def add(self, err: MessageError, key: str = "") -> None:
+        self.add_reason(err.reason, key, err.detail)
+
+    def add_reason(self, reason: str, key: str, detail) -> None:
+        """Count a rejection; ``detail`` is a string or a function making it, called only
+        when the rejection is logged (a flood then costs a count, not a message each)."""
         with self._lock:
-            n = self.by_reason.get(err.reason, 0) + 1
-            self.by_reason[err.reason] = n
+            n = self.by_reason.get(reason, 0) + 1
+            self.by_reason[reason] = n
             if key:
                 self.by_key[key] = self.by_key.get(key, 0) + 1
         if n <= self.first or n % self.every == 0:
             suffix = "" if n <= self.first else f" ({n} so far)"
-            self.log.warning("%s: rejected %s: %s: %s%s", self.who, key or "message", err.reason,
-                             err.detail, suffix)
+            self.log.warning("%s: rejected %s: %s: %s%s", self.who, key or "message", reason,
+                             detail() if callable(detail) else detail, suffix)
 
     @property
     def total(self) -> int:

@@ -300,6 +300,8 @@ class Ownership:
     def violation(self, who: str | None) -> None:
         """Identity ``who`` sent a command while another owned the vehicle: it is never
         granted the vehicle by this plant (at most MAX_BANNED identities are kept)."""
+        if who is None or who in self.banned or self.owner is None:
+            return  # (reads without the lock: a flood of one sender costs no lock)
         with self._lock:
             if who is not None and self.owner is not None and who != self.owner \
                     and len(self.banned) < MAX_BANNED:

@@ -389,7 +389,17 @@ class PlantNode:
         self._ctl_event.set()
 
     def _on_cmd_sample(self, sample: Sample) -> None:
-        self.handle_cmd(sample.payload, time.perf_counter(), time.time(), sample.sender)
+        sender = sample.sender
+        if sender is None or sender != self.ownership.owner:
+            # not the owner's: counted and dropped before anything else (a flood from
+            # anyone else costs this, docs/PROTOCOL.md section 5)
+            self.ownership.violation(sender)
+            self.rej.add_reason(M.NOT_OWNER, self.keys.cmd, lambda: self._not_owner(sender))
+            if self.rec is not None:
+                self.rec.message("rx", self.keys.cmd, sample.payload, time.time(),
+                                 why=M.NOT_OWNER)
+            return
+        self.handle_cmd(sample.payload, time.perf_counter(), time.time(), sender)
 
     # ---- commands ----------------------------------------------------------------------
     def handle_cmd(self, payload: bytes, rx_perf: float, rx_wall: float | None,
