@@ -61,6 +61,8 @@ log = logging.getLogger("msagv.plant")
 
 WHEEL_WEAR_MODES = ("auto", "on", "off")
 RESEND_S = 1.0  # lockstep: an unanswered state is published again after this long
+STALL_S = 0.5  # a gap this long in the plant's own heartbeat: the plant itself was stopped
+STALL_GRACE_S = 3.0  # after its own stall, the owner's token gets this long to come back
 OLD_CLIENT = ("msagv protocol 2 (docs/PROTOCOL.md): this query carried no identity, as a "
               "client of the first version asks; ask {key}/*/{{your identity}} instead")
 
@@ -210,6 +212,8 @@ class PlantNode:
                                    on_event=self._on_ownership_event)
         self.watch = CommandWatch(cfg.max_missed, cfg.resume_periods, cfg.period)
         self._tokens: TokenSet | None = None
+        self._closed = threading.Event()
+        self._beat, self._last_stall = time.monotonic(), -1e9
         self._refused_logged = 0
         # the per-wheel wear fields go out when on, or (auto) when the owner's claim asks
         # for them: a peer of the first protocol version rejects unknown fields
@@ -229,12 +233,15 @@ class PlantNode:
         self._decls.append(t.queryable(k.arm, self._on_arm_query))
         if self.rec is not None:
             self._decls.append(t.subscribe(k.reference, self._on_reference_sample))
+        self._beat, self._last_stall = time.monotonic(), -1e9
+        threading.Thread(target=self._heartbeat, daemon=True, name="plant heartbeat").start()
         self._tokens = TokenSet(t, k.alive_controller, self._on_token)
         self._decls.append(self._tokens)
         self._token = t.declare_token(k.plant_token(t.id))
 
     def close(self) -> None:
         """Undeclare everything :meth:`open` declared (the transport stays open)."""
+        self._closed.set()
         for obj in [self._token] + self._decls + [self._pub]:
             if obj is not None:
                 try:
@@ -358,8 +365,38 @@ class PlantNode:
         if zid != self.ownership.owner:
             log.debug("controller token %s %s (not the owner: ignored)", zid,
                       "appeared" if present else "gone")
+        elif not present and self._stalled_recently():
+            # this process was stopped (SIGSTOP, a frozen machine): the owner closed the
+            # link at its lease, and its token comes back with the reconnection; the owner
+            # was not lost, this plant was away (as the controller's LossTimer judges)
+            log.warning("owner %s's token lost right after this plant was stalled: waiting "
+                        "%g s for it before the vehicle is latched", zid, STALL_GRACE_S)
+            self._update_presence()  # not present meanwhile: safe in real time
+            t = threading.Timer(STALL_GRACE_S, self._recheck_owner, args=(zid,))
+            t.daemon = True
+            t.start()
+            return
         self.ownership.token(zid, present)
         self._update_presence()
+
+    def _recheck_owner(self, zid: str) -> None:
+        if self._tokens is not None and not self._tokens.present(zid):
+            self.ownership.token(zid, False)
+        self._update_presence()
+
+    def _heartbeat(self) -> None:
+        """Notice this process's own stalls (its threads stopped for over STALL_S)."""
+        while not self._closed.wait(0.05):
+            now = time.monotonic()
+            if now - self._beat > STALL_S:
+                self._last_stall = now
+                log.warning("this plant was stalled for %.2f s (stopped, or the machine "
+                            "froze)", now - self._beat)
+            self._beat = now
+
+    def _stalled_recently(self) -> bool:
+        now = time.monotonic()
+        return now - self._beat > STALL_S or now - self._last_stall < STALL_GRACE_S
 
     def _update_presence(self) -> None:
         owner = self.ownership.owner

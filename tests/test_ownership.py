@@ -317,6 +317,45 @@ def test_a_latched_plant_grants_nothing_until_an_operator_arms_it_for_a_named_co
         n.close()
 
 
+def test_a_plant_that_was_itself_stalled_gives_its_owners_token_time_to_come_back(bus,
+                                                                                  monkeypatch):
+    """A plant stopped beyond the lease (SIGSTOP) finds its owner's token gone when it
+    resumes: the owner closed the link, and reconnects. That is not a loss of the owner
+    (issue 22, the lockstep stall): the token gets STALL_GRACE_S to come back before the
+    vehicle is latched; without a stall of the plant a loss latches at once."""
+    from msagv.bridge import plant_node
+    from msagv.bridge.ownership import claim
+    from msagv.bridge.plant_node import PlantConfig, PlantNode
+    from msagv.bridge.session import Keys
+    from msagv.plant import Plant, default_vehicle
+
+    monkeypatch.setattr(plant_node, "STALL_GRACE_S", 0.5)
+    k = Keys("t0")
+    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
+                  PlantConfig(run_mode="realtime", steps=10))
+    n.open(bus.endpoint("p1"))
+    try:
+        c1 = bus.endpoint("c1")
+        first = c1.declare_token(k.controller_token("c1"))
+        assert claim(c1, k, 0)[0][1]["granted"]
+        n.publish_state(0)
+        n._beat = time.monotonic() - 2.0  # the plant's threads did not run for 2 s
+        assert bus.vanish(k.controller_token("c1")) == 1
+        wait_until(lambda: not n.controller_present, 5.0, "the token's loss")
+        assert n.ownership.owner == "c1"  # not latched: its token has time to come back
+        token = c1.declare_token(k.controller_token("c1"))  # the owner reconnected
+        time.sleep(0.8)
+        assert n.ownership.owner == "c1" and n.controller_present
+        assert n.ownership.latches == 0
+        n._last_stall = -1e9  # long after the stall: a loss is a loss
+        n._beat = time.monotonic()
+        bus.vanish(k.controller_token("c1"))
+        wait_until(lambda: n.ownership.state == "latched", 5.0, "the latch")
+        del token, first
+    finally:
+        n.close()
+
+
 def test_params_are_read_only_and_only_the_owners_claim_asks_for_the_wheel_wear(bus):
     """Issue 22, item 3: an observer's params query changes nothing the controller receives;
     the per-wheel wear goes out when the owner's claim asks for it."""
