@@ -3,14 +3,17 @@
 The client below uses only ``zenoh``, ``msgpack`` and the standard library (nothing from
 bridge/, controller/ or plant/). The harness (tests/helpers.py: a free port, starting and
 stopping processes) runs a real ``msagv plant`` in lockstep on a free loopback port, and
-the client does the following:
+the client does what section 7 says (protocol version 2):
 
-- fetches the vehicle from the params queryable and binds to the plant session that
-  answered (states from any other session are ignored);
-- claims the vehicle and answers every state with a constant wheel speed and zero
-  steering rate, each command carrying its session's source info;
+- names itself by its session id and asks ``params/*/{me}``; binds to the plant named by
+  the reply's key (states from any other identity are ignored);
+- subscribes ``state/*``, publishes on ``cmd/{me}``, declares its token, claims the vehicle
+  from that plant asking for the per-wheel wear, and answers every state with a constant
+  wheel speed and zero steering rate;
 - sends one malformed command for each documented reason code, plus one duplicate and
-  one stale command.
+  one stale command, and a command on version 1's bare key;
+- checks what the page says of a second claimer (refused, never told the owner), of a
+  client of version 1 (an error reply that says why), of the release (the vehicle latched).
 
 Then it checks the plant's ``--json`` summary against what the page says.
 """
@@ -45,45 +48,59 @@ def client_config(port: int) -> zenoh.Config:
     return conf
 
 
-def get_params(session, vid: str, deadline_s: float) -> tuple[dict, str]:
-    """Sections 3.4 and 4.7: a get on msagv/{id}/params (every replier, no consolidation),
-    retried until exactly one plant session replies; returns the params and its zid."""
+def get_params(session, vid: str, deadline_s: float) -> tuple[dict, str, float]:
+    """Sections 3.4 and 7: a get on msagv/{id}/params/*/{me} (every plant, no
+    consolidation, with source info), retried until exactly one plant answers; returns
+    the params, the plant's identity (the reply key's second-to-last chunk) and the time
+    from the first try to the answer."""
+    me = str(session.zid())
     t0 = time.monotonic()
     while time.monotonic() - t0 < deadline_s:
         replies = {}
-        for reply in session.get(f"msagv/{vid}/params", target=zenoh.QueryTarget.ALL,
-                                 consolidation=zenoh.ConsolidationMode.NONE, timeout=1.0):
+        for reply in session.get(f"msagv/{vid}/params/*/{me}", target=zenoh.QueryTarget.ALL,
+                                 consolidation=zenoh.ConsolidationMode.NONE, timeout=1.0,
+                                 source_info=zenoh.SourceInfo(session.id, 0)):
             if reply.ok is not None:
-                assert str(reply.ok.key_expr) == f"msagv/{vid}/params"
-                replies[str(reply.replier_id.zid)] = msgpack.unpackb(
-                    reply.ok.payload.to_bytes(), raw=False)
+                key = str(reply.ok.key_expr).split("/")
+                assert key[:3] == ["msagv", vid, "params"] and key[4] == me
+                assert key[3] == str(reply.replier_id.zid)  # a plain bus: the same session
+                replies[key[3]] = msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
         if len(replies) == 1:
-            (zid, params), = replies.items()
-            return params, zid
+            (plant, params), = replies.items()
+            return params, plant, time.monotonic() - t0
         time.sleep(0.1)
     raise AssertionError(f"no params reply from exactly one plant within {deadline_s} s")
 
 
-def claim(session, vid: str, pub, plant_zid: str, deadline_s: float) -> dict:
-    """Sections 3.7 and 4.7: claim the vehicle (a get on msagv/{id}/claim with our source info)
-    until the bound plant grants it."""
+def ask(session, key: str, payload: dict) -> list[dict]:
+    """A get with source info; the ok replies' maps (sections 3.7, 3.8)."""
+    return [msgpack.unpackb(r.ok.payload.to_bytes(), raw=False)
+            for r in session.get(key, payload=msgpack.packb(payload), timeout=1.0,
+                                 source_info=zenoh.SourceInfo(session.id, 0))
+            if r.ok is not None]
+
+
+def claim(session, vid: str, plant: str, deadline_s: float) -> dict:
+    """Sections 3.7 and 7: claim the vehicle from the bound plant until it grants it."""
+    me = str(session.zid())
     t0 = time.monotonic()
     while time.monotonic() - t0 < deadline_s:
-        for reply in session.get(f"msagv/{vid}/claim",
-                                 payload=msgpack.packb({"v": 1, "action": "claim"}),
-                                 source_info=zenoh.SourceInfo(pub.id, 0), timeout=1.0):
-            if reply.ok is not None and str(reply.replier_id.zid) == plant_zid:
-                grant = msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
-                if grant["granted"]:
-                    return grant
+        for grant in ask(session, f"msagv/{vid}/claim/{plant}/{me}",
+                         {"v": 2, "action": "claim", "wheel_wear": True}):
+            if grant["granted"]:
+                return grant
         time.sleep(0.25)
     raise AssertionError(f"the vehicle was not granted within {deadline_s} s")
 
 
+WHEEL_WEAR = ("W_s_ij", "W_alpha_ij", "W_t_ij")
+
+
 def check_state(st: dict, nw: int, period: float) -> None:
-    """The state table of section 3.2, for a lockstep plant."""
+    """The state table of section 3.2, for a lockstep plant whose owner asked for the
+    per-wheel wear."""
     required = {"v", "seq", "t", "x", "y", "phi", "vx", "vy", "r", "delta", "omega_w"}
-    optional = {"W_s", "W_alpha", "W_t", "safe", "end"}
+    optional = {"W_s", "W_alpha", "W_t", "safe", "end", *WHEEL_WEAR}
     assert required <= set(st) and set(st) <= required | optional, sorted(st)
     assert st["v"] == 1 and isinstance(st["seq"], int) and st["seq"] >= 0
     assert st["t"] == st["seq"] * period  # t = seq T exactly
@@ -93,6 +110,9 @@ def check_state(st: dict, nw: int, period: float) -> None:
     assert all(w >= 0 for w in st["omega_w"])
     assert "safe" not in st  # realtime only
     assert st.get("end", True) is True  # absent, or true on the last state
+    for k in WHEEL_WEAR:  # asked for in the claim: in every state, summing to the total
+        assert len(st[k]) == nw and math.isclose(sum(st[k]), st[k[:-3]], rel_tol=1e-9,
+                                                 abs_tol=1e-9)
 
 
 def cmd(seq: int, state: dict, nw: int) -> dict:
@@ -117,6 +137,7 @@ def malformed(good: dict, nw: int, period: float) -> list[tuple[bytes, str]]:
         (pk(dict(good, seq=-1)), "value"),
         (pk(dict(good, state_seq=10 ** 6, t=10 ** 6 * period)), "unknown_state"),
         (pk(dict(good, t=good["t"] + 0.25)), "t_mismatch"),
+        (b"\x80" + b"\x00" * 65536, "too_large"),
     ]
 
 
@@ -125,27 +146,43 @@ def run_controller(port: int, vid: str, plant: subprocess.Popen, bad_at: int = 3
     states: queue.Queue = queue.Queue()
     seen: list[dict] = []
     sent_bad: dict[str, int] = {}
+    other: dict = {}
     with zenoh.open(client_config(port)) as session:
-        params, plant_zid = get_params(session, vid, deadline_s=60.0)
+        me = str(session.zid())
+        params, plant_id, first_answer_s = get_params(session, vid, deadline_s=60.0)
         nw, period = params["n_wheels"], params["period"]
 
-        def on_state(s):  # only the bound plant's states (section 4.7)
-            if s.source_info is not None and str(s.source_info.source_id.zid) == plant_zid:
+        def on_state(s):  # only the bound plant's states (sections 2, 4.7)
+            if str(s.key_expr) == f"msagv/{vid}/state/{plant_id}" and s.source_info is not None \
+                    and str(s.source_info.source_id.zid) == plant_id:
                 states.put(s.payload.to_bytes())
 
-        # subscriber and publisher first, then the token, then the claim (sections 4, 4.7)
-        sub = session.declare_subscriber(f"msagv/{vid}/state", on_state)
-        pub = session.declare_publisher(f"msagv/{vid}/cmd")
-        token = session.liveliness().declare_token(
-            f"msagv/{vid}/alive/controller/{session.zid()}")
-        grant = claim(session, vid, pub, plant_zid, deadline_s=30.0)
-        assert grant == {"v": 1, "granted": True, "owner": str(session.zid())}
+        # subscriber and publisher first, then the token, then the claim (sections 4, 7)
+        sub = session.declare_subscriber(f"msagv/{vid}/state/*", on_state)
+        pub = session.declare_publisher(f"msagv/{vid}/cmd/{me}")
+        token = session.liveliness().declare_token(f"msagv/{vid}/alive/controller/{me}")
+        grant = claim(session, vid, plant_id, deadline_s=30.0)
+        assert grant == {"v": 2, "granted": True, "reason": "granted"}
         alive = [str(r.ok.key_expr) for r in
-                 session.liveliness().get(f"msagv/{vid}/alive/plant/{plant_zid}", timeout=2.0)
+                 session.liveliness().get(f"msagv/{vid}/alive/plant/{plant_id}", timeout=2.0)
                  if r.ok is not None]
+        # a second controller is refused, and not told who owns the vehicle (section 3.7);
+        # a client of version 1 gets an error reply that says why (section 2)
+        t_open = time.monotonic()
+        with zenoh.open(client_config(port)) as second:
+            # how soon a fresh session's query reaches the running plant (section 3.4)
+            _, _, _ = get_params(second, vid, deadline_s=30.0)
+            other["answer_after_open_s"] = time.monotonic() - t_open
+            t0 = time.monotonic()
+            while not other.get("grant") and time.monotonic() - t0 < 30:
+                g = ask(second, f"msagv/{vid}/claim/*/{second.zid()}", {"v": 2, "action": "claim"})
+                other["grant"] = g[0] if g else None
+            other["v1"] = [r.err.payload.to_bytes().decode() for r in
+                           second.get(f"msagv/{vid}/params", timeout=1.0) if r.err is not None
+                           and r.replier_id is not None]
         n_cmd = 0
 
-        def put(payload: bytes) -> None:  # every command names our session (section 4.7)
+        def put(payload: bytes) -> None:  # every command with our source info (section 2)
             pub.put(payload, source_info=zenoh.SourceInfo(pub.id, n_cmd))
 
         last_cmd = None  # the accepted answer to the previous state
@@ -168,8 +205,8 @@ def run_controller(port: int, vid: str, plant: subprocess.Popen, bad_at: int = 3
                     for payload, reason in malformed(cmd(n_cmd, st, nw), nw, period):
                         put(payload)
                         sent_bad[reason] = sent_bad.get(reason, 0) + 1
-                    # a valid command without source info: not from the owner
-                    pub.put(msgpack.packb(cmd(n_cmd, st, nw)))
+                    # a valid command on version 1's bare key: no identity, not the owner's
+                    session.put(f"msagv/{vid}/cmd", msgpack.packb(cmd(n_cmd, st, nw)))
                     sent_bad["not_owner"] = 1
                 last_cmd = cmd(n_cmd, st, nw)
                 put(msgpack.packb(last_cmd))
@@ -178,12 +215,16 @@ def run_controller(port: int, vid: str, plant: subprocess.Popen, bad_at: int = 3
                     # and once more after the answer to bad_at: now stale
                     put(msgpack.packb(prev))
                     sent_bad["stale"] = 1
+            # release the vehicle: during the run, it is latched (section 4.7)
+            other["release"] = ask(session, f"msagv/{vid}/claim/{plant_id}/{me}",
+                                   {"v": 2, "action": "release"})
         finally:
             token.undeclare()
             sub.undeclare()
             pub.undeclare()
     return {"params": params, "states": seen, "sent": n_cmd, "bad": sent_bad,
-            "plant_token": alive, "plant_zid": plant_zid}
+            "plant_token": alive, "plant_zid": plant_id, "first_answer_s": first_answer_s,
+            "other": other}
 
 
 # ---- the test -----------------------------------------------------------------------------
@@ -234,11 +275,21 @@ def test_a_controller_written_from_protocol_md_completes_a_lockstep_run(tmp_path
     assert c == {"accepted": steps, "stale": 1, "duplicate": 1, "late": 0, "lost": 0,
                  "seq_gaps": 0, "after_end": 0}, c
     bad = {k: v for k, v in seen["bad"].items() if k not in ("duplicate", "stale")}
-    assert len(bad) == 13  # every reason code of section 5 the plant gives
+    assert len(bad) == 14  # every reason code of section 5 the plant gives
     assert s["rejected"]["by_reason"] == bad
     assert s["rejected"]["total"] == sum(bad.values())
     assert s["rejected"]["by_key"] == {f"msagv/{VID}/cmd": sum(bad.values())}
     assert s["final_state"]["t"] == pytest.approx(DURATION)
-    assert s["ownership"]["grants"] == 1 and s["ownership"]["refused"] == 0
+    # ownership (sections 3.7, 4.7): one grant; the second claimer refused and not told
+    # who owns the vehicle; the release during the run latches it; the version-1 query
+    o = s["ownership"]
+    assert o["grants"] == 1 and o["refused"] >= 1 and o["owner"] is None
+    assert o["state"] == "latched" and o["releases"] == 1
+    assert seen["other"]["grant"] == {"v": 2, "granted": False, "reason": "owned"}
+    assert seen["other"]["release"] == [{"v": 2, "granted": False, "reason": "released"}]
+    v1 = seen["other"]["v1"]
+    assert len(v1) == 1 and v1[0].startswith("msagv protocol 2 (docs/PROTOCOL.md)")
+    assert f"ask msagv/{VID}/params/*/{{your identity}}" in v1[0] and s["old_clients"] == 1
     print(f"\nPROTOCOL.md client: {steps} steps, rejected {s['rejected']['by_reason']}, "
-          f"{elapsed:.1f} s including the plant's start")
+          f"{elapsed:.1f} s including the plant's start; a fresh session's params query "
+          f"answered {seen['other']['answer_after_open_s'] * 1000:.0f} ms after it opened")

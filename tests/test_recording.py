@@ -263,44 +263,59 @@ def _realtime_pair(procs, tmp_path, record, seconds, plant_prefix=(), extra=()):
     return P
 
 
-@pytest.mark.timeout(400)
-def test_full_disk_mid_run_realtime_plant_keeps_its_period_and_exits_0(procs, tmp_path):
+def _full_disk_run(procs, tmp_path, seconds: float):
     """``ulimit -f`` in the plant's process at 80 % of the same run's recording on a
     writable disk (just before): the recording hits the limit about half-way through the
-    6 s real-time run (the header, which holds the whole reference, is ~290 KiB of the
-    ~500 KiB; a fixed 300 KiB limit left room for only ~40 messages, too few to test the
-    prefix on a loaded machine). The plant logs and counts the error, keeps stepping at
-    100 Hz, and exits 0 with its summary (before, it died with an OSError). Missed periods
-    are compared with the writable run (on a quiet machine both are 0; on a loaded one both
-    grow)."""
+    real-time run (the header, which holds the whole reference, is ~290 KiB of the ~500
+    KiB of a 6 s run; a fixed 300 KiB limit left room for only ~40 messages, too few to test
+    the prefix on a loaded machine). Returns the plant's summaries (writable, full disk),
+    the recording and its size limit."""
     base = tmp_path / "base.mcap"
-    _realtime_pair(procs, tmp_path, base, 6)
+    _realtime_pair(procs, tmp_path, base, seconds)
     assert procs.wait("plant", 240) == 0 and procs.wait("ctl", 60) == 0
     s0 = procs.json("plant")
     assert s0["recording"]["errors"] == 0 and s0["recording"]["dropped"] == 0
     limit_kib = int(0.8 * os.path.getsize(base) / 1024)
     rec = tmp_path / "plant.mcap"
-    _realtime_pair(procs, tmp_path, rec, 6,
+    _realtime_pair(procs, tmp_path, rec, seconds,
                    plant_prefix=("bash", "-c", f'ulimit -f {limit_kib}; exec "$@"', "bash"))
     rc = procs.wait("plant", 240)
     assert rc == 0, procs.err("plant")[-3000:]
     assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-3000:]
     s = procs.json("plant")
+    print(f"\nfull disk ({seconds:g} s): missed periods {s['missed_periods']} (writable disk: "
+          f"{s0['missed_periods']}), jitter {s['period_jitter_ms']} (writable disk: "
+          f"{s0['period_jitter_ms']}), recording {s['recording']}")
+    return s0, s, rec, limit_kib
+
+
+@pytest.mark.timeout(400)
+def test_full_disk_mid_run_realtime_plant_keeps_stepping_and_exits_0(procs, tmp_path):
+    """The plant logs and counts the write error, keeps stepping to the end of its run and
+    exits 0 with its summary (before, it died with an OSError); what was written before
+    the limit is a readable recording. What the design guarantees is asserted: the error
+    ends the recording, never the run (its missed periods are printed: on a loaded 2-core
+    machine they are the load's, not the disk's, and the slow test compares them)."""
+    s0, s, rec, limit_kib = _full_disk_run(procs, tmp_path, 6)
     r = s["recording"]
-    assert s["completed"] and s["steps"] == 600
+    assert s["completed"] and s["steps"] == 600 and s["error"] is None
     assert r["errors"] >= 1 and "File too large" in r["last_error"], r
     assert r["dropped"] > 0 and os.path.getsize(rec) <= limit_kib * 1024
-    # 100 Hz kept: within the writable run's missed periods (plus noise)
-    assert s["missed_periods"] <= 2 * s0["missed_periods"] + 20, (s["missed_periods"],
-                                                                   s0["missed_periods"])
     assert "recording" in procs.err("plant") and "Traceback" not in procs.err("plant")
-    # what was written before the limit is a readable recording
     header, recs, _ = read_recording(rec)
     assert header["role"] == "plant"
     assert sum(1 for x in recs if x.get("key") == "msagv/agv0/state") > 20
-    print(f"\nfull disk: missed periods {s['missed_periods']} (writable disk: "
-          f"{s0['missed_periods']}), jitter {s['period_jitter_ms']} (writable disk: "
-          f"{s0['period_jitter_ms']}), recording {r}")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_full_disk_realtime_plant_keeps_its_period(procs, tmp_path):
+    """100 Hz kept with a full disk: within the writable run's missed periods plus noise
+    (a timing comparison: slow, for a machine that is not saturated by other work)."""
+    s0, s, _, _ = _full_disk_run(procs, tmp_path, 20)
+    assert s["completed"] and s["recording"]["errors"] >= 1
+    assert s["missed_periods"] <= 2 * s0["missed_periods"] + 20, (s["missed_periods"],
+                                                                   s0["missed_periods"])
 
 
 @pytest.mark.timeout(300)
