@@ -293,3 +293,53 @@ def test_a_controller_written_from_protocol_md_completes_a_lockstep_run(tmp_path
     print(f"\nPROTOCOL.md client: {steps} steps, rejected {s['rejected']['by_reason']}, "
           f"{elapsed:.1f} s including the plant's start; a fresh session's params query "
           f"answered {seen['other']['answer_after_open_s'] * 1000:.0f} ms after it opened")
+
+
+# ---- the page against the code, where a table can be read ----------------------------------
+def _table(doc: str, header: str) -> list[list[str]]:
+    """The rows (cells, backticks stripped) of the markdown table whose header row starts
+    with ``header``."""
+    lines = [ln.strip() for ln in doc.splitlines()]
+    i = next(k for k, ln in enumerate(lines) if ln.startswith(header))
+    rows = []
+    for ln in lines[i + 2:]:
+        if not ln.startswith("|"):
+            break
+        rows.append([c.strip().replace("`", "") for c in ln.strip("|").split("|")])
+    return rows
+
+
+def test_protocol_md_tables_match_the_code():
+    """Reason codes, grant reasons, the claim and arm maps, size limits and the timing
+    constants the page states are the code's (the client above checks the behaviour)."""
+    from pathlib import Path
+
+    from msagv.bridge import messages as Msg
+    from msagv.bridge import ownership as O
+    from msagv.bridge import plant_node, session
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "PROTOCOL.md").read_text()
+    # section 5: every reason code, in the code's order
+    assert [r[0] for r in _table(doc, "| reason | meaning |")] == list(Msg.REASONS)
+    # section 3.7: the grant's reasons; the claim's and the grant's fields
+    assert [r[0] for r in _table(doc, "| `reason` | `granted` | when |")] == list(O.GRANT_REASONS)
+    claim_rows = _table(doc, "| field | type | req. | meaning |")  # the first: claim
+    assert {r[0]: r[2] == "yes" for r in claim_rows} == {
+        **{k: True for k in O.CLAIM_REQUIRED}, **{k: False for k in O.CLAIM_OPTIONAL}}
+    # section 3.1: the size limits
+    limits = {r[0]: r[1] for r in _table(doc, "| message | limit |")}
+    kib = lambda n: f"{n // 1024} KiB" if n < 1 << 20 else f"{n >> 20} MiB"  # noqa: E731
+    assert limits["state"] == kib(Msg.MAX_STATE_BYTES) and limits["cmd"] == kib(Msg.MAX_CMD_BYTES)
+    assert limits["params"] == kib(Msg.MAX_PARAMS_BYTES)
+    assert limits["reference"] == (f"{kib(Msg.MAX_REFERENCE_BYTES)} (at most "
+                                   f"{Msg.MAX_REFERENCE_SAMPLES:,} samples)")
+    assert limits["claim, grant, arm, armed"] == kib(O.MAX_CLAIM_BYTES)
+    # section 1: Zenoh's limit, and the client's connect timeout
+    cfg = {r[0]: r[1] for r in _table(doc, "| config key | value | why |")}
+    assert cfg["transport/link/rx/max_message_size"].startswith(f"{session.MAX_MESSAGE_BYTES} ")
+    assert cfg["connect/timeout_ms"].startswith(f"{session.CLIENT_CONNECT_TIMEOUT_MS} ")
+    # the timing the page states
+    assert f"every {plant_node.RESEND_S:g} s" in doc  # lockstep re-send (4.1)
+    assert f"claims every {O.CLAIM_RETRY_S:g} s until granted, then every {O.CLAIM_REFRESH_S:g} s" \
+        in doc.replace("\n", " ").replace("   ", " ")
+    assert f"appeared {O.GRANT_TOKEN_S:g} s later" in doc.replace("\n", " ")
