@@ -341,7 +341,7 @@ def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
     import signal
 
     procs.start("plant", msagv("ros2", "plant", "--run-mode", "realtime", "--case", "curve",
-                               "--duration", "4", "--stale-ms", "100", "--json", "-q"))
+                               "--duration", "6", "--stale-ms", "100", "--json", "-q"))
     ctl = procs.start("ctl", msagv("ros2", "controller", "--case", "curve", "-q"))
     peer = Peer("watcher")
     from nav_msgs.msg import Odometry
@@ -361,5 +361,11 @@ def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
     assert s["completed"] and s["run_mode"] == "realtime"
     assert s["safe"]["events"] >= 1 and s["safe"]["periods"] > 100
     assert "SAFE at t =" in procs.err("plant")
-    # after > 2 s of ramping at 2 m/s^2 from ~4.2 m/s the wheels stand still
-    assert s["final_state"]["vx"] ** 2 + s["final_state"]["vy"] ** 2 < 0.5 ** 2
+    # ramping at 2 m/s^2 from ~4.2 m/s: after 2.1 s the wheels stand still (the kill comes
+    # when the watcher has seen t >= 1.5 s, later on a loaded machine: the remaining time
+    # is read from the plant's own SAFE line)
+    import re
+
+    t_safe = float(re.search(r"SAFE at t = ([0-9.]+) s", procs.err("plant")).group(1))
+    speed = math.hypot(s["final_state"]["vx"], s["final_state"]["vy"])
+    assert speed < max(0.5, 4.2 - 2.0 * (6.0 - t_safe) + 0.5), (t_safe, speed)
