@@ -345,9 +345,11 @@ def compute_floors(scenarios: list[StudyScenario], out: Path, jobs=None, schedul
 def _check_user(scenarios: list[StudyScenario], speeds) -> None:
     """The user's scenarios checked before any work: a file that cannot be read, or a speed
     the user's vehicle cannot drive, is refused in one line naming the option."""
+    seen = set()
     for sc in scenarios:
-        if sc.cls != "user" or sc.seed != scenarios[-1].seed:
+        if sc.cls != "user" or sc.unit_key in seen:  # the seeds share the checks
             continue
+        seen.add(sc.unit_key)
         if sc.trajectory:
             what = f"--trajectory {sc.trajectory}"
         elif speeds:

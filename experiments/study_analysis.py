@@ -472,12 +472,17 @@ def _md_scenarios(comparisons: list[dict]) -> list[str]:
     return L
 
 
+def user_label(described: dict) -> str | None:
+    """What the user's scenario is: its vehicle on its path (None without one)."""
+    users = {(d["vehicle"], Path(d["trajectory"]).name if d["trajectory"] else
+              f"a {d['speed_kmh']:.0f} km/h random path") for n, d in described.items()
+             if n.startswith("user")}
+    return "; ".join(f"{v} on {p}" for v, p in sorted(users)) or None
+
+
 def markdown(summary: dict, fam: list[dict], comparisons: list[dict], runs: dict,
              described: dict) -> str:
-    users = {(d["vehicle"], Path(d["trajectory"]).name if d["trajectory"] else
-              f"{d['speed_kmh']:.0f} km/h random path") for n, d in described.items()
-             if n.startswith("user")}
-    user = "; ".join(f"{v} on {p}" for v, p in sorted(users)) or None
+    user = user_label(described)
     L = (_md_head(runs, described) + _md_headline(summary, user) + _md_forms(summary)
          + _md_families(summary) + _md_unmatched(comparisons) + _md_family_table(fam)
          + _md_scenarios(comparisons))
@@ -485,10 +490,12 @@ def markdown(summary: dict, fam: list[dict], comparisons: list[dict], runs: dict
 
 
 # ---- the report: figures --------------------------------------------------------------------
-def plot_fronts(fam: list[dict], rows: list[dict], path: Path) -> None:
+def plot_fronts(fam: list[dict], rows: list[dict], path: Path,
+                titles: dict | None = None) -> None:
     """Per scenario class: each family's mean wear over the floor against its mean lateral
     error, one point per lever level (a line along the lever), with 95 % bootstrap bars
-    over the class's scenarios; the floor (exact tracking) as the line W / floor = 1."""
+    over the class's scenarios; the floor (exact tracking) as the line W / floor = 1.
+    ``titles``: a panel's title other than its class's name (the user's scenario)."""
     from .plots import WIDTH, pyplot, style
 
     plt = pyplot()
@@ -502,6 +509,7 @@ def plot_fronts(fam: list[dict], rows: list[dict], path: Path) -> None:
                                  squeeze=False)
         for ax, cls in zip(axes.flat, classes):
             _front_panel(ax, cls, fam, rows)
+            ax.set_title((titles or {}).get(cls, cls), fontsize=9)
         for ax in list(axes.flat)[len(classes):]:
             ax.axis("off")
         seen = {}
@@ -721,7 +729,8 @@ def report_study(results: list[dict], floors: dict, scenarios, described: dict, 
         w.writerows(rows)
     figures = []
     if any(r["status"] == "ok" for r in rows):
-        plot_fronts(fam, rows, out / "fronts.png")
+        user = user_label(described)
+        plot_fronts(fam, rows, out / "fronts.png", {"user": f"user: {user}"} if user else None)
         plot_ratios(summary, out / "ratios.png")
         figures = ["fronts.png", "ratios.png"]
         if plot_case2(comparisons, out / "case2.png"):
