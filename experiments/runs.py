@@ -260,8 +260,18 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
             todo[k] = s
     reused = len(results)
     order = sorted(todo, key=lambda k: -todo[k].estimated_steps())
-    for k in order:  # a run no vehicle can drive is refused before any run starts
-        todo[k].scenario().preflight()
+    # a run no vehicle can drive is refused before any run starts: the solver of every run,
+    # the vehicle and path of each distinct scenario once (the runs of a study share a few
+    # dozen paths; building a random path for each of 1000 runs took 20 min)
+    checked: set[str] = set()
+    for k in order:
+        sc = todo[k].scenario()
+        sc.check_solver()
+        where = json.dumps({f: v for f, v in sc.to_dict().items()
+                            if f not in ("settings", "solver")}, sort_keys=True, default=str)
+        if where not in checked:
+            checked.add(where)
+            sc.preflight()
     jobs = max(1, int(jobs or os.cpu_count() or 1))
     bar = None
     if progress and order:
