@@ -132,8 +132,14 @@ def wear_floors(reference, vehicle: Vehicle, t0: float, t1: float, dt: float = 0
     # the body frame (the speed along and across the heading varies slowly, unlike vx, vy)
     # with a Savitzky-Golay filter over 0.2 s: finite differences of the linearly
     # interpolated table would add noise, and noise adds dissipation (the costs are convex)
+    # The filter's window stays within the reference's table: past its last row a reference
+    # continues straight (yaw rate 0) or stops, a jump no vehicle tracking the table makes
+    # (it put a spurious yaw moment into the floor of a trajectory CSV that ends with the
+    # run); the filter fits its polynomial up to the table's ends instead.
     fine = 0.01
-    tf = np.arange(t0 - 0.2, t1 + 0.2 + 0.5 * fine, fine)
+    lo = max(t0 - 0.2, float(reference.t[0]))
+    hi = max(min(t1 + 0.2, float(reference.t[-1])), lo + 0.3)
+    tf = np.arange(lo, hi + 0.5 * fine, fine)
     Rf = reference.sample(tf)
     phi_f, r_f = Rf[:, 2], Rf[:, 5]
     cf, sf = np.cos(phi_f), np.sin(phi_f)

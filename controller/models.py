@@ -92,6 +92,12 @@ class MPCSettings:
     threads: 1 = serial rollouts (default: predictable when the plant or other runs share
       the cores); > 1 spreads the candidates over that many numba threads.
     ff_cornering: add the steady cornering slip angle to the feed-forward (dynamic models).
+    ref_smoothing [m]: the controller tracks its reference smoothed along the path by a
+      Gaussian of this standard deviation in arc length
+      (:meth:`controller.reference.Reference.smoothed`), which cuts each corner toward its
+      inside by about ``ref_smoothing^2 kappa / 2``; errors are still measured against the
+      reference itself. 0 (default): the reference as given. The study's wear-blind lever
+      of accuracy (docs/RESULTS.md).
     """
 
     method: str = "two"
@@ -127,6 +133,7 @@ class MPCSettings:
     ff_cornering: bool = True
     policy: str = "offsets"
     dugoff_stiffness: str = "derived"
+    ref_smoothing: float = 0.0
 
     def __post_init__(self):
         bad = None
@@ -166,6 +173,8 @@ class MPCSettings:
             bad = f"threads: must be >= 1, got {self.threads}"
         elif not hasattr(self.seed, "__index__") or self.seed < 0:  # numpy's seeds are >= 0
             bad = f"seed: must be an integer >= 0, got {self.seed!r}"
+        elif not (math.isfinite(self.ref_smoothing) and self.ref_smoothing >= 0):
+            bad = f"ref_smoothing: must be a finite length >= 0 m, got {self.ref_smoothing}"
         elif self.deadline_ms is not None and not self.deadline_ms > 0:
             bad = f"deadline_ms: must be > 0, got {self.deadline_ms}"
         elif min(self.K_servo, self.offset_w_max, self.offset_d_max, self.sigma_w,

@@ -84,6 +84,7 @@ class MPC:
         self.nw = vehicle.n_wheels
         self.solver = cls(self.horizon, options)
         self.warmup_solve_ms: list[float] = []
+        self._smooth: tuple[Reference, Reference] | None = None  # (given, smoothed)
         self.budget_warnings: list[str] = []
         self.reset()
 
@@ -129,6 +130,8 @@ class MPC:
         ref = reference if reference is not None else self.reference
         if ref is None:
             raise ControllerError("step: no reference (pass one or call set_reference)")
+        if self.settings.ref_smoothing > 0:
+            ref = self._smoothed(ref)
         t, x0 = self._state_vector(state)
         s = self.settings
         R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
@@ -136,6 +139,12 @@ class MPC:
             self.z = self.horizon.origin(x0, R[0])
             self._fresh = False
         return x0, R, self.z[: self.model.stride].copy(), self.horizon.shifted(self.z)
+
+    def _smoothed(self, ref: Reference) -> Reference:
+        """``ref`` smoothed by ``settings.ref_smoothing`` (computed once per reference)."""
+        if self._smooth is None or self._smooth[0] is not ref:
+            self._smooth = (ref, ref.smoothed(self.settings.ref_smoothing))
+        return self._smooth[1]
 
     def step(self, state: Mapping, reference: Reference | None = None) -> Command:
         """One MPC solve: commands to hold over the next control period."""

@@ -167,6 +167,40 @@ class Reference:
                          name=self.name, nominal_duration=self.nominal_duration,
                          after_end=after_end)
 
+    def smoothed(self, sigma: float) -> "Reference":
+        """The trajectory smoothed along its path: ``x``, ``y`` and ``phi`` as functions of
+        the arc length ``s`` convolved with a Gaussian of standard deviation ``sigma`` [m],
+        each time keeping its arc length (velocities by finite differences again).
+
+        On an arc of curvature kappa this moves the path toward the inside by about
+        ``sigma^2 kappa / 2`` (exactly ``A (1 - exp(-k^2 sigma^2 / 2))`` on ``A sin(k s)``):
+        a controller tracking it cuts corners in proportion to their curvature, without
+        knowing anything of wear (``MPCSettings.ref_smoothing``). The ends are padded by
+        odd reflection, so a straight start or end stays straight and a path that starts
+        curving keeps its start. ``sigma = 0`` returns the trajectory itself."""
+        if not (math.isfinite(sigma) and sigma >= 0):
+            raise ReferenceError(f"smoothing: sigma must be a finite length >= 0 m, got {sigma}")
+        s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(self.x), np.diff(self.y)))])
+        if sigma == 0 or s[-1] <= sigma * 1e-3:
+            return self
+        from scipy.ndimage import gaussian_filter1d
+
+        grid = np.linspace(0.0, s[-1], int(math.ceil(10.0 * s[-1] / sigma)) + 1)
+        ds = grid[1] - grid[0]  # about sigma / 10
+        keep = np.concatenate([[True], np.diff(s) > 0])  # standing still: one sample
+        pad = min(int(math.ceil(4.0 * sigma / ds)), grid.size - 1)
+
+        def smooth(a):
+            g = np.interp(grid, s[keep], a[keep])
+            left, right = 2 * g[0] - g[pad:0:-1], 2 * g[-1] - g[-2:-pad - 2:-1]
+            f = gaussian_filter1d(np.concatenate([left, g, right]), sigma / ds, mode="nearest")
+            return np.interp(s, grid, f[pad:pad + grid.size])
+
+        x, y, phi = smooth(self.x), smooth(self.y), smooth(self.phi)
+        return Reference(self.t, x, y, phi, np.gradient(x, self.t), np.gradient(y, self.t),
+                         np.gradient(phi, self.t), name=f"{self.name} (smoothed {sigma:g} m)",
+                         nominal_duration=self.nominal_duration, after_end=self.after_end)
+
     def initial_state(self, vehicle) -> dict[str, float]:
         """The plant state that starts exactly on the reference at t[0], moving with it,
         every wheel steered kinematically (pure rolling)."""

@@ -116,3 +116,18 @@ def partial_run(res: dict) -> tuple[float, float] | None:
     whole = float(RunSpec.from_dict(spec).scenario().reference()[0].duration)
     ran = float(res.get("duration") or spec["duration"])
     return (ran, whole) if ran < whole - 1e-6 else None
+
+
+def stamp(summary: dict, results: list[dict]) -> dict:
+    """An experiment's summary with the fields every result document has: the package
+    version, the command and the warnings (failed runs, and each run's own warnings, once
+    each)."""
+    warnings = []
+    for r in results:
+        where = f"{r['spec']['label']} {r['spec']['group']}"
+        if r["status"] != "ok":
+            warnings.append(f"{where}: the run failed: {r.get('error')}")
+        warnings += [f"{where}: {w}" for w in r.get("warnings", [])]
+    head = {"version": package_version(), "command": "experiment",
+            "warnings": list(dict.fromkeys(warnings))}
+    return dict(head, **summary)

@@ -34,33 +34,6 @@ _log = logging.getLogger("msagv.experiment")
 SCHEMA = 1  # bump when the meaning of a stored result changes
 PERIOD = 0.01  # s, the paper's control period T
 
-# The five methods of the paper's Section 4.2, in its table order. The baselines use their
-# own prediction model with the wear weight L = 0 (their source papers have no wear term);
-# every other setting is the same for all five.
-METHODS: dict[str, dict] = {
-    # the paper's Kinematic: "considers only geometric relationships" (Section 4.2), every
-    # wheel steered about one instantaneous centre: the decision is the body twist
-    "Kinematic": {"model": "kinematic", "method": "ntwo", "policy": "twist"},
-    "DH": {"model": "dugoff", "method": "ntwo"},
-    "TCT": {"model": "tct", "method": "ntwo"},
-    "NTWO": {"model": "mf", "method": "ntwo"},
-    "TWO": {"model": "mf", "method": "two"},
-}
-
-# Beside the paper's five, every case table carries the references the paper's question
-# needs (docs/RESULTS.md): no optimisation at all, the strongest wear-blind MPC we have,
-# and the wear-energy cost. name -> (settings, further Scenario fields).
-REFERENCES: dict[str, tuple[dict, dict]] = {
-    # the feed-forward policy alone (zero offsets, --solver ff)
-    "FF": ({"model": "mf", "method": "ntwo"}, {"solver": "ff"}),
-    # NTWO with 10x the default ridge on the wheel-speed offsets only (R_ow 0.05): the wheels
-    # near pure rolling, steering as free as NTWO's (the study sweeps R_ow 0.05-1)
-    "NTWO-wheel": ({"model": "mf", "method": "ntwo", "R": [0.05, 20.0, 0.05, 2.0]}, {}),
-    # the linear wear-energy cost at its default weights E = (0.1, 0.1, 0.1) [1/kW]
-    "TWO-energy": ({"model": "mf", "method": "two-energy"}, {}),
-}
-
-
 @dataclass
 class RunSpec:
     """One closed-loop run of an experiment.
@@ -287,8 +260,18 @@ def run_all(specs: list[RunSpec], out_dir: str | Path, jobs: int | None = None,
             todo[k] = s
     reused = len(results)
     order = sorted(todo, key=lambda k: -todo[k].estimated_steps())
-    for k in order:  # a run no vehicle can drive is refused before any run starts
-        todo[k].scenario().preflight()
+    # a run no vehicle can drive is refused before any run starts: the solver of every run,
+    # the vehicle and path of each distinct scenario once (the runs of a study share a few
+    # dozen paths; building a random path for each of 1000 runs took 20 min)
+    checked: set[str] = set()
+    for k in order:
+        sc = todo[k].scenario()
+        sc.check_solver()
+        where = json.dumps({f: v for f, v in sc.to_dict().items()
+                            if f not in ("settings", "solver")}, sort_keys=True, default=str)
+        if where not in checked:
+            checked.add(where)
+            sc.preflight()
     jobs = max(1, int(jobs or os.cpu_count() or 1))
     bar = None
     if progress and order:

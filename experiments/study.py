@@ -1,81 +1,43 @@
-"""The study: does a wear term in the MPC cut tire wear, and at what cost in tracking?
+"""The study's design and runs: does a wear term in the MPC cut tire wear at the same tracking?
 
 ``msagv experiment study`` answers the paper's question on many scenarios, against the
-strongest wear-blind references, at matched accuracy, with confidence intervals:
+strongest wear-blind references, at equal tracking error, with confidence intervals:
 
-* **Families**, each swept over its own lever (:data:`FAMILIES`): the paper's TWO
-  (quadratic wear term ``P^T L P``, lever: a factor on L), TWO-energy (a linear wear-energy
-  term ``E . P``, lever: E), the paper's NTWO (no wear term), NTWO-wheel (NTWO with a
-  ridge on the wheel-speed offsets only, lever: R_ow: wheels near pure rolling), FF (the
-  feed-forward policy alone, no optimisation), and the paper's baselines Kinematic (every
-  wheel about one centre), DH (Dugoff tires derived from the plant's) and TCT. Every
-  optimising family gets the same annealer, budget, horizon and tracking weights.
-* **The decision parametrisation as a factor** (on a subset): NTWO and TWO-energy with the
-  paper's own decision vector (the raw commands U of eq. 27) and four times the annealing
-  budget, against our feed-forward offsets.
-* **Scenarios** (:func:`design`): the paper's Case 1 curve and Case 2 line, a lane change,
-  a tight turn and seeded random paths (:mod:`controller.paths`), 5-35 km/h, 8-20 t, 2 and
-  4 axles, several annealer seeds; and robustness with the plant unlike the controller's
-  model: combined-slip tires, tire coefficients +-20 %, load transfer with actuator lags.
-* **Wear floors** (:mod:`controller.floors`): each scenario's wear that exact tracking
-  cannot avoid, so runs are also compared on the wear above it.
+* **Families** (:mod:`experiments.families`, every one with ``study`` set), each swept over
+  its own lever: the wear-aware TWO (the paper's quadratic ``P^T L P``, lever: a factor on
+  L) and TWO-energy (a linear wear-energy term ``E . P``, lever: E); the wear-blind FF (the
+  feed-forward alone), the paper's NTWO, NTWO-wheel (a ridge on the wheel-speed offsets,
+  lever: R_ow), NTWO-wheel-Q (its tracking weights lowered, lever: a factor on Q),
+  NTWO-wheel-cut (its reference smoothed toward the inside of every curve, lever: the
+  smoothing length: the blind side's accuracy lever) and the paper's Kinematic, DH and TCT.
+  Every optimising family gets the same annealer, budget, horizon and tracking weights.
+* **The decision parametrisation as a factor** (on a subset): NTWO and TWO-energy on the
+  paper's own decision vector (the raw commands U of eq. 27) with four times the budget.
+* **Scenarios** (:func:`design`): the paper's Case 1 curve; Case 2 as a sweep of initial
+  heading errors and lateral offsets at two speeds; a lane change, a tight turn and seeded
+  random paths (:mod:`controller.paths`), 5-35 km/h, 8-20 t, 2 and 4 axles; annealer seeds
+  in every class; the plant unlike the controller's model (combined-slip tires, tire
+  coefficients +-20 %, load transfer with actuator lags); and a user's own vehicle and path.
+* **Wear floors** (:mod:`controller.floors`): each path's wear that exact tracking cannot
+  avoid.
 
 Runs are cached and resumable (:mod:`experiments.runs`), spread by Dask over a local
-cluster or the one at ``--scheduler``. The analysis is :mod:`experiments.study_report`.
+cluster or the one at ``--scheduler``. The analysis is :mod:`experiments.study_analysis`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from .checks import ScenarioError
+from .families import study_families
 from .runs import PERIOD, RunSpec, code_digest, dask_map, run_all
-
-# family -> (lever name, levels, settings at a level, solver, wear-aware?)
-# levels are chosen to span each family's front from "as accurate as NTWO" to "cuts
-# corners" (docs/RESULTS.md, "The study")
-_DEFAULT_L = (0.02, 0.01, 0.02)
-_DEFAULT_R = (0.05, 20.0, 0.005, 2.0)
-_DEFAULT_Q = (200.0, 200.0, 1000.0)
-FAMILIES = {
-    "FF": ("none", (None,), lambda x: {"method": "ntwo"}, "ff", False),
-    "NTWO": ("none", (None,), lambda x: {"method": "ntwo"}, "sa", False),
-    "NTWO-wheel": ("R_ow", (0.05, 0.2, 1.0),
-                   lambda x: {"method": "ntwo", "R": [_DEFAULT_R[0], _DEFAULT_R[1], x,
-                                                      _DEFAULT_R[3]]}, "sa", False),
-    # the same wear-blind controller with an accuracy lever, as the wear-aware families
-    # have one: the tracking weights Q scaled down (towards the feed-forward, which the
-    # ridge and smoothing pull to), so the blind front may also trade accuracy for wear
-    "NTWO-wheel-Q": ("Q x", (0.3, 0.1, 0.03),
-                     lambda x: {"method": "ntwo", "Q": [x * v for v in _DEFAULT_Q],
-                                "R": [_DEFAULT_R[0], _DEFAULT_R[1], 0.05, _DEFAULT_R[3]]},
-                     "sa", False),
-    "Kinematic": ("none", (None,), lambda x: {"model": "kinematic", "method": "ntwo",
-                                              "policy": "twist"}, "sa", False),
-    "DH": ("none", (None,), lambda x: {"model": "dugoff", "method": "ntwo"}, "sa", False),
-    "TCT": ("none", (None,), lambda x: {"model": "tct", "method": "ntwo"}, "sa", False),
-    "TWO": ("L x", (0.05, 0.25, 1.0, 4.0),
-            lambda x: {"method": "two", "L": [x * v for v in _DEFAULT_L]}, "sa", True),
-    "TWO-energy": ("E", (0.003, 0.01, 0.03, 0.1),
-                   lambda x: {"method": "two-energy", "E": [x, x, x]}, "sa", True),
-}
-# the decision-parametrisation factor: the paper's raw U with 4x the annealing budget
-# (4 x the default 40 iterations)
-RAW_FAMILIES = {
-    "NTWO-raw": ("none", (None,), lambda x: {"method": "ntwo", "policy": "raw",
-                                             "iterations": 160, "R": [0.05, 0.2, 0.0, 0.0]},
-                 "sa", False),
-    "TWO-energy-raw": ("E", (0.03, 0.1),
-                       lambda x: {"method": "two-energy", "E": [x, x, x], "policy": "raw",
-                                  "iterations": 160, "R": [0.05, 0.2, 0.0, 0.0]}, "sa", True),
-}
-WEAR_AWARE = {f for f, v in {**FAMILIES, **RAW_FAMILIES}.items() if v[4]}
-QUICK_LEVELS = {"NTWO-wheel": (0.2,), "NTWO-wheel-Q": (0.1,), "TWO": (0.25,), "TWO-energy": (0.01, 0.1),
-                "TWO-energy-raw": (0.1,)}
 
 # robustness: the plant unlike the controller's model (the controller keeps the nominal)
 PLANTS = {
@@ -86,15 +48,24 @@ PLANTS = {
     "load-transfer+lags": {"plant_options": {"cg_height": 1.2, "wheel_lag": 0.05,
                                              "steer_lag": 0.05}},
 }
+# Case 2 as a sweep: the paper's line, started off it (initial heading errors [deg]; lateral
+# offsets [m] with the heading on the line), at two speeds [km/h]
+CASE2_HEADINGS_DEG = (15.0, 30.0, 45.0, 60.0, 75.0)
+CASE2_OFFSETS_M = (1.0, 2.0)
+CASE2_SPEEDS = (10.0, 20.0)
+SEEDS = (0, 1, 2)  # the annealer seeds of the scenario each class repeats
+USER_SPEED = 20.0  # km/h: a user's vehicle on a random path, unless --speeds
+USER_DURATION = 15.0  # s of that random path
 
 
 @dataclass
 class StudyScenario:
-    """One scenario instance: a path at a speed, a vehicle and load, a plant, a seed."""
+    """One scenario instance: a path at a speed, a vehicle and load, a plant, a start, an
+    annealer seed."""
 
     cls: str  # the class the summary groups by (case1, case2, lane, turn, random, user, ...)
     case: str  # Scenario.case: curve, line, lane, turn, random, or 'file' (a trajectory)
-    speed: float | None  # km/h (None for a trajectory file)
+    speed: float | None  # km/h (None for a trajectory file: it carries its own timing)
     mass_kg: float | None = None
     axles: int | None = None
     path_seed: int = 0
@@ -104,20 +75,30 @@ class StudyScenario:
     vehicle: str | None = None
     trajectory: str | None = None
     raw: bool = False  # also run the raw-decision families here
-    extra: dict = field(default_factory=dict)
+    heading_deg: float | None = None  # the start off the line (Case 2): heading error ...
+    offset_m: float | None = None  # ... or lateral offset, moving along the line
 
     @property
     def name(self) -> str:
+        """Unique within a design: runs are grouped by it."""
         if self.case == "random":
-            first = (f"random-{self.path_seed}" if self.cls == "random"
+            first = (f"random-{self.path_seed}" if self.cls in ("random", "user")
                      else f"{self.cls} random-{self.path_seed}")
-        elif self.cls in ("case1", "case2", "lane", "turn", "user"):  # the class is the path
+            if self.cls == "user":
+                first = f"user {first}"
+        elif self.cls == "user" and self.trajectory:
+            first = f"user {Path(self.trajectory).name}"
+        elif self.cls in ("case1", "case2", "lane", "turn"):  # the class is the path
             first = self.cls
         else:  # a class over several paths (load, 4-axle, robust): name the path too
             first = f"{self.cls} {self.case}"
         parts = [first]
         if self.speed is not None:
             parts.append(f"{self.speed:g} km/h")
+        if self.heading_deg is not None:
+            parts.append(f"heading {self.heading_deg:g} deg")
+        if self.offset_m is not None:
+            parts.append(f"offset {self.offset_m:g} m")
         if self.mass_kg is not None:
             parts.append(f"{self.mass_kg / 1000:g} t")
         if self.axles:
@@ -127,16 +108,36 @@ class StudyScenario:
         parts.append(f"seed {self.seed}")
         return ", ".join(parts)
 
-    @property
-    def path_key(self) -> str:
-        """What determines the reference, the plant's vehicle and the window (the floors)."""
-        d = {k: getattr(self, k) for k in ("case", "speed", "mass_kg", "axles", "path_seed",
-                                           "plant", "duration", "vehicle", "trajectory")}
+    def _key(self, names) -> str:
+        d = {k: getattr(self, k) for k in names}
         if self.trajectory:
             d["trajectory_sha"] = hashlib.sha256(Path(self.trajectory).read_bytes()).hexdigest()
         if self.vehicle:
             d["vehicle_sha"] = hashlib.sha256(Path(self.vehicle).read_bytes()).hexdigest()
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+    @property
+    def path_key(self) -> str:
+        """What determines the reference, the plant's vehicle and the window (the floors)."""
+        return self._key(("case", "speed", "mass_kg", "axles", "path_seed", "plant",
+                          "duration", "vehicle", "trajectory"))
+
+    @property
+    def unit_key(self) -> str:
+        """Everything but the annealer seed: the instances of one scenario, which the
+        analysis averages before it resamples scenarios."""
+        return self._key(("cls", "case", "speed", "mass_kg", "axles", "path_seed", "plant",
+                          "duration", "vehicle", "trajectory", "heading_deg", "offset_m"))
+
+    def initial(self) -> dict:
+        """The start's overrides of the plant's state (Case 2's sweep), else none."""
+        if self.heading_deg is None and self.offset_m is None:
+            return {}
+        u = float(self.speed) / 3.6
+        st = {"phi": math.radians(self.heading_deg or 0.0), "u": u}
+        if self.offset_m is not None:
+            st["y"] = float(self.offset_m)
+        return st
 
     def extra_fields(self) -> dict:
         ex = dict(PLANTS[self.plant])
@@ -146,7 +147,8 @@ class StudyScenario:
             ex["path_seed"] = self.path_seed
         if self.trajectory:
             ex["trajectory"] = self.trajectory
-        ex.update(self.extra)
+        if self.initial():
+            ex["initial"] = self.initial()
         return ex
 
     def scenario(self, settings=None, solver="sa"):
@@ -160,86 +162,123 @@ class StudyScenario:
                         speed=None if traj else self.speed, duration=self.duration,
                         settings=dict(settings or {}), solver=solver, period=PERIOD, **ex)
 
+    def describe(self) -> dict:
+        """What the report says of this instance: its vehicle, its reference's real speed
+        (a trajectory's too) and duration."""
+        sc = self.scenario()
+        v = sc.plant_vehicle(sc.resolve_vehicle())
+        ref, _ = sc.reference()
+        dur = sc.run_duration(ref)
+        R = ref.sample(ref.t[(ref.t >= ref.t[0]) & (ref.t <= ref.t[0] + dur)])
+        speed = (R[:, 3] ** 2 + R[:, 4] ** 2) ** 0.5 * 3.6
+        return {"vehicle": v.name, "vehicle_file": self.vehicle, "axles": v.n_axles,
+                "mass_kg": float(v.mass), "trajectory": self.trajectory,
+                "speed_kmh": float(speed.mean()), "speed_max_kmh": float(speed.max()),
+                "duration_s": float(dur), "whole_path": bool(dur >= ref.duration - 1e-6)}
 
-def design(quick: bool = False, vehicle: str | None = None,
-           trajectory: str | None = None) -> list[StudyScenario]:
-    """The scenario instances of the default (or ``quick``) design, plus a user scenario
-    when ``vehicle`` or ``trajectory`` is given (docs/RESULTS.md lists the design)."""
+
+def _default_design() -> list[StudyScenario]:
+    """The default design (docs/RESULTS.md lists it)."""
     S = StudyScenario
     out: list[StudyScenario] = []
-    if quick:
-        out += [S("case1", "curve", 35.0, duration=10.0, raw=True),
-                S("case2", "line", 10.0, duration=8.0),
-                S("lane", "lane", 15.0, duration=10.0),
-                S("random", "random", 20.0, path_seed=1, duration=8.0),
-                S("random", "random", 20.0, path_seed=2, duration=8.0)]
-    else:
-        # the paper's Case 1 at its four speeds (5 km/h: the first 30 s of 108 s), Case 2
-        for v in (5.0, 15.0, 25.0, 35.0):
-            for seed in (range(5) if v in (15.0, 35.0) else (0,)):
-                out.append(S("case1", "curve", v, seed=seed, duration=30.0 if v == 5 else None,
-                             raw=seed == 0 and v in (15.0, 35.0)))
-        out.append(S("case2", "line", 10.0))
-        out += [S("lane", "lane", v) for v in (15.0, 30.0)]
-        out += [S("turn", "turn", v) for v in (10.0, 20.0)]
-        out += [S("random", "random", v, path_seed=k, duration=15.0)
-                for k in range(1, 6) for v in (10.0, 25.0)]
-        # loads (Case 3's question on other paths too)
-        for m in (8000.0, 20000.0):
-            out.append(S("load", "curve", 25.0, mass_kg=m))
-            out += [S("load", "random", 20.0, mass_kg=m, path_seed=k, duration=15.0)
-                    for k in (1, 2)]
-        # a 4-axle vehicle (same load per wheel)
-        out += [S("4-axle", "curve", v, axles=4) for v in (15.0, 35.0)]
-        out.append(S("4-axle", "lane", 15.0, axles=4))
-        out += [S("4-axle", "random", 20.0, axles=4, path_seed=k, duration=15.0)
-                for k in range(1, 6)]
-        # the plant unlike the model
-        for plant in PLANTS:
-            if plant == "nominal":
-                continue
-            out += [S("robust", "curve", 25.0, plant=plant),
-                    S("robust", "random", 20.0, plant=plant, path_seed=1, duration=15.0),
-                    S("robust", "lane", 15.0, plant=plant)]
-    if vehicle or trajectory:
-        seeds = (0, 1, 2)
-        if trajectory:
-            out += [S("user", "file", None, vehicle=vehicle, trajectory=trajectory, seed=s,
-                      duration=10.0 if quick else None) for s in seeds]
-        else:
-            out += [S("user", "random", 20.0, vehicle=vehicle, path_seed=1, seed=s,
-                      duration=8.0 if quick else 15.0) for s in seeds]
+    # the paper's Case 1 at its four speeds (5 km/h: the first 30 s of 108 s), 5 seeds at
+    # 15 and 35 km/h
+    for v in (5.0, 15.0, 25.0, 35.0):
+        for seed in (range(5) if v in (15.0, 35.0) else (0,)):
+            out.append(S("case1", "curve", v, seed=seed, duration=30.0 if v == 5 else None,
+                         raw=seed == 0 and v in (15.0, 35.0)))
+    # Case 2 as a sweep: heading errors, then lateral offsets, at two speeds; seeds on the
+    # paper's own (60 deg at 10 km/h)
+    for v in CASE2_SPEEDS:
+        for h in CASE2_HEADINGS_DEG:
+            seeds = SEEDS if (v, h) == (10.0, 60.0) else (0,)
+            out += [S("case2", "line", v, heading_deg=h, seed=k) for k in seeds]
+        out += [S("case2", "line", v, offset_m=d) for d in CASE2_OFFSETS_M]
+    out += [S("lane", "lane", v, seed=k) for v in (15.0, 30.0)
+            for k in (SEEDS if v == 15.0 else (0,))]
+    out += [S("turn", "turn", v, seed=k) for v in (10.0, 20.0)
+            for k in (SEEDS if v == 10.0 else (0,))]
+    out += [S("random", "random", v, path_seed=p, duration=15.0, seed=k)
+            for p in range(1, 6) for v in (10.0, 25.0)
+            for k in (SEEDS if (p, v) == (1, 25.0) else (0,))]
+    # loads (Case 3's question on other paths too)
+    for m in (8000.0, 20000.0):
+        out.append(S("load", "curve", 25.0, mass_kg=m))
+        out += [S("load", "random", 20.0, mass_kg=m, path_seed=p, duration=15.0, seed=k)
+                for p in (1, 2) for k in (SEEDS if (m, p) == (8000.0, 1) else (0,))]
+    # a 4-axle vehicle (same load per wheel)
+    out += [S("4-axle", "curve", v, axles=4) for v in (15.0, 35.0)]
+    out.append(S("4-axle", "lane", 15.0, axles=4))
+    out += [S("4-axle", "random", 20.0, axles=4, path_seed=p, duration=15.0, seed=k)
+            for p in range(1, 6) for k in (SEEDS if p == 1 else (0,))]
+    # the plant unlike the model
+    for plant in PLANTS:
+        if plant == "nominal":
+            continue
+        seeds = SEEDS if plant == "combined-slip" else (0,)
+        out += [S("robust", "curve", 25.0, plant=plant)]
+        out += [S("robust", "random", 20.0, plant=plant, path_seed=1, duration=15.0, seed=k)
+                for k in seeds]
+        out += [S("robust", "lane", 15.0, plant=plant)]
     return out
 
 
-def _levels(fam: str, levels, quick: bool):
-    return QUICK_LEVELS.get(fam, levels) if quick else levels
+def _quick_design() -> list[StudyScenario]:
+    """``--quick``: five short scenarios, a smoke test of the whole pipeline."""
+    S = StudyScenario
+    return [S("case1", "curve", 35.0, duration=10.0, raw=True),
+            S("case2", "line", 10.0, heading_deg=60.0, duration=8.0),
+            S("lane", "lane", 15.0, duration=10.0),
+            S("random", "random", 20.0, path_seed=1, duration=8.0),
+            S("random", "random", 20.0, path_seed=2, duration=8.0)]
+
+
+def user_design(vehicle: str | None, trajectory: str | None, speeds=None,
+                quick: bool = False) -> list[StudyScenario]:
+    """A user's own scenario: the trajectory (whole, at its own timing) driven by the
+    vehicle (or the paper's), or, with a vehicle alone, a random path at each of
+    ``speeds`` (default :data:`USER_SPEED`) km/h. Three annealer seeds (one with
+    ``quick``)."""
+    if not (vehicle or trajectory):
+        return []
+    if trajectory and speeds:
+        raise ScenarioError("--speeds: a trajectory CSV carries its own timing (the study "
+                            "drives it whole, as it is)")
+    seeds = (0,) if quick else SEEDS
+    S = StudyScenario
+    if trajectory:
+        return [S("user", "file", None, vehicle=vehicle, trajectory=trajectory, seed=k)
+                for k in seeds]
+    return [S("user", "random", float(v), vehicle=vehicle, path_seed=1,
+              duration=USER_DURATION, seed=k) for v in (speeds or (USER_SPEED,)) for k in seeds]
+
+
+def design(quick: bool = False, vehicle: str | None = None, trajectory: str | None = None,
+           speeds=None) -> list[StudyScenario]:
+    """The scenario instances of the default (or ``quick``) design, plus the user's own
+    (:func:`user_design`) when ``vehicle`` or ``trajectory`` is given. The design's
+    scenarios drive the paper's vehicle (2 axles; the 4-axle class its 4-axle variant); the
+    user's vehicle drives the user's scenarios only."""
+    base = _quick_design() if quick else _default_design()
+    return base + user_design(vehicle, trajectory, speeds, quick)
 
 
 def run_specs(scenarios: list[StudyScenario], quick: bool = False) -> list[RunSpec]:
-    """Every run of the study: each family at each lever level in each scenario."""
+    """Every run of the study: each family at each of its levels in each scenario."""
     specs = []
     for sc in scenarios:
-        fams = dict(FAMILIES)
-        if sc.raw:
-            fams.update(RAW_FAMILIES)
-        for fam, (lever, levels, make, solver, aware) in fams.items():
-            for x in _levels(fam, levels, quick):
-                st = dict(make(x), seed=sc.seed)
-                label = fam if x is None else f"{fam} {lever}={x:g}"
-                extra = sc.extra_fields()
-                if solver != "sa":
-                    extra["solver"] = solver
-                traj = extra.pop("trajectory", None)
-                if traj:
-                    extra["trajectory"] = traj
-                specs.append(RunSpec(label, sc.name, "file" if traj else sc.case,
+        extra = sc.extra_fields()
+        case = "file" if sc.trajectory else sc.case
+        for fam in study_families(raw=sc.raw):
+            for x in fam.study_levels(quick):
+                tags = {"family": fam.name, "lever": fam.lever_label, "level": x,
+                        "aware": fam.wear_aware, "scenario": sc.name, "class": sc.cls,
+                        "plant": sc.plant, "path_key": sc.path_key, "unit": sc.unit_key,
+                        "seed": sc.seed}
+                specs.append(RunSpec(fam.label(x), sc.name, case,
                                      0.0 if sc.speed is None else float(sc.speed), sc.mass_kg,
-                                     st, sc.duration, sc.vehicle,
-                                     {"family": fam, "lever": lever, "level": x,
-                                      "aware": aware, "scenario": sc.name, "class": sc.cls,
-                                      "plant": sc.plant, "path_key": sc.path_key,
-                                      "seed": sc.seed}, extra))
+                                     dict(fam.settings_at(x), seed=sc.seed), sc.duration,
+                                     sc.vehicle, tags, dict(extra, **fam.extra())))
     return specs
 
 
@@ -263,8 +302,6 @@ def compute_floors(scenarios: list[StudyScenario], out: Path, jobs=None, schedul
                    force: bool = False, progress: bool = True) -> dict[str, dict]:
     """The floors of every distinct path (cached under ``OUT/floors/``); ``progress``: a bar
     over the paths on stderr (the default design's floors take ~10 minutes on 2 cores)."""
-    from dataclasses import asdict
-
     d = out / "floors"
     d.mkdir(parents=True, exist_ok=True)
     digest = code_digest()
@@ -305,21 +342,47 @@ def compute_floors(scenarios: list[StudyScenario], out: Path, jobs=None, schedul
     return have
 
 
+def _check_user(scenarios: list[StudyScenario], speeds) -> None:
+    """The user's scenarios checked before any work: a file that cannot be read, or a speed
+    the user's vehicle cannot drive, is refused in one line naming the option."""
+    seen = set()
+    for sc in scenarios:
+        if sc.cls != "user" or sc.unit_key in seen:  # the seeds share the checks
+            continue
+        seen.add(sc.unit_key)
+        if sc.trajectory:
+            what = f"--trajectory {sc.trajectory}"
+        elif speeds:
+            what = f"--speeds: {sc.speed:g} km/h"
+        else:
+            what = (f"the study drives your vehicle on a random path at {sc.speed:g} km/h "
+                    f"(choose with --speeds)")
+        try:
+            sc.scenario().preflight()
+        except ScenarioError as e:
+            raise ScenarioError(f"{what}: {e}") from None
+
+
 def run_study(out: str | Path | None = None, *, quick: bool = False, jobs: int | None = None,
               scheduler: str | None = None, force: bool = False, progress: bool = True,
-              vehicle: str | None = None, trajectory: str | None = None) -> dict:
-    """Run (or resume) the study and write its report; returns the summary."""
-    from .study_report import report_study
+              vehicle: str | None = None, trajectory: str | None = None,
+              speeds=None) -> dict:
+    """Run (or resume) the study and write its report; returns the summary (the JSON
+    document of :func:`experiments.study_analysis.report_study`)."""
+    from .study_analysis import report_study
 
     for p, what in ((vehicle, "--vehicle"), (trajectory, "--trajectory")):
         if p is not None and not Path(p).is_file():
             raise FileNotFoundError(f"{what}: {p}: no such file")
+    if speeds and not vehicle:
+        raise ScenarioError("--speeds: in the study, the speeds of your vehicle's scenario "
+                            "(give --vehicle)")
     out = Path(out) if out is not None else Path("runs") / ("study-quick" if quick else "study")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    scenarios = design(quick, vehicle, trajectory)
-    for sc in scenarios:  # a bad user file fails now, in one line, before any run
-        sc.scenario().reference()
+    scenarios = design(quick, vehicle, trajectory, speeds)
+    _check_user(scenarios, speeds)
+    described = {sc.name: sc.describe() for sc in scenarios}
     floors = compute_floors(scenarios, out, jobs, scheduler, force, progress)
     specs = run_specs(scenarios, quick)
     results, summ = run_all(specs, out, jobs=jobs, force=force, progress=progress,
@@ -327,4 +390,4 @@ def run_study(out: str | Path | None = None, *, quick: bool = False, jobs: int |
     summ["total_wall_s"] = time.perf_counter() - t0
     summ["design"] = "quick" if quick else "default"
     summ["scenarios"] = len(scenarios)
-    return report_study(results, floors, scenarios, out, summ)
+    return report_study(results, floors, scenarios, described, out, summ)

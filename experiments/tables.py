@@ -22,9 +22,15 @@ HEADERS = {"Omega": "Omega", "W_tw": "W_tw (J)", "W_alpha": "W_alpha (J)", "W_s"
            "W_t": "W_t (J)", "e_bar": "e_bar", "e_x_cm": "e_x (cm)", "e_y_cm": "e_y (cm)",
            "e_phi_deg": "e_phi (deg)"}
 SCIENTIFIC = {"Omega", "W_tw", "W_alpha", "W_s", "W_t"}
-METHOD_STYLE = {"Kinematic": ("C7", "v"), "DH": ("C2", "s"), "TCT": ("C4", "D"),
-                "NTWO": ("C0", "o"), "TWO": ("C3", "^"), "FF": ("0.4", "x"),
-                "NTWO-wheel": ("C9", "s"), "TWO-energy": ("C1", "P")}
+
+
+
+def _style(name: str, default: tuple) -> tuple:
+    """A row's (colour, marker) in the figures: its family's (experiments.families)."""
+    from .families import FAMILIES
+
+    f = FAMILIES.get(name)
+    return f.style if f is not None else default
 
 
 # ---- tables ---------------------------------------------------------------------------------
@@ -134,9 +140,9 @@ def check_targets(experiment: str, rows: list[dict], speed_of_group=None) -> lis
     A target is only evaluated where all the methods it names ran, and among the paper's
     five methods only (the reference rows FF, NTWO-wheel, TWO-energy are not the paper's).
     """
-    from .runs import METHODS
+    from .families import paper_methods
 
-    g = _by_group(rows, METHODS)
+    g = _by_group(rows, paper_methods())
     out = []
 
     def add(target, holds, detail):
@@ -267,7 +273,7 @@ def plot_trajectories(results: list[dict], out_dir: Path, path: Path, title: str
                     xs.append(log["x_ref"])
                     ys.append(log["y_ref"])
                     ref_done = True
-                color, marker = METHOD_STYLE.get(r["spec"]["label"], (None, None))
+                color, marker = _style(r["spec"]["label"], (None, None))
                 ax.plot(log["x"], log["y"], lw=1.1, color=color, label=r["spec"]["label"])
                 xs.append(log["x"])
                 ys.append(log["y"])
@@ -300,7 +306,7 @@ def plot_errors(results: list[dict], out_dir: Path, path: Path, title: str) -> N
             for r, log in _group_logs(results, out_dir, grp):
                 step = max(1, len(log["t"]) // 1500)
                 t = log["t"][::step]
-                color, _ = METHOD_STYLE.get(r["spec"]["label"], (None, None))
+                color, _ = _style(r["spec"]["label"], (None, None))
                 ex = 100 * (log["x"] - log["x_ref"])[::step]
                 ey = 100 * (log["y"] - log["y_ref"])[::step]
                 ep = np.degrees(wrap_angle(log["phi"] - log["phi_ref"]))[::step]
@@ -340,7 +346,7 @@ def plot_omega(rows: list[dict], xvalue, xlabel: str, path: Path, title: str) ->
                          and _finite(r["metrics"]["Omega"]) and r["metrics"]["Omega"] > 0)
             if not pts:
                 continue
-            color, marker = METHOD_STYLE.get(m, (None, "o"))
+            color, marker = _style(m, (None, "o"))
             ax.plot(*zip(*pts), marker=marker, color=color, label=m)
         ax.set_xlabel(xlabel)
         ax.set_ylabel("lg Omega (eq. 33) [-]")
@@ -381,7 +387,6 @@ def plot_pareto(fronts: dict, path: Path, vehicle: str = "") -> None:
 
     plt = _plt()
     speeds = list(fronts)
-    fam_style = {"TWO": ("C3", "^-"), "NTWO-smooth": ("C0", "o-"), "NTWO-ridge": ("C9", "s-")}
     with style():
         fig, axes = plt.subplots(1, len(speeds), figsize=(WIDTH * 0.75 * len(speeds), 4.4),
                                  squeeze=False)
@@ -391,7 +396,8 @@ def plot_pareto(fronts: dict, path: Path, vehicle: str = "") -> None:
                 ok = [p for p in pts if p["status"] == "ok"]
                 if not ok:
                     continue
-                color, style_ = fam_style.get(fam, ("C5", "x-"))
+                color, marker = _style(fam, ("C5", "x"))
+                style_ = marker + "-"
                 ok = sorted(ok, key=lambda p: p["scale"])
                 ax.plot([p["e_bar"] for p in ok], [p["W_tw"] for p in ok], style_, color=color,
                         ms=5, lw=1, label=f"{fam} ({fr['lever'][fam]})")
@@ -401,7 +407,7 @@ def plot_pareto(fronts: dict, path: Path, vehicle: str = "") -> None:
             for name, p in fr["baselines"].items():
                 if p["status"] != "ok":
                     continue
-                color, marker = METHOD_STYLE.get(name, ("k", "*"))
+                color, marker = _style(name, ("k", "*"))
                 ax.plot([p["e_bar"]], [p["W_tw"]], marker, color=color, ms=8, ls="none",
                         label=name)
             es = [p["e_bar"] for f in fr["families"].values() for p in f if p["status"] == "ok"]

@@ -1,4 +1,4 @@
-"""``msagv experiment``: the command line of :mod:`experiments.studies`."""
+"""``msagv experiment``: the command line of :mod:`experiments.cases`."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import sys
 from pathlib import Path
 
-from msagv.experiments import studies
+from msagv.experiments import cases, families
 
 from .args import OptionError, add_common_args, check_output, fail, note, warn
 
@@ -44,8 +44,10 @@ def _masses_kg(a) -> tuple | None:
 
 def main(argv: list[str]) -> int:
     prog = "msagv experiment"
-    ap = argparse.ArgumentParser(prog=prog, description=studies.__doc__.splitlines()[0])
-    ap.add_argument("experiment", choices=studies.EXPERIMENTS + ("study",),
+    ap = argparse.ArgumentParser(prog=prog, description="The paper's experiments (Section 4: "
+                                 "case1, case2, case3; pareto, ridge) and the study (does a "
+                                 "wear term save wear at equal tracking error?).")
+    ap.add_argument("experiment", choices=cases.EXPERIMENTS + ("study",),
                     help="the paper's Cases 1-3, the Pareto and ridge experiments, or the "
                          "study (experiments.study: every family on many scenarios, wear at "
                          "matched accuracy with confidence intervals)")
@@ -58,25 +60,31 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--json-out", metavar="FILE", help="also write the JSON summary to FILE")
     ap.add_argument("--duration", type=float, metavar="S",
                     help="shorten every run to S seconds of vehicle time (default: the whole reference)")
-    ap.add_argument("--speeds", metavar="KMH,...", help="subset/override of the speeds")
+    ap.add_argument("--speeds", metavar="KMH,...",
+                    help="case1-3, pareto, ridge: subset/override of the speeds; study: the "
+                         "speeds of your vehicle's random path (with --vehicle, default 20)")
     ap.add_argument("--masses", metavar="KG,...",
                     help="case3: gross vehicle weights in kg (default 8000,12000,16000,20000)")
     ap.add_argument("--masses-t", metavar="T,...", help=argparse.SUPPRESS)  # deprecated
     ap.add_argument("--methods", metavar="NAME,...",
-                    help=f"subset of the paper's {','.join(studies.METHODS)} and the references "
-                         f"{','.join(studies.REFERENCES)} (default: all; pareto: of the baselines "
-                         f"and references)")
-    ap.add_argument("--vehicle", metavar="FILE", help="vehicle TOML (default: built-in paper-2axle)")
+                    help=f"case1-3: a subset of the case tables' rows (default: all): "
+                         f"{families.methods_help()} (experiments.families); pareto: of "
+                         f"{', '.join(cases.PARETO_BASELINES)}")
+    ap.add_argument("--vehicle", metavar="FILE",
+                    help="vehicle TOML (default: built-in paper-2axle); study: the vehicle of "
+                         "your own scenario (a random path at --speeds, or --trajectory)")
     ap.add_argument("--force", action="store_true", help="redo runs even if finished")
     ap.add_argument("--two-scales", metavar="S,...", help="pareto: factors on TWO's L")
     ap.add_argument("--smooth-scales", metavar="S,...", help="pareto: factors on NTWO's R_dw, R_dd")
     ap.add_argument("--ridge-scales", metavar="S,...",
                     help="pareto: factors of NTWO's R_ow, R_od; ridge: the levels (default 0,0.1,1)")
     ap.add_argument("--quick", action="store_true",
-                    help="study: the reduced design (about 10 minutes on 2 cores)")
+                    help="study: the reduced design, a smoke test (QUICK_TIME on 2 cores; "
+                         "the full design FULL_TIME)")
     ap.add_argument("--trajectory", metavar="FILE",
-                    help="study: add a scenario on this t,x,y,phi CSV (with --vehicle: "
-                         "driven by that vehicle)")
+                    help="study: add your own scenario on this t,x,y,phi CSV, run whole at "
+                         "its own timing (with --vehicle: driven by that vehicle; the "
+                         "design's scenarios keep the paper's), summarised on its own")
     ap.add_argument("--scheduler", metavar="ADDRESS",
                     help="a Dask scheduler (tcp://HOST:8786) whose workers run the runs "
                          "(default: a local Dask cluster of --jobs processes)")
@@ -102,11 +110,19 @@ def main(argv: list[str]) -> int:
         if a.experiment == "study":
             from msagv.experiments.study import run_study
 
+            for name in ("duration", "masses", "masses_t", "methods", "two_scales",
+                         "smooth_scales", "ridge_scales"):
+                if getattr(a, name) is not None:
+                    raise OptionError(f"--{name.replace('_', '-')} applies to case1-3, "
+                                      f"pareto and ridge, not to the study (its design is "
+                                      f"fixed; --vehicle, --trajectory and --speeds add your "
+                                      f"own scenario)")
             summary = run_study(a.out, quick=a.quick, jobs=a.jobs, scheduler=a.scheduler,
                                 force=a.force, progress=progress, vehicle=a.vehicle,
-                                trajectory=a.trajectory)
+                                trajectory=a.trajectory,
+                                speeds=_floats(a.speeds, "--speeds"))
         else:
-            summary = studies.run_experiment(
+            summary = cases.run_experiment(
                 a.experiment, a.out, jobs=a.jobs, force=a.force, progress=progress,
                 duration=a.duration, speeds=_floats(a.speeds, "--speeds"),
                 masses_t=None if masses is None else tuple(m / 1000.0 for m in masses),

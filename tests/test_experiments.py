@@ -12,7 +12,7 @@ import math
 import pytest
 
 from msagv.controller.models import MPCSettings
-from msagv.experiments import studies as ex
+from msagv.experiments import cases as ex
 from msagv.experiments.paper import PAPER_COLUMNS, paper_table
 from msagv.experiments.tables import (COLUMNS, check_targets, fmt, lower_front, table_rows, wear_at)
 from msagv import experiment as ex_cli
@@ -206,7 +206,7 @@ def test_reduced_ridge(tmp_path, capsys):
         n, t = r["NTWO"]["W_tw"], r["TWO"]["W_tw"]
         assert r["cut_percent"] == pytest.approx(100.0 * (1.0 - t / n))
     # the default ridge is x0.1: that row is the default NTWO of case1 (same key, same run)
-    from msagv.experiments.studies import RIDGE_BASE
+    from msagv.experiments.cases import RIDGE_BASE
     from msagv.controller.models import MPCSettings
 
     assert tuple(MPCSettings().R[2:]) == pytest.approx((0.1 * RIDGE_BASE[0], 0.1 * RIDGE_BASE[1]))

@@ -1,7 +1,9 @@
-"""The study (experiments/study.py, study_report.py, controller/floors.py, paths.py): wear
-floors against a hand computation, the paths' feasibility, matched-accuracy fronts and the
-bootstrap on hand-made data, and a reduced study end to end (the full quick design with a
-user's vehicle and path is ``slow``)."""
+"""The study (experiments/study.py, study_analysis.py, controller/floors.py, paths.py): wear
+floors against a hand computation, the paths' feasibility, the blind side's accuracy lever
+(a reference smoothed along its path), the fronts at equal error, the tolerance forms, the
+unmatched scenarios and the bootstrap on hand-made data, the design, a user's own scenario,
+and a reduced study end to end (the full quick design with a user's vehicle and path is
+``slow``)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,10 @@ import pytest
 
 from msagv.controller.floors import wear_floors
 from msagv.controller.paths import feasible_bounds, lane_change, path_from_curvature, random_path, tight_turn
-from msagv.experiments.study_report import bootstrap_ratio, lower_envelope, matched, wear_at_accuracy
+from msagv.controller.reference import case1_curve, case2_line, from_samples
+from msagv.experiments.study_analysis import (RESOLUTION_CM, compare, equal_error, lower_envelope,
+                                              most_accurate_ratio, pooled, summarise,
+                                              wear_within)
 from msagv.plant import default_vehicle, n_axle_vehicle, vehicle_from_dict
 from msagv.plant.tire import magic_formula
 
@@ -63,7 +68,7 @@ def test_floor_is_zero_on_a_straight_line_and_rejects_an_empty_window():
     with pytest.raises(ValueError, match="window"):
         wear_floors(ref, VEH, 5.0, 5.0)
     # the report divides by a floor only where there is one: a line's W / floor is n/a
-    from msagv.experiments.study_report import _row
+    from msagv.experiments.study_analysis import _row
 
     tags = {"family": "NTWO", "lever": "none", "level": None, "aware": False,
             "scenario": "case2", "class": "case2", "plant": "nominal", "seed": 0,
@@ -99,73 +104,218 @@ def test_random_paths_are_seeded():
     assert np.array_equal(a.y, b.y) and not np.allclose(a.y[:len(c.y)], c.y[:len(a.y)])
 
 
+def test_floor_of_a_tabulated_circle_that_ends_with_the_run():
+    """A trajectory CSV ends with its last row, where the reference goes on straight (yaw
+    rate 0): the floor must not see that jump (it once added a yaw moment of I_vz r / 0.01 s
+    to the last samples, 20x the steady power). A circle tabulated at 10 Hz over exactly
+    the window: its floor power is the hand computation of the test above, and nowhere
+    above it (its first and last 0.3 s are lower: the first and last rows' velocities are
+    one-sided differences, along the chord, which the floor follows as any run does)."""
+    v_ = _one_narrow_axle(VEH)
+    radius, speed_kmh, T = 20.0, 15.0, 6.0
+    v = speed_kmh / 3.6
+    t = np.arange(0.0, T + 1e-9, 0.1)
+    th = v * t / radius
+    ref = from_samples(t, radius * np.sin(th), radius * (1 - np.cos(th)), th)
+    ref = ref.with_after_end("continue")
+    F = v_.mass * v * v / radius / v_.n_wheels
+    la = v_.tire_lateral
+    D = la.mu * v_.normal_load
+    lo, hi = 0.0, 0.5
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if magic_formula(mid, la.B, la.C, D, la.E) < F else (lo, mid)
+    want = v_.n_wheels * F * v * math.tan(0.5 * (lo + hi))  # W
+    f = wear_floors(ref, v_, 0.0, T, dt=0.05)
+    inner = (f.t > 0.3) & (f.t < T - 0.3)
+    assert f.P[inner, 1] == pytest.approx(np.full(inner.sum(), want), rel=3e-3)
+    assert f.P[:, 1].max() <= want * 1.03 and f.W_t < 0.1 * f.W_alpha
+
+
+# ---- the wear-blind side's accuracy lever: the reference smoothed along its path ---------------
+@pytest.mark.parametrize("sigma", [0.35, 0.7, 1.4])
+def test_smoothing_shrinks_a_sine_by_the_gaussians_factor(sigma):
+    """On y = A sin(k x) a Gaussian of sigma in arc length (~x on this gentle curve) scales
+    the amplitude by exp(-k^2 sigma^2 / 2): the path moves toward the inside of each bend
+    by A (1 - that), about sigma^2 kappa / 2. Times, the start and the speed stay."""
+    ref = case1_curve(25.0)
+    sm = ref.smoothed(sigma)
+    k = 2 * math.pi / 60.0
+    want = 4.0 * (1 - math.exp(-k * k * sigma * sigma / 2))
+    crest = 15.0  # x of the first crest, y = A
+    cut = 4.0 - float(np.interp(crest, sm.x, sm.y))
+    assert cut == pytest.approx(want, rel=0.03)
+    assert want == pytest.approx(sigma ** 2 * 4.0 * k * k / 2, rel=0.05)
+    assert np.array_equal(sm.t, ref.t) and sm.nominal_duration == ref.nominal_duration
+    assert sm.sample(0.0)[:2] == pytest.approx([0.0, 0.0], abs=1e-6)
+    mid = len(ref.t) // 2
+    assert math.hypot(sm.vx[mid], sm.vy[mid]) == pytest.approx(25.0 / 3.6, rel=5e-3)
+
+
+def test_smoothing_keeps_a_line_and_refuses_a_negative_length():
+    line = case2_line(10.0)
+    sm = line.smoothed(1.0)
+    assert np.abs(sm.y).max() < 1e-12 and np.allclose(sm.x, line.x, atol=1e-9)
+    assert line.smoothed(0.0) is line
+    from msagv.controller.reference import ReferenceError
+
+    with pytest.raises(ReferenceError, match="smoothing"):
+        line.smoothed(-0.5)
+    from msagv.controller.models import MPCSettings
+
+    with pytest.raises(ValueError, match="ref_smoothing"):
+        MPCSettings(ref_smoothing=-1.0)
+
+
+def test_the_mpc_tracks_the_smoothed_reference_when_asked():
+    """MPCSettings.ref_smoothing: the horizon's reference rows are the smoothed
+    reference's; 0 leaves them the reference's own."""
+    from msagv.controller.models import MPCSettings
+    from msagv.controller.mpc import MPC
+
+    ref = case1_curve(25.0)
+    state = {"t": 3.0, **{k: float(v) for k, v in zip(("x", "y", "phi", "vx", "vy", "r"),
+                                                       ref.sample(3.0))}, "delta": [0.0] * 4}
+    cut = MPC(VEH, MPCSettings(ref_smoothing=1.0), ref)
+    _, R, _, _ = cut.horizon_problem(state)
+    s = cut.settings
+    times = 3.0 + s.dt * np.arange(s.N_p + 1)
+    assert np.allclose(R, ref.smoothed(1.0).sample(times))
+    assert not np.allclose(R, ref.sample(times))
+    _, R0, _, _ = MPC(VEH, MPCSettings(), ref).horizon_problem(state)
+    assert np.allclose(R0, ref.sample(times))
+
+
 # ---- fronts and statistics on hand-made data ---------------------------------------------------
-def test_front_and_wear_at_accuracy_by_hand():
+def test_front_and_the_step_rule_by_hand():
     pts = [(1.0, 10.0), (2.0, 8.0), (1.5, 12.0), (4.0, 5.0), (3.0, 9.0)]
     front = lower_envelope(pts)
     assert front == [(1.0, 10.0), (2.0, 8.0), (4.0, 5.0)]
-    assert wear_at_accuracy(front, 3.0) == pytest.approx(6.5)  # between (2, 8) and (4, 5)
-    assert wear_at_accuracy(front, 9.0) == 5.0  # less accuracy than asked: the best point
-    assert wear_at_accuracy(front, 0.5) is None  # nothing that accurate: no extrapolation
+    # the least wear of the runs at least as accurate: no wear credited that no run reached
+    assert wear_within(front, 3.0) == 8.0
+    assert wear_within(front, 4.0) == 5.0 and wear_within(front, 9.0) == 5.0
+    assert wear_within(front, 0.5) is None  # nothing that accurate: no extrapolation
 
 
-def _rows(scenario, path, blind, aware, ntwo_e=1.0, seed=0):
+def test_equal_error_by_hand():
+    """Blind front (1, 100), (3, 90); aware (2, 95), (4, 80): they share [2, 3]; there the
+    step fronts are aware 95, blind 100 on [2, 3) and 90 at 3: the log-grid mean is
+    95/100 on all but the grid's last point."""
+    blind, aware = [(1.0, 100.0), (3.0, 90.0)], [(2.0, 95.0), (4.0, 80.0)]
+    eq = equal_error(aware, blind)
+    assert eq["range"] == (2.0, 3.0)
+    from msagv.experiments.study_analysis import GRID
+
+    want = math.exp(((GRID - 1) * math.log(0.95) + math.log(95 / 90)) / GRID)
+    assert eq["mean"] == pytest.approx(want)
+    assert eq["at"][2.0] == pytest.approx(0.95)
+    assert eq["at"][1.0] is None and eq["at"][0.5] is None  # outside the shared range
+    # fronts without a shared error: no ratio
+    assert equal_error([(5.0, 1.0)], blind)["mean"] is None
+    # the aware side's most accurate run (2, 95) against the blind runs at least as accurate
+    # ((1, 100)); none as accurate: against the cheapest blind run
+    assert most_accurate_ratio(aware, blind) == pytest.approx(0.95)
+    assert most_accurate_ratio([(0.5, 99.0)], blind) == pytest.approx(99 / 90)
+
+
+def _rows(scenario, unit, blind, aware, ntwo_e=1.0, seed=0, cls="c", aware_es=(0.5, 2.0)):
     rows = [{"family": "NTWO", "label": "NTWO", "aware": False, "status": "ok",
              "e_lat_rms_cm": ntwo_e, "W_tw": blind(ntwo_e), "scenario": scenario,
-             "class": "c", "plant": "nominal", "path_key": path, "seed": seed,
+             "class": cls, "plant": "nominal", "path_key": unit, "unit": unit, "seed": seed,
              "W_tw_floor": 50.0}]
     for e in (0.5, 2.0):
         rows.append(dict(rows[0], family="NTWO-wheel", label=f"w{e}", e_lat_rms_cm=e,
                          W_tw=blind(e)))
+    for e in aware_es:
         rows.append(dict(rows[0], family="TWO-energy", label=f"a{e}", aware=True,
                          e_lat_rms_cm=e, W_tw=aware(e)))
     return rows
 
 
-def test_matched_ratio_and_bootstrap_by_hand():
-    # blind wear 100 - 10 e, aware 90 - 10 e: within 1 cm (NTWO's own error), 90 vs 80
-    rows = _rows("s1", "p1", lambda e: 100 - 10 * e, lambda e: 90 - 10 * e)
-    rows += _rows("s2", "p2", lambda e: 200 - 10 * e, lambda e: 200 - 10 * e)
-    m = {d["scenario"]: d for d in matched(rows)}
-    assert m["s1"]["W_blind"] == pytest.approx(90.0) and m["s1"]["W_aware"] == pytest.approx(80.0)
-    assert m["s1"]["ratio"] == pytest.approx(80 / 90)
-    assert m["s1"]["W_blind_above_floor"] == pytest.approx(40.0)  # the floor is 50 J
-    assert m["s2"]["ratio"] == pytest.approx(1.0)
-    b = bootstrap_ratio(list(m.values()))
-    assert b["gmean"] == pytest.approx(math.sqrt(80 / 90))
-    lo, hi = b["ci95"]
-    assert lo == pytest.approx(80 / 90) and hi == pytest.approx(1.0)  # the two extremes
-    assert b["n"] == 2 and b["paths"] == 2 and b["below_1"] == 1
-    # within 5 cm both fronts' least wear is their least accurate point's: 80 and 70
-    assert m["s1"]["ratio_5cm"] == pytest.approx(70 / 80)
-    # the tolerance is never tighter than NTWO's own error: NTWO at 1.5 cm -> e* = 1.5
-    m4 = matched(_rows("s4", "p4", lambda e: 100 - 10 * e, lambda e: 90 - 10 * e, ntwo_e=1.5))
-    assert m4[0]["e_star_cm"] == 1.5 and m4[0]["W_aware"] == pytest.approx(75.0)
-    # an aware front less accurate than the tolerance everywhere is counted as unmatched
-    rows3 = [r for r in _rows("s3", "p3", lambda e: 100.0, lambda e: 90.0)
-             if not (r["aware"] and r["e_lat_rms_cm"] < 1.0)]
-    assert matched(rows3)[0]["ratio"] is None
-    assert bootstrap_ratio(matched(rows3))["unmatched"] == 1
+def test_compare_tolerance_forms_and_the_unmatched_by_hand():
+    # blind 100 - 10 e, aware 90 - 10 e at 0.5, 1 (NTWO), 2 cm
+    c = {d["scenario"]: d for d in compare(_rows("s1", "p1", lambda e: 100 - 10 * e,
+                                                 lambda e: 90 - 10 * e))}["s1"]
+    assert c["range_cm"] == (0.5, 2.0) and c["reason"] is None
+    # NTWO + 0.5 cm = 1.5: aware's least within is 85 (at 0.5), blind's 90 (at 1)
+    assert c["tol:0.5"] == pytest.approx(85 / 90)
+    assert c["tol:1"] == pytest.approx(70 / 80)  # at 2 cm: 70 and 80
+    assert c["at:1"] == pytest.approx(85 / 90) and c["at:0.5"] == pytest.approx(85 / 95)
+    assert c["family:TWO-energy"] == pytest.approx(c["ratio"])
+    # errors under the resolution count as it: a run at 0.01 cm is one at 0.1 cm
+    fine = _rows("s5", "p5", lambda e: 100.0, lambda e: 90.0, aware_es=(0.01, 0.02))
+    fine = [dict(r, e_lat_rms_cm=min(r["e_lat_rms_cm"], 0.03)) for r in fine]
+    f = compare(fine)[0]
+    assert f["range_cm"] == (RESOLUTION_CM, RESOLUTION_CM) and f["ratio"] == pytest.approx(0.9)
+    # an aware front less accurate than every blind run: unmatched, with the reason, and
+    # its most-accurate ratio (against the cheapest blind run)
+    rows3 = _rows("s3", "p3", lambda e: 100.0 - e, lambda e: 90.0, aware_es=(3.0, 4.0))
+    u = compare(rows3)[0]
+    assert u["ratio"] is None and "less accurate" in u["reason"]
+    assert u["most_accurate"] == pytest.approx(90 / 98)
+    # nothing to compare: every run wears under 1 J
+    z = compare(_rows("s4", "p4", lambda e: 1e-5, lambda e: 1e-5))[0]
+    assert z["ratio"] is None and "no wear" in z["reason"]
+
+
+def test_pooled_averages_seeds_then_resamples_scenarios():
+    """Three seeds of one scenario count once (their logs averaged), a second scenario
+    once: the geometric mean is that of the two scenario means, the interval (percentile
+    bootstrap of two values) their extremes; the seeds' spread is the solver's noise."""
+    items = [{"unit": "u1", "ratio": r} for r in (0.8, 0.9, 1.0)]
+    items += [{"unit": "u2", "ratio": 1.1}]
+    p = pooled(items)
+    m1 = (math.log(0.8) + math.log(0.9) + math.log(1.0)) / 3
+    assert p["n"] == 2 and p["instances"] == 4
+    assert p["gmean"] == pytest.approx(math.exp((m1 + math.log(1.1)) / 2))
+    lo, hi = p["ci95"]
+    assert lo == pytest.approx(math.exp(m1), rel=1e-6) and hi == pytest.approx(1.1, rel=1e-6)
+    sd = np.std([math.log(0.8), math.log(0.9), math.log(1.0)], ddof=1)
+    assert p["seed_sd_pct"] == pytest.approx(100 * (math.exp(sd) - 1))
+    assert p["below_1"] == 1
+    # an instance without a ratio is left out and counted, or filled from another key
+    items.append({"unit": "u3", "ratio": None, "most_accurate": 1.2, "reason": "x"})
+    assert pooled(items)["missing"] == 1 and pooled(items)["n"] == 2
+    filled = pooled(items, fill="most_accurate")
+    assert filled["n"] == 3 and filled["missing"] == 0
+
+
+def test_summary_counts_the_unmatched_and_keeps_the_user_apart():
+    rows = _rows("s1", "p1", lambda e: 100 - 10 * e, lambda e: 90 - 10 * e, cls="random")
+    rows += _rows("s3", "p3", lambda e: 100.0 - e, lambda e: 90.0, cls="random",
+                  aware_es=(3.0, 4.0))
+    rows += _rows("u", "pu", lambda e: 100 - 10 * e, lambda e: 50.0, cls="user")
+    sm = summarise(compare(rows))
+    r = sm["random"]
+    assert r["scenarios"] == 2 and r["equal_error"]["n"] == 1
+    assert [u["scenario"] for u in r["unmatched"]] == ["s3"]
+    assert r["with_unmatched"]["n"] == 2
+    assert "user" in sm and sm["all nominal"]["instances"] == 2  # the user's is not pooled
 
 
 def test_reduced_study_end_to_end(tmp_path, monkeypatch):
     """Two short scenarios (one path, two seeds), every family, in this process: the JSON
-    has every family, the floors, the physical-unit errors and a ratio with its CI."""
+    has every family, the floors, the physical-unit errors and the ratio at equal error
+    with the tolerance forms."""
     from msagv.experiments import study
+    from msagv.experiments.families import FAMILIES
 
     small = [study.StudyScenario("case1", "curve", 30.0, duration=1.5, seed=s, raw=s == 0)
              for s in (0, 1)]
-    monkeypatch.setattr(study, "design", lambda quick, vehicle, trajectory: small)
+    monkeypatch.setattr(study, "design", lambda quick, vehicle, trajectory, speeds: small)
     doc = study.run_study(tmp_path, quick=True, jobs=1, progress=False)
     fams = {r["family"] for r in doc["rows"]}
-    assert fams == set(study.FAMILIES) | set(study.RAW_FAMILIES)
+    assert fams == {f.name for f in FAMILIES.values() if f.study}
     assert all(r["status"] == "ok" for r in doc["rows"]), [r["error"] for r in doc["rows"]]
     for r in doc["rows"]:
         for k in ("e_lat_rms_cm", "e_lat_max_cm", "e_phi_deg", "W_tw", "W_tw_floor",
                   "W_above_floor"):
             assert isinstance(r[k], float) and math.isfinite(r[k]), k
     s = doc["summary"]["case1"]
-    assert s["n"] + s["unmatched"] == 2 and "ci95" in s and "within_5cm" in s
+    assert s["scenarios"] == 1 and s["instances"] == 2
+    assert {"equal_error", "with_unmatched", "at", "tolerance", "unmatched"} <= set(s)
+    assert set(s["tolerance"]) == {"0.5", "1", "5"}
+    assert doc["rule"]["wear_at_error"].startswith("step")
     assert json.loads((tmp_path / "study.json").read_text())["version"]
     for f in ("study.md", "study.csv", "fronts.png", "ratios.png"):
         assert (tmp_path / f).is_file(), f
@@ -173,9 +323,10 @@ def test_reduced_study_end_to_end(tmp_path, monkeypatch):
     assert again["runs"]["executed"] == 0  # resumed: every run reused
 
 
-def test_design_names_every_scenario_once(tmp_path):
-    """Runs are grouped by scenario name for the matched comparison: two paths under one
-    name (the 4-axle curve and lane at 15 km/h once were) would be compared as one."""
+def test_design_names_every_scenario_once_and_repeats_seeds_in_every_class(tmp_path):
+    """Runs are grouped by scenario name for the comparison: two paths under one name (the
+    4-axle curve and lane at 15 km/h once were) would be compared as one. Every class has
+    a scenario with 3 annealer seeds; Case 2 is a sweep of starts at two speeds."""
     from msagv.experiments import study
 
     veh = tmp_path / "v.toml"
@@ -183,14 +334,63 @@ def test_design_names_every_scenario_once(tmp_path):
     for quick in (False, True):
         names = [sc.name for sc in study.design(quick, str(veh), None)]
         assert len(names) == len(set(names)), sorted(names)
-    assert len(study.design(False)) >= 50
+    full = study.design(False)
+    assert len(full) >= 75
+    for cls in {sc.cls for sc in full}:
+        seeds = {}
+        for sc in full:
+            if sc.cls == cls:
+                seeds.setdefault(sc.unit_key, set()).add(sc.seed)
+        assert max(len(v) for v in seeds.values()) >= 3, cls
+    c2 = {(sc.speed, sc.heading_deg, sc.offset_m) for sc in full if sc.cls == "case2"}
+    assert {h for _, h, _ in c2 if h} == {15.0, 30.0, 45.0, 60.0, 75.0}
+    assert {v for v, _, _ in c2} == {10.0, 20.0} and {d for _, _, d in c2 if d}
+    # a start off the line: the heading error, moving along it at the speed
+    sc = next(sc for sc in full if sc.heading_deg == 30.0 and sc.speed == 20.0)
+    assert sc.initial() == pytest.approx({"phi": math.radians(30.0), "u": 20.0 / 3.6})
+    # the wear-blind accuracy lever runs in every scenario
+    specs = study.run_specs(full[:3])
+    assert {s.tags["family"] for s in specs} >= {"NTWO-wheel-cut", "TWO-energy"}
+
+
+def test_a_users_scenario_is_whole_on_its_own_and_refused_when_undrivable(tmp_path, capsys):
+    """--quick runs the user's path whole with the user's vehicle, never in 'all nominal';
+    a speed the user's vehicle cannot drive, or --speeds with a trajectory, is one line and
+    exit 2 before any run."""
+    from helpers import THREE_AXLE_TOML
+
+    from msagv import experiment as ex_cli
+    from msagv.experiments import study
+
+    veh = tmp_path / "v.toml"
+    veh.write_text(THREE_AXLE_TOML)
+    path = tmp_path / "p.csv"
+    t = np.arange(0.0, 30.0, 0.1)
+    path.write_text("t,x,y,phi\n" + "\n".join(f"{a},{2 * a},0,0" for a in t) + "\n")
+    user = [sc for sc in study.design(True, str(veh), str(path)) if sc.cls == "user"]
+    assert user and all(sc.duration is None and sc.vehicle == str(veh) for sc in user)
+    d = user[0].describe()
+    assert d["whole_path"] and d["speed_kmh"] == pytest.approx(7.2) and d["axles"] == 3
+    # the vehicle's wheels roll at most 30 rad/s x 0.45 m = 48.6 km/h
+    for args, words in ((["--vehicle", veh, "--speeds", "60"], "--speeds: 60 km/h"),
+                        (["--vehicle", veh, "--trajectory", path, "--speeds", "10"],
+                         "own timing"),
+                        (["--speeds", "10"], "--vehicle"),
+                        (["--duration", "3"], "not to the study")):
+        rc = ex_cli.main(["study", "--quick", "--out", str(tmp_path / "o"), "--no-progress",
+                          *map(str, args)])
+        err = capsys.readouterr().err
+        assert rc == 2 and words in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o" / "runs").exists() or not list((tmp_path / "o" / "runs").iterdir())
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(3600)
 def test_quick_study_with_a_users_vehicle_and_path(tmp_path):
     """The issue's check: `msagv experiment study --quick --json` with a vehicle and a path
-    that are not in the repository."""
+    that are not in the repository: the path runs whole with that vehicle, has its own
+    summary with its real speed, is not pooled into the nominal classes, and the JSON has
+    the ratios at equal error, the tolerance forms and the unmatched counts."""
     from helpers import THREE_AXLE_TOML, run_msagv
 
     veh = tmp_path / "v.toml"
@@ -203,13 +403,25 @@ def test_quick_study_with_a_users_vehicle_and_path(tmp_path):
     path.write_text("t,x,y,phi\n" + "\n".join(f"{a},{b},{c},{d}" for a, b, c, d in
                                               zip(t, x, y, phi)) + "\n")
     r = run_msagv("experiment", "study", "--quick", "--json", "--vehicle", veh,
-                  "--trajectory", path, "--out", tmp_path / "out", timeout=3500)
+                  "--trajectory", path, "--out", tmp_path / "out", "--jobs", "2",
+                  timeout=3500)
     assert r.returncode == 0, r.stderr[-3000:]
     doc = json.loads(r.stdout)
     fams = {row["family"] for row in doc["rows"]}
-    assert fams >= {"FF", "NTWO", "NTWO-wheel", "NTWO-wheel-Q", "TWO", "TWO-energy", "Kinematic",
-                    "DH", "TCT"}
-    assert "user" in doc["summary"] and "ci95" in doc["summary"]["all nominal"]
+    assert fams >= {"FF", "NTWO", "NTWO-wheel", "NTWO-wheel-Q", "NTWO-wheel-cut", "TWO",
+                    "TWO-energy", "Kinematic", "DH", "TCT"}
     user = [row for row in doc["rows"] if row["class"] == "user"]
     assert user and all(row["W_tw_floor"] is not None and row["e_lat_rms_cm"] is not None
-                        for row in user)
+                        and row["vehicle"] == "test-3axle" for row in user)
+    (name, desc), = [(n, d) for n, d in doc["scenarios_described"].items()
+                     if n.startswith("user")]
+    assert desc["whole_path"] and desc["duration_s"] == pytest.approx(19.9)
+    assert desc["speed_kmh"] == pytest.approx(11.0, rel=0.02)
+    s = doc["summary"]
+    assert "user" in s and s["all nominal"]["instances"] == len(doc["comparisons"]) - 1
+    for k in ("equal_error", "with_unmatched", "tolerance", "unmatched"):
+        assert k in s["user"] and k in s["all nominal"]
+    # within 1 cm no run lies more than 0.5 % below the floor of exact tracking
+    for row in user:
+        if row["e_lat_rms_cm"] <= 1.0:
+            assert row["W_tw"] >= 0.995 * row["W_tw_floor"], row["label"]

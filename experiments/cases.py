@@ -1,4 +1,4 @@
-"""The experiments of ``msagv experiment case1|case2|case3|pareto|ridge``: the paper's Section 4 and more.
+"""The paper's experiments, ``msagv experiment case1|case2|case3|pareto|ridge``: Section 4 and more.
 
 * ``case1``: the Case 1 curve, 12 t, 35/25/15/5 km/h, all five methods (paper Table 1).
 * ``case2``: the straight line, 12 t, 10 km/h, heading 60 degrees off at the start
@@ -33,7 +33,9 @@ import os
 import time
 from pathlib import Path
 
-from .runs import METHODS, REFERENCES, RunSpec, run_all
+from .families import FAMILIES, RIDGE_BASE, case_rows
+from .results import stamp
+from .runs import RunSpec, run_all
 
 EXPERIMENTS = ("case1", "case2", "case3", "pareto", "ridge")
 CASE1_SPEEDS = (35.0, 25.0, 15.0, 5.0)  # km/h, the paper's row order
@@ -43,15 +45,15 @@ CASE3_MASSES_T = (8.0, 12.0, 16.0, 20.0)
 PARETO_SPEEDS = (15.0, 35.0)
 RIDGE_SPEEDS = (5.0, 15.0, 25.0, 35.0)  # the ridge experiment: Case 1 speeds
 RIDGE_LEVELS = (0.0, 0.1, 1.0)  # x RIDGE_BASE; 0.1 is the default
-# TWO: L = scale x the default L. NTWO-smooth: (R_dw, R_dd) = scale x their defaults (the
-# smoothing of the offsets between blocks and solves; the default ridge kept). NTWO-ridge:
-# (R_ow, R_od) = scale x RIDGE_BASE (pulls the offsets toward the kinematic feed-forward;
-# x0.1 is the default, x0 none). See docs/RESULTS.md.
+# pareto's levels: TWO's L = scale x the default L; NTWO-smooth's (R_dw, R_dd) = scale x
+# their defaults (the smoothing of the offsets between blocks and solves; the default ridge
+# kept); NTWO-ridge's (R_ow, R_od) = scale x RIDGE_BASE (pulls the offsets toward the
+# kinematic feed-forward; x0.1 is the default, x0 none). The levers are the families' in
+# experiments.families; see docs/RESULTS.md.
 TWO_SCALES = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
-SMOOTH_SCALES = (0.0, 1.0, 4.0, 16.0, 64.0, 256.0)
-RIDGE_SCALES = (0.0, 0.1, 0.3, 1.0, 4.0, 16.0)
-RIDGE_BASE = (0.05, 20.0)  # (R_ow [1/(rad/s)^2], R_od [1/rad^2]) at scale 1 (x0.1 = the defaults)
-
+SMOOTH_SCALES = FAMILIES["NTWO-smooth"].levels
+RIDGE_SCALES = FAMILIES["NTWO-ridge"].levels
+PARETO_BASELINES = ("Kinematic", "DH", "TCT", "FF", "NTWO-wheel")  # points beside the fronts
 
 def _kmh(v: float) -> str:
     return f"{v:g} km/h"
@@ -62,9 +64,9 @@ def _tonnes(m: float) -> str:
 
 
 def _methods(selected):
-    """The rows of a case table: the paper's five in its order, then the references
-    (:data:`experiments.runs.REFERENCES`); ``selected``: a subset by name."""
-    known = list(METHODS) + list(REFERENCES)
+    """The rows of a case table (:func:`experiments.families.case_rows`): the paper's five
+    in its order, then the references; ``selected``: a subset by name."""
+    known = [f.name for f in case_rows()]
     names = known if not selected else list(selected)
     bad = [m for m in names if m not in known]
     if bad:
@@ -73,11 +75,10 @@ def _methods(selected):
 
 
 def _spec(m: str, group: str, case: str, v: float, mass: float, duration, vehicle) -> RunSpec:
-    if m in METHODS:
-        return RunSpec(m, group, case, v, mass, dict(METHODS[m]), duration, vehicle)
-    settings, extra = REFERENCES[m]
-    return RunSpec(m, group, case, v, mass, dict(settings), duration, vehicle,
-                   {"reference": True}, dict(extra))
+    """The run of case-table row ``m`` (a family at its ``case_level``)."""
+    fam = FAMILIES[m]
+    return RunSpec(m, group, case, v, mass, fam.settings_at(fam.case_level), duration, vehicle,
+                   {} if fam.paper else {"reference": True}, fam.extra())
 
 
 def case_specs(experiment: str, *, speeds=None, masses_t=None, methods=None,
@@ -105,30 +106,20 @@ def case_specs(experiment: str, *, speeds=None, masses_t=None, methods=None,
 
 def pareto_specs(*, speeds=None, duration=None, vehicle=None, two_scales=TWO_SCALES,
                  smooth_scales=SMOOTH_SCALES, ridge_scales=RIDGE_SCALES,
-                 baselines=("Kinematic", "DH", "TCT", "FF", "NTWO-wheel")) -> list[RunSpec]:
+                 baselines=PARETO_BASELINES) -> list[RunSpec]:
     """TWO with L scaled, NTWO with (R_dw, R_dd) and with (R_ow, R_od) scaled, baselines
     and the wear-blind references (FF, NTWO-wheel) as points."""
-    from msagv.controller.models import MPCSettings
-
-    d = MPCSettings()
+    sweeps = (("TWO", "L", "TWO L x", two_scales),
+              ("NTWO-smooth", "R_dw, R_dd", "NTWO R_dw,R_dd x", smooth_scales),
+              ("NTWO-ridge", "R_ow, R_od", "NTWO R_ow,R_od x", ridge_scales))
     specs = []
     for v in (speeds or PARETO_SPEEDS):
         g = _kmh(v)
-        for s in two_scales:
-            L = [s * x for x in d.L]
-            specs.append(RunSpec(f"TWO L x{s:g}", g, "curve", float(v), 12000.0,
-                                 {"model": "mf", "method": "two", "L": L}, duration, vehicle,
-                                 {"family": "TWO", "scale": s, "lever": "L"}))
-        for s in smooth_scales:
-            R = [s * d.R[0], s * d.R[1], d.R[2], d.R[3]]
-            specs.append(RunSpec(f"NTWO R_dw,R_dd x{s:g}", g, "curve", float(v), 12000.0,
-                                 {"model": "mf", "method": "ntwo", "R": R}, duration, vehicle,
-                                 {"family": "NTWO-smooth", "scale": s, "lever": "R_dw, R_dd"}))
-        for s in ridge_scales:
-            R = [d.R[0], d.R[1], s * RIDGE_BASE[0], s * RIDGE_BASE[1]]
-            specs.append(RunSpec(f"NTWO R_ow,R_od x{s:g}", g, "curve", float(v), 12000.0,
-                                 {"model": "mf", "method": "ntwo", "R": R}, duration, vehicle,
-                                 {"family": "NTWO-ridge", "scale": s, "lever": "R_ow, R_od"}))
+        for name, lever, label, scales in sweeps:
+            fam = FAMILIES[name]
+            specs += [RunSpec(f"{label}{s:g}", g, "curve", float(v), 12000.0,
+                              fam.settings_at(s), duration, vehicle,
+                              {"family": name, "scale": s, "lever": lever}) for s in scales]
         for m in baselines:
             sp = _spec(m, g, "curve", float(v), 12000.0, duration, vehicle)
             sp.tags = {"family": "baseline"}
@@ -137,18 +128,17 @@ def pareto_specs(*, speeds=None, duration=None, vehicle=None, two_scales=TWO_SCA
 
 
 def ridge_specs(*, speeds=None, levels=RIDGE_LEVELS, duration=None, vehicle=None) -> list[RunSpec]:
-    """NTWO and TWO with (R_ow, R_od) = level x RIDGE_BASE (everything else default)."""
-    from msagv.controller.models import MPCSettings
-
-    d = MPCSettings()
+    """NTWO and TWO (their case-table settings) with (R_ow, R_od) = level x RIDGE_BASE
+    (NTWO-ridge's lever; everything else default)."""
+    ridge = FAMILIES["NTWO-ridge"].lever
     specs = []
     for lv in levels:
-        R = [d.R[0], d.R[1], lv * RIDGE_BASE[0], lv * RIDGE_BASE[1]]
         for v in (speeds or RIDGE_SPEEDS):
             for m in ("NTWO", "TWO"):
+                fam = FAMILIES[m]
                 specs.append(RunSpec(f"{m} ridge x{lv:g}", _kmh(v), "curve", float(v), 12000.0,
-                                     dict(METHODS[m], R=R), duration, vehicle,
-                                     {"family": m, "ridge": lv}))
+                                     ridge.apply(fam.settings_at(fam.case_level), lv),
+                                     duration, vehicle, {"family": m, "ridge": lv}))
     return specs
 
 
@@ -164,22 +154,6 @@ def _vehicle_name(results: list[dict]) -> str:
     if not results:
         return ""
     return RunSpec.from_dict(results[0]["spec"]).scenario().resolve_vehicle().name
-
-
-def _stamp(summary: dict, results: list[dict]) -> dict:
-    """The fields every result document has (experiments.results): the package version,
-    the command and the warnings (failed runs, and each run's own warnings)."""
-    from .results import package_version
-
-    warnings = []
-    for r in results:
-        where = f"{r['spec']['label']} {r['spec']['group']}"
-        if r["status"] != "ok":
-            warnings.append(f"{where}: the run failed: {r.get('error')}")
-        warnings += [f"{where}: {w}" for w in r.get("warnings", [])]
-    head = {"version": package_version(), "command": "experiment",
-            "warnings": list(dict.fromkeys(warnings))}
-    return dict(head, **summary)
 
 
 def report_case(experiment: str, results: list[dict], out: Path, run_summary: dict) -> dict:
@@ -230,7 +204,7 @@ def report_case(experiment: str, results: list[dict], out: Path, run_summary: di
     summary = {"experiment": experiment, "columns": list(rows[0]["metrics"]) if rows else [],
                "rows": rows, "targets": targets, "runs": run_summary, "figures": figures,
                "out": str(out)}
-    summary = _stamp(summary, results)
+    summary = stamp(summary, results)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
 
@@ -310,7 +284,7 @@ def report_pareto(results: list[dict], out: Path, run_summary: dict) -> dict:
     if any(r["status"] == "ok" for r in results):
         plot_pareto(fronts, out / "pareto.png", _vehicle_name(results))
         figures.append("pareto.png")
-    summary = _stamp({"experiment": "pareto", "fronts": fronts, "runs": run_summary,
+    summary = stamp({"experiment": "pareto", "fronts": fronts, "runs": run_summary,
                       "figures": figures, "out": str(out)}, results)
     (out / "pareto.json").write_text(json.dumps(summary, indent=1))
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -356,7 +330,7 @@ def report_ridge(results: list[dict], out: Path, run_summary: dict) -> dict:
             w.writerow([r["ridge"], r["R_ow"], r["R_od"], r["group"], r["NTWO"].get("W_tw"),
                         r["NTWO"].get("e_bar"), r["TWO"].get("W_tw"), r["TWO"].get("e_bar"),
                         r["cut_percent"]])
-    summary = _stamp({"experiment": "ridge", "rows": rows, "runs": run_summary,
+    summary = stamp({"experiment": "ridge", "rows": rows, "runs": run_summary,
                       "out": str(out)}, results)
     (out / "ridge.json").write_text(json.dumps(summary, indent=1))
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -380,8 +354,7 @@ def run_experiment(name: str, out: str | Path | None = None, *, jobs: int | None
         kw = {k: v for k, v in (("two_scales", two_scales), ("smooth_scales", smooth_scales),
                                 ("ridge_scales", ridge_scales)) if v is not None}
         if methods:
-            kw["baselines"] = [m for m in _methods(methods)
-                               if m in ("Kinematic", "DH", "TCT", "FF", "NTWO-wheel")]
+            kw["baselines"] = [m for m in _methods(methods) if m in PARETO_BASELINES]
         specs = pareto_specs(speeds=speeds, duration=duration, vehicle=vehicle, **kw)
     elif name == "ridge":
         kw = {"levels": ridge_scales} if ridge_scales is not None else {}
