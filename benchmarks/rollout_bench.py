@@ -287,7 +287,31 @@ def bench_rollout(axles=(2, 4, 6, 8), batch: int | None = None, repeats: int = 2
     cores = _cores()
     threads = min(cores, numba.config.NUMBA_NUM_THREADS)
     numba.set_num_threads(threads)
+    c_impls, c_build = _build_c_impls()
+    out = {"settings": {"model": "mf (MODEL_MF)", "batch": batch, "N_p": settings.N_p,
+                        "dt": settings.dt, "blocks": list(settings.blocks),
+                        "case": "curve 25 km/h", "t0_s": T0, "state_offset": list(OFFSET),
+                        "sigma_w": SIGMA_W, "sigma_d": SIGMA_D, "batch_pool": POOL,
+                        "repeats": repeats, "warmup": warmup, "rounds": rounds,
+                        "numba_threads_parallel": threads, "cores": cores,
+                        "numba": numba.__version__, "numpy": np.__version__,
+                        "python": platform.python_version(), "machine": platform.machine(),
+                        "cpu": _cpu_name(),
+                        "timed": "one Python call per batch (numba dispatcher / ctypes), "
+                                 "perf_counter_ns"},
+           "c_build": c_build, "axles": {}}
+    for n in axles:
+        out["axles"][str(n)] = _bench_axles(n, settings, batch, c_impls, repeats, warmup,
+                                            rounds, seed)
+    try:
+        out["settings"]["numba_threading_layer"] = numba.threading_layer()
+    except ValueError:  # no parallel kernel ran (no axles)
+        out["settings"]["numba_threading_layer"] = None
+    return out
 
+
+def _build_c_impls() -> tuple[dict, dict]:
+    """The C reference in each of VARIANTS: ``({name: CRollout or None}, {name: build})``."""
     c_impls: dict[str, CRollout | None] = {}
     c_build: dict[str, dict] = {}
     for variant in VARIANTS:
@@ -301,142 +325,163 @@ def bench_rollout(axles=(2, 4, 6, 8), batch: int | None = None, repeats: int = 2
             c_impls[f"c_{variant}"] = None
             c_build[f"c_{variant}"] = {"ok": False, "reason": str(e),
                                        "flags": " ".join(VARIANTS[variant])}
+    return c_impls, c_build
 
-    out = {"settings": {"model": "mf (MODEL_MF)", "batch": batch, "N_p": settings.N_p,
-                        "dt": settings.dt, "blocks": list(settings.blocks),
-                        "case": "curve 25 km/h", "t0_s": T0, "state_offset": list(OFFSET),
-                        "sigma_w": SIGMA_W, "sigma_d": SIGMA_D, "batch_pool": POOL,
-                        "repeats": repeats, "warmup": warmup, "rounds": rounds,
-                        "numba_threads_parallel": threads, "cores": cores,
-                        "numba": numba.__version__, "numpy": np.__version__,
-                        "python": platform.python_version(), "machine": platform.machine(),
-                        "cpu": _cpu_name(),
-                        "timed": "one Python call per batch (numba dispatcher / ctypes), "
-                                 "perf_counter_ns"},
-           "c_build": c_build, "axles": {}}
 
-    per_round = max(1, repeats // rounds)
-    n_over = max(20, per_round // 10)
-    for n in axles:
+class _Case:
+    """One axle count's inputs and the thunks that call each implementation on them."""
+
+    def __init__(self, n: int, settings, batch: int, seed: int):
         vehicle = _vehicle(n)
         model = MagicFormulaModel(vehicle, settings)
-        nw, Np, D = model.n_wheels, settings.N_p, model.dim
-        x0, ref = case_inputs(vehicle, settings)
-        Zs = proposal_batches(model, settings, batch, POOL, seed)
-        empty = [np.empty((0, D))]
-        P, S, wx, wy, block = model.P, model.S, model.wx, model.wy, model.block
-        cblock = np.ascontiguousarray(block, dtype=ctypes.c_long)
-        keepalive = []  # arrays passed to C by address (x0, ref, P, ... live in this scope)
+        self.nw, self.Np, self.D = model.n_wheels, settings.N_p, model.dim
+        self.x0, self.ref = case_inputs(vehicle, settings)
+        self.Zs = proposal_batches(model, settings, batch, POOL, seed)
+        self.empty = [np.empty((0, self.D))]
+        self.P, self.S, self.wx, self.wy = model.P, model.S, model.wx, model.wy
+        self.block = model.block
+        self.cblock = np.ascontiguousarray(model.block, dtype=ctypes.c_long)
+        self.keepalive = []  # arrays passed to C by address live as long as this case
 
-        def numba_thunks(fn, Zlist, outs):
-            return [partial(fn, _ro.MODEL_MF, x0, ref, Z, block, P, S, wx, wy, *outs)
-                    for Z in Zlist]
+    def outputs(self, batch: int):
+        return _outputs(batch, self.Np, self.nw)
 
-        def c_thunks(c, Zlist, outs):
-            # addresses only: keep the arrays alive for as long as the thunks
-            keepalive.append((Zlist, outs))
-            ad = [a.ctypes.data for a in (x0, ref)]
-            fixed = [a.ctypes.data for a in (cblock, P, S, wx, wy, *outs)]
-            return [partial(c.raw, Z.shape[0], nw, Np, *ad, Z.ctypes.data, D, *fixed)
-                    for Z in Zlist]
+    def numba_thunks(self, fn, Zlist, outs):
+        return [partial(fn, _ro.MODEL_MF, self.x0, self.ref, Z, self.block, self.P, self.S,
+                        self.wx, self.wy, *outs) for Z in Zlist]
 
-        def c_checked_thunks(c, Zlist, outs):
-            return [partial(c.fn, Z.shape[0], nw, Np, x0, ref, Z, D, cblock, P, S, wx, wy,
-                            *outs) for Z in Zlist]
+    def c_thunks(self, c, Zlist, outs):
+        # addresses only: keep the arrays alive for as long as the thunks
+        self.keepalive.append((Zlist, outs))
+        ad = [a.ctypes.data for a in (self.x0, self.ref)]
+        fixed = [a.ctypes.data for a in (self.cblock, self.P, self.S, self.wx, self.wy, *outs)]
+        return [partial(c.raw, Z.shape[0], self.nw, self.Np, *ad, Z.ctypes.data, self.D,
+                        *fixed) for Z in Zlist]
 
-        kind = _ro.step_kind(_ro.MODEL_MF, P)  # the compiled kernels, called directly
+    def c_checked_thunks(self, c, Zlist, outs):
+        return [partial(c.fn, Z.shape[0], self.nw, self.Np, self.x0, self.ref, Z, self.D,
+                        self.cblock, self.P, self.S, self.wx, self.wy, *outs) for Z in Zlist]
+
+    def makers(self, c_impls: dict) -> dict:
+        """name -> (Zlist, outs) -> thunks, for every implementation available."""
+        kind = _ro.step_kind(_ro.MODEL_MF, self.P)  # the compiled kernels, called directly
         fast, exact = _ro.FAST.kernels[kind], _ro.EXACT.kernels[kind]
-        makers = {"numba_serial": partial(numba_thunks, exact["rollout_batch"]),
-                  "numba_simd": partial(numba_thunks, fast["rollout_batch"]),
-                  "numba_simd_parallel": partial(numba_thunks, fast["rollout_batch_parallel"])}
+        makers = {"numba_serial": partial(self.numba_thunks, exact["rollout_batch"]),
+                  "numba_simd": partial(self.numba_thunks, fast["rollout_batch"]),
+                  "numba_simd_parallel": partial(self.numba_thunks,
+                                                 fast["rollout_batch_parallel"])}
         for name, c in c_impls.items():
             if c is not None:
-                makers[name] = partial(c_thunks, c)
+                makers[name] = partial(self.c_thunks, c)
+        return makers
 
-        # agreement with numba serial on the first batch (also compiles / loads the kernels)
-        results = {}
-        for name, make in makers.items():
-            o = _outputs(batch, Np, nw)
-            make(Zs[:1], o)[0]()
-            results[name] = o
-        base = results["numba_serial"]
-        agreement = {name: {q: _rel_diff(o[i], base[i])
-                            for i, q in enumerate(("poses", "wear", "cmds"))}
-                     for name, o in results.items() if name != "numba_serial"}
 
-        # the C library's own outputs through the checked (ndpointer) entry point too
-        ndp_over = {}
-        for name, c in c_impls.items():
-            if c is not None:
-                o = _outputs(batch, Np, nw)
-                c(x0, ref, Zs[0], block, P, S, wx, wy, *o)
-                agreement[name]["checked_call_identical"] = bool(
-                    all(np.array_equal(a, b) for a, b in zip(o, results[name])))
-                th = c_checked_thunks(c, empty, _outputs(0, Np, nw))
-                _time_thunks(th, n_over)
-                ndp_over[name] = float(np.median(_time_thunks(th, 5 * n_over)))
+def _agreement(case: _Case, makers: dict, c_impls: dict, batch: int,
+               n_over: int) -> tuple[dict, dict]:
+    """Each implementation against numba serial on the first batch (which also compiles or
+    loads the kernels), the C library's outputs through its checked entry point too:
+    ``(agreement, {C name: p50 of the checked call on an empty batch [s]})``."""
+    results = {}
+    for name, make in makers.items():
+        o = case.outputs(batch)
+        make(case.Zs[:1], o)[0]()
+        results[name] = o
+    base = results["numba_serial"]
+    agreement = {name: {q: _rel_diff(o[i], base[i])
+                        for i, q in enumerate(("poses", "wear", "cmds"))}
+                 for name, o in results.items() if name != "numba_serial"}
+    ndp_over = {}
+    for name, c in c_impls.items():
+        if c is not None:
+            o = case.outputs(batch)
+            c(case.x0, case.ref, case.Zs[0], case.block, case.P, case.S, case.wx, case.wy, *o)
+            agreement[name]["checked_call_identical"] = bool(
+                all(np.array_equal(a, b) for a, b in zip(o, results[name])))
+            th = case.c_checked_thunks(c, case.empty, case.outputs(0))
+            _time_thunks(th, n_over)
+            ndp_over[name] = float(np.median(_time_thunks(th, 5 * n_over)))
+    return agreement, ndp_over
 
-        work = {name: make(Zs, _outputs(batch, Np, nw)) for name, make in makers.items()}
-        idle = {name: make(empty, _outputs(0, Np, nw)) for name, make in makers.items()}
-        for name in makers:
-            _time_thunks(work[name], warmup)
-            _time_thunks(idle[name], max(10, warmup // 4))
-        samples = {name: [] for name in makers}
-        over = {name: [] for name in makers}
-        gc_was = gc.isenabled()
-        gc.collect()
-        gc.disable()
-        try:
-            for _ in range(rounds):
-                for name in makers:
-                    samples[name].append(_time_thunks(work[name], per_round))
-                    over[name].append(_time_thunks(idle[name], n_over))
-        finally:
-            if gc_was:
-                gc.enable()
 
-        wheel_steps = batch * Np * nw
-        impls: dict[str, dict | None] = {}
-        for name in ("numba_simd", "numba_simd_parallel", "numba_serial", *c_impls):
-            if name not in makers:
-                impls[name] = None
-                continue
-            t = np.concatenate(samples[name])
-            p50, p99 = (float(v) for v in np.percentile(t, [50, 99]))
-            o50 = float(np.median(np.concatenate(over[name])))
-            impls[name] = {
-                "call_us": {"p50": p50 * 1e6, "p99": p99 * 1e6, "min": float(t.min()) * 1e6},
-                "overhead_us": o50 * 1e6,
-                "wheel_steps_per_s": wheel_steps / p50,
-                "ns_per_wheel_step": p50 / wheel_steps * 1e9,
-                # None when the empty call takes over half the call (then the difference
-                # is scheduling noise, e.g. numba's parallel launch on busy cores)
-                "compute_ns_per_wheel_step": ((p50 - o50) / wheel_steps * 1e9
-                                              if o50 < 0.5 * p50 else None),
-                "calls": int(t.size),
-            }
-            if name in ndp_over:
-                impls[name]["overhead_us_ndpointer"] = ndp_over[name] * 1e6
-
-        def ratio(a, b):
-            if impls.get(a) is None or impls.get(b) is None:
-                return None
-            ta, tb = impls[a]["call_us"], impls[b]["call_us"]
-            ca, cb = impls[a]["compute_ns_per_wheel_step"], impls[b]["compute_ns_per_wheel_step"]
-            return {"p50": tb["p50"] / ta["p50"], "p99": tb["p99"] / ta["p99"],
-                    "compute_p50": cb / ca if ca and cb else None}
-
-        ratios = {f"{a}/{b}": ratio(a, b) for a, b in (
-            ("numba_simd", "c_strict"), ("numba_simd", "c_fast"), ("numba_simd", "numba_serial"),
-            ("numba_simd_parallel", "numba_simd"), ("c_fast", "numba_serial"),
-            ("c_strict", "numba_serial"), ("c_fast", "c_strict"))}
-        out["axles"][str(n)] = {"n_wheels": nw, "dim": D, "wheel_steps_per_call": wheel_steps,
-                                "impls": impls, "ratios": ratios, "agreement": agreement}
+def _timed(case: _Case, makers: dict, batch: int, warmup: int, rounds: int, per_round: int,
+           n_over: int) -> tuple[dict, dict]:
+    """Call times of every implementation in interleaved rounds (the garbage collector
+    off): ``({name: [arrays of batch calls]}, {name: [arrays of empty calls]})``."""
+    work = {name: make(case.Zs, case.outputs(batch)) for name, make in makers.items()}
+    idle = {name: make(case.empty, case.outputs(0)) for name, make in makers.items()}
+    for name in makers:
+        _time_thunks(work[name], warmup)
+        _time_thunks(idle[name], max(10, warmup // 4))
+    samples = {name: [] for name in makers}
+    over = {name: [] for name in makers}
+    gc_was = gc.isenabled()
+    gc.collect()
+    gc.disable()
     try:
-        out["settings"]["numba_threading_layer"] = numba.threading_layer()
-    except ValueError:  # no parallel kernel ran (no axles)
-        out["settings"]["numba_threading_layer"] = None
-    return out
+        for _ in range(rounds):
+            for name in makers:
+                samples[name].append(_time_thunks(work[name], per_round))
+                over[name].append(_time_thunks(idle[name], n_over))
+    finally:
+        if gc_was:
+            gc.enable()
+    return samples, over
+
+
+def _summary(times, idle, wheel_steps: int) -> dict:
+    """One implementation's call-time percentiles and throughput (see bench_rollout)."""
+    t = np.concatenate(times)
+    p50, p99 = (float(v) for v in np.percentile(t, [50, 99]))
+    o50 = float(np.median(np.concatenate(idle)))
+    return {
+        "call_us": {"p50": p50 * 1e6, "p99": p99 * 1e6, "min": float(t.min()) * 1e6},
+        "overhead_us": o50 * 1e6,
+        "wheel_steps_per_s": wheel_steps / p50,
+        "ns_per_wheel_step": p50 / wheel_steps * 1e9,
+        # None when the empty call takes over half the call (then the difference is
+        # scheduling noise, e.g. numba's parallel launch on busy cores)
+        "compute_ns_per_wheel_step": ((p50 - o50) / wheel_steps * 1e9
+                                      if o50 < 0.5 * p50 else None),
+        "calls": int(t.size),
+    }
+
+
+def _ratios(impls: dict) -> dict:
+    """Throughput ratios at the p50 and p99 call times, and of the compute alone."""
+    def ratio(a, b):
+        if impls.get(a) is None or impls.get(b) is None:
+            return None
+        ta, tb = impls[a]["call_us"], impls[b]["call_us"]
+        ca, cb = impls[a]["compute_ns_per_wheel_step"], impls[b]["compute_ns_per_wheel_step"]
+        return {"p50": tb["p50"] / ta["p50"], "p99": tb["p99"] / ta["p99"],
+                "compute_p50": cb / ca if ca and cb else None}
+
+    return {f"{a}/{b}": ratio(a, b) for a, b in (
+        ("numba_simd", "c_strict"), ("numba_simd", "c_fast"), ("numba_simd", "numba_serial"),
+        ("numba_simd_parallel", "numba_simd"), ("c_fast", "numba_serial"),
+        ("c_strict", "numba_serial"), ("c_fast", "c_strict"))}
+
+
+def _bench_axles(n: int, settings, batch: int, c_impls: dict, repeats: int, warmup: int,
+                 rounds: int, seed: int) -> dict:
+    """:func:`bench_rollout`'s result for ``n`` axles."""
+    per_round = max(1, repeats // rounds)
+    n_over = max(20, per_round // 10)
+    case = _Case(n, settings, batch, seed)
+    makers = case.makers(c_impls)
+    agreement, ndp_over = _agreement(case, makers, c_impls, batch, n_over)
+    samples, over = _timed(case, makers, batch, warmup, rounds, per_round, n_over)
+    wheel_steps = batch * case.Np * case.nw
+    impls: dict[str, dict | None] = {}
+    for name in ("numba_simd", "numba_simd_parallel", "numba_serial", *c_impls):
+        if name not in makers:
+            impls[name] = None
+            continue
+        impls[name] = _summary(samples[name], over[name], wheel_steps)
+        if name in ndp_over:
+            impls[name]["overhead_us_ndpointer"] = ndp_over[name] * 1e6
+    return {"n_wheels": case.nw, "dim": case.D, "wheel_steps_per_call": wheel_steps,
+            "impls": impls, "ratios": _ratios(impls), "agreement": agreement}
 
 
 def main(argv: list[str] | None = None) -> int:
