@@ -368,12 +368,14 @@ def test_report_names_the_trajectory_of_a_scenario_file_run(tmp_path, procs, cap
     (tmp_path / "s.toml").write_text('vehicle = "v.toml"\ntrajectory = "turn.csv"\n'
                                      'duration = 0.3\nmethod = "ntwo"\n')
     port = free_port()
-    procs.start("plant", msagv("plant", "--scenario", tmp_path / "s.toml",
+    # (--wait 240: on a clean clone the controller compiles its kernels first, over a
+    # minute on a loaded 2-core machine)
+    procs.start("plant", msagv("plant", "--scenario", tmp_path / "s.toml", "--wait", "240",
                                "--listen", ep(port), "--record", tmp_path / "p.mcap"))
     procs.start("ctl", msagv("controller", "--scenario", tmp_path / "s.toml", "--connect",
                              ep(port), "--exit-at-end", "--iterations", "5",
                              "--record", tmp_path / "c.mcap"))
-    assert procs.wait("plant", 180) == 0, procs.err("plant")
+    assert procs.wait("plant", 300) == 0, procs.err("plant")
     assert procs.wait("ctl", 60) == 0, procs.err("ctl")
     for rec, method in (("p.mcap", None), ("c.mcap", "ntwo")):
         rc, out, err = run(capsys, "report", tmp_path / rec, "--json")

@@ -17,7 +17,7 @@ from msagv.bridge import messages as M
 from msagv.bridge.security import SecurityError, acl_config, create_certs, parse_extra, read_manifest
 from msagv.bridge.session import (MAX_MESSAGE_BYTES, Keys, SessionError, SessionOptions,
                             make_config, open_session)
-from helpers import free_port, msagv
+from helpers import free_port, msagv, wait_until
 
 T = 0.01
 
@@ -215,6 +215,15 @@ def test_a_config_file_is_merged_with_the_safe_defaults(tmp_path):
 OWNER = "msagv-controller-agv0"  # the controller's certificate: its name on the bus
 
 
+def _listening(port: int) -> bool:
+    """Something accepts TCP connections on loopback ``port``."""
+    import socket
+
+    with socket.socket() as so:
+        so.settimeout(0.5)
+        return so.connect_ex(("127.0.0.1", port)) == 0
+
+
 class Peer:
     """A session that is not an msagv process: TLS with ``identity``'s certificate (None:
     no certificate), no access-control rules of its own, the Zenoh session id ``zid``
@@ -310,6 +319,9 @@ def test_secure_run_refuses_peers_without_a_certificate_or_of_the_wrong_role(pro
                                "--duration", 3, "--listen", tls(P), "--json", "-q"))
     peers = {}
     try:
+        # the peers connect once the plant listens (on a loaded machine its start takes
+        # seconds; a peer that dialled before it never linked and saw no state)
+        wait_until(lambda: _listening(P), 120, "the plant's listener")
         for name, ident in (("nocert", None), ("observer", "monitor"),
                             ("plant_cert", "plant-agv0"), ("other_vehicle", "controller-agv1")):
             peers[name] = Peer(certs, ident, P)
