@@ -23,6 +23,8 @@ import os
 
 import numpy as np
 
+from . import BENCH_METHOD
+
 T = 0.01  # s, control period
 SPEED_KMH = 25.0
 
@@ -56,7 +58,7 @@ def bench_controller(axles=(2, 4, 6, 8), seconds: float = 5.0, repeats: int = 3,
 
     from .plant_bench import _spread
 
-    s = settings or MPCSettings()
+    s = settings or MPCSettings(method=BENCH_METHOD)
     out = {"settings": {"case": "curve", "speed_kmh": SPEED_KMH, "seconds": seconds,
                         "repeats": repeats, "chains": s.chains, "iterations": s.iterations,
                         "N_p": s.N_p, "dt": s.dt, "blocks": list(s.blocks),

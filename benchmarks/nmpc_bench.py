@@ -34,6 +34,8 @@ import time
 
 import numpy as np
 
+from . import BENCH_METHOD
+
 T = 0.01
 
 
@@ -59,7 +61,7 @@ def bench_states(n_axles: int, n_states: int, settings=None, sqp: int = 3) -> di
     from .optimality_bench import (RUNS, make_solver, prime, ratio, references, run_label,
                                    sample_states)
 
-    s = settings or MPCSettings()
+    s = settings or MPCSettings(method=BENCH_METHOD)
     vehicle = _vehicle(n_axles)
     samples = sample_states(n_states, s, vehicle=vehicle)
     refs = references(vehicle)

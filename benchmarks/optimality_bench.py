@@ -31,6 +31,8 @@ import time
 
 import numpy as np
 
+from . import BENCH_METHOD
+
 T = 0.01
 # (scenario class, case, speed [km/h], path seed): the closed loops the states come from,
 # one or more per class of the study (experiments.study.design)
@@ -242,7 +244,7 @@ def summarise(rows: list[dict]) -> dict:
 def _bench_optimality_axles(n_axles: int, n_states: int, settings=None, also=None) -> dict:
     from msagv.controller import MPCSettings
 
-    s = settings or MPCSettings()
+    s = settings or MPCSettings(method=BENCH_METHOD)
     t0 = time.perf_counter()
     vehicle = _vehicle(n_axles)
     samples = sample_states(n_states, s, vehicle=vehicle)
@@ -293,7 +295,7 @@ def bench_ablation(n_states: int = 40, seeds=(1, 2), settings=None) -> dict:
     from msagv.controller import MPCSettings
     from msagv.controller.sa_kernel import CompiledAnnealer
 
-    s = settings or MPCSettings()
+    s = settings or MPCSettings(method=BENCH_METHOD)
     t0 = time.perf_counter()
     _, C0, I0, lad0, up0, down0, _ = ABLATION[0]
     plain = s.with_(chains=C0, iterations=I0, ladder=lad0, adapt_up=up0, adapt_down=down0)
@@ -356,7 +358,7 @@ def bench_polish_ablation(axles=(2, 8), n_states: int = 40) -> dict:
     for n in axles:
         t0 = time.perf_counter()
         vehicle = _vehicle(n)
-        base = MPCSettings()
+        base = MPCSettings(method=BENCH_METHOD)
         samples = sample_states(n_states, base.with_(**FORMER), vehicle=vehicle)
         J_opt = [x["J_ipopt"] for x in ipopt_reference(samples, base, vehicle)]
         refs = references(vehicle)

@@ -78,8 +78,11 @@ class MPCSettings:
         to 8 steps, ~3 on average) replaced 40 iterations and no polish: within 0.01 % of
         IPOPT's optimum at the median at 2-8 axles, in a third less time at 2 axles
         (docs/PERFORMANCE.md).
-    method: 'two' (the paper's quadratic wear term, weights L), 'two-energy' (the linear
-      wear-energy term, weights E) or 'ntwo' (no wear term).
+    method: 'two-energy' (default: the linear wear-energy term, weights E), 'two' (the
+      paper's quadratic wear term, weights L) or 'ntwo' (no wear term). The default is the
+      wear energy because the study finds it the better controller at equal tracking error
+      and the paper's quadratic term no better than none (docs/RESULTS.md); the paper's TWO
+      is ``method='two'`` (``--method two``).
     model: 'mf' (paper), 'dugoff' (DH), 'kinematic', 'tct'.
     policy: the decision parametrisation (controller.rollout.commands_from_policy):
       'offsets' (per-wheel offsets from the kinematic feed-forward; default), 'twist'
@@ -100,7 +103,7 @@ class MPCSettings:
       of accuracy (docs/RESULTS.md).
     """
 
-    method: str = "two"
+    method: str = "two-energy"
     model: str = "mf"
     dt: float = 0.1
     N_p: int = 10

@@ -751,9 +751,9 @@ def report_study(results: list[dict], floors: dict, scenarios, described: dict, 
            "summary": summary, "families": fam,
            "floors": {k: v["floors"] for k, v in floors.items()},
            "runs": runs, "figures": figures, "out": str(out)}
-    doc = stamp(doc, results)
-    (out / "study.json").write_text(json.dumps(doc, indent=1, default=_json_default))
-    return doc
+    text = json.dumps(stamp(doc, results), indent=1, default=_json_default)
+    (out / "study.json").write_text(text)
+    return json.loads(text)  # plain data, as a reader of the file gets it
 
 
 def _json_default(v):

@@ -42,15 +42,17 @@ def _masses_kg(a) -> tuple | None:
     return kg
 
 
-def main(argv: list[str]) -> int:
-    prog = "msagv experiment"
-    ap = argparse.ArgumentParser(prog=prog, description="The paper's experiments (Section 4: "
+PROG = "msagv experiment"
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=PROG, description="The paper's experiments (Section 4: "
                                  "case1, case2, case3; pareto, ridge) and the study (does a "
                                  "wear term save wear at equal tracking error?).")
     ap.add_argument("experiment", choices=cases.EXPERIMENTS + ("study",),
                     help="the paper's Cases 1-3, the Pareto and ridge experiments, or the "
                          "study (experiments.study: every family on many scenarios, wear at "
-                         "matched accuracy with confidence intervals)")
+                         "equal tracking error with confidence intervals)")
     ap.add_argument("-o", "--out", metavar="DIR",
                     help="output directory (default runs/<experiment>)")
     ap.add_argument("--jobs", type=int, metavar="N", help="parallel runs (default: all cores)")
@@ -91,45 +93,51 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                     help="progress bar over finished runs on stderr (default: on a terminal)")
     add_common_args(ap)
-    a = ap.parse_args(argv)
+    return ap
+
+
+def _run(a, progress: bool) -> dict:
+    """Check the options, run the experiment, return its summary."""
+    if a.jobs is not None and a.jobs < 1:
+        raise OptionError("--jobs must be >= 1")
+    # the default output directory too: nothing runs before it is known to be writable
+    check_output(a.out or Path("runs") / a.experiment, "--out", directory=True)
+    check_output(a.json_out, "--json-out")
+    methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
+    masses = _masses_kg(a)
+    if a.experiment != "study" and (a.quick or a.trajectory):
+        raise OptionError("--quick and --trajectory apply to the study")
+    if a.experiment == "study":
+        from msagv.experiments.study import run_study
+
+        for name in ("duration", "masses", "masses_t", "methods", "two_scales",
+                     "smooth_scales", "ridge_scales"):
+            if getattr(a, name) is not None:
+                raise OptionError(f"--{name.replace('_', '-')} applies to case1-3, pareto and "
+                                  f"ridge, not to the study (its design is fixed; --vehicle, "
+                                  f"--trajectory and --speeds add your own scenario)")
+        return run_study(a.out, quick=a.quick, jobs=a.jobs, scheduler=a.scheduler,
+                         force=a.force, progress=progress, vehicle=a.vehicle,
+                         trajectory=a.trajectory, speeds=_floats(a.speeds, "--speeds"))
+    return cases.run_experiment(
+        a.experiment, a.out, jobs=a.jobs, force=a.force, progress=progress,
+        duration=a.duration, speeds=_floats(a.speeds, "--speeds"),
+        masses_t=None if masses is None else tuple(m / 1000.0 for m in masses),
+        methods=methods, vehicle=a.vehicle, two_scales=_floats(a.two_scales, "--two-scales"),
+        smooth_scales=_floats(a.smooth_scales, "--smooth-scales"),
+        ridge_scales=_floats(a.ridge_scales, "--ridge-scales"), scheduler=a.scheduler)
+
+
+def main(argv: list[str]) -> int:
+    prog = PROG
+    a = _parser().parse_args(argv)
     if a.verbose:
         import logging
 
         logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     progress = (sys.stderr.isatty() and not a.quiet) if a.progress is None else a.progress
     try:
-        if a.jobs is not None and a.jobs < 1:
-            raise OptionError("--jobs must be >= 1")
-        # the default output directory too: nothing runs before it is known to be writable
-        check_output(a.out or Path("runs") / a.experiment, "--out", directory=True)
-        check_output(a.json_out, "--json-out")
-        methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
-        masses = _masses_kg(a)
-        if a.experiment != "study" and (a.quick or a.trajectory):
-            raise OptionError("--quick and --trajectory apply to the study")
-        if a.experiment == "study":
-            from msagv.experiments.study import run_study
-
-            for name in ("duration", "masses", "masses_t", "methods", "two_scales",
-                         "smooth_scales", "ridge_scales"):
-                if getattr(a, name) is not None:
-                    raise OptionError(f"--{name.replace('_', '-')} applies to case1-3, "
-                                      f"pareto and ridge, not to the study (its design is "
-                                      f"fixed; --vehicle, --trajectory and --speeds add your "
-                                      f"own scenario)")
-            summary = run_study(a.out, quick=a.quick, jobs=a.jobs, scheduler=a.scheduler,
-                                force=a.force, progress=progress, vehicle=a.vehicle,
-                                trajectory=a.trajectory,
-                                speeds=_floats(a.speeds, "--speeds"))
-        else:
-            summary = cases.run_experiment(
-                a.experiment, a.out, jobs=a.jobs, force=a.force, progress=progress,
-                duration=a.duration, speeds=_floats(a.speeds, "--speeds"),
-                masses_t=None if masses is None else tuple(m / 1000.0 for m in masses),
-                methods=methods, vehicle=a.vehicle,
-                two_scales=_floats(a.two_scales, "--two-scales"),
-                smooth_scales=_floats(a.smooth_scales, "--smooth-scales"),
-                ridge_scales=_floats(a.ridge_scales, "--ridge-scales"), scheduler=a.scheduler)
+        summary = _run(a, progress)
     except (ValueError, FileNotFoundError, RuntimeError) as e:
         return fail(prog, e, a)
     except KeyboardInterrupt:
