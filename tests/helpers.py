@@ -43,6 +43,13 @@ def ep(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
+def _default_sigint() -> None:
+    """In the child, before exec: SIGINT back to its default disposition."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def stop(p: subprocess.Popen, grace: float = 5.0) -> None:
     """SIGTERM, then SIGKILL after ``grace`` seconds (by the process's own id)."""
     if p.poll() is None:
@@ -65,7 +72,10 @@ class Procs:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         out = (self.tmp / f"{name}.out").open("w")
         err = (self.tmp / f"{name}.err").open("w")
-        self.p[name] = subprocess.Popen(args, stdout=out, stderr=err, env=env, cwd=self.tmp)
+        # SIGINT as a terminal's foreground job has it (a suite started in the background of
+        # a non-interactive shell would hand it down ignored, and Python keeps it so)
+        self.p[name] = subprocess.Popen(args, stdout=out, stderr=err, env=env, cwd=self.tmp,
+                                        preexec_fn=_default_sigint)
         out.close()
         err.close()
         return self.p[name]

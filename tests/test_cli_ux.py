@@ -263,9 +263,12 @@ def test_ctrl_c_prints_the_result_so_far_and_exits_130(tmp_path):
     log = tmp_path / "log.csv"
     # 60 s of the curve at 5 km/h (6000 steps, ~20 s of computing): time for the signal
     # to arrive mid-run on a loaded machine
+    # (SIGINT as a terminal's foreground job has it: a suite started in the background of
+    # a non-interactive shell inherits SIGINT ignored, and Python then keeps it ignored)
     p = subprocess.Popen(msagv("run", "--speed", "5", "--duration", "60", "--json",
                                "--progress", "--log", log),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     os.set_blocking(p.stderr.fileno(), False)
     err = b""
     deadline = time.monotonic() + 240
