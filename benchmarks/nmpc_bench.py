@@ -177,14 +177,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="a second annealer in the closed loops, these settings fields "
                          "changed, e.g. iterations=40,polish=0 (the former defaults)")
     a = ap.parse_args(argv)
-    also = None
-    if a.also:
-        from .optimality_bench import parse_settings
+    from .optimality_bench import also_option
 
-        try:
-            also = parse_settings(a.also)
-        except ValueError as e:
-            ap.error(f"--also: {e}")
+    also = also_option(ap, a.also)
     res = bench_nmpc(tuple(int(x) for x in a.axles.split(",") if x.strip()), a.states,
                      tuple(float(x) for x in a.speeds.split(",") if x.strip()), a.seconds,
                      also=also)

@@ -188,6 +188,17 @@ def annealer_costs(samples: list[dict], settings, vehicle) -> list[dict]:
     return out
 
 
+def also_option(ap, text: str | None) -> dict | None:
+    """The benches' ``--also NAME=VALUE,...`` (:func:`parse_settings`); None without it; a
+    bad value ends the command through ``ap.error``."""
+    if not text:
+        return None
+    try:
+        return parse_settings(text)
+    except ValueError as e:
+        ap.error(f"--also: {e}")
+
+
 def parse_settings(text: str) -> dict:
     """``NAME=NUMBER,...`` (MPCSettings fields) -> dict; ValueError naming the problem."""
     from msagv.controller import MPCSettings
@@ -430,12 +441,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['ratio_p90']:.3f} | {r['ratio_max']:.3f} |")
         print(json.dumps(res, indent=2))
         return 0
-    also = None
-    if a.also:
-        try:
-            also = parse_settings(a.also)
-        except ValueError as e:
-            ap.error(f"--also: {e}")
+    also = also_option(ap, a.also)
     res = bench_optimality(a.states, axles=tuple(int(x) for x in a.axles.split(",") if x.strip()),
                            states_other=a.states_other, also=also)
     if not a.rows:

@@ -43,7 +43,7 @@ def ep(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def _default_sigint() -> None:
+def default_sigint() -> None:
     """In the child, before exec: SIGINT back to its default disposition."""
     import signal
 
@@ -75,7 +75,7 @@ class Procs:
         # SIGINT as a terminal's foreground job has it (a suite started in the background of
         # a non-interactive shell would hand it down ignored, and Python keeps it so)
         self.p[name] = subprocess.Popen(args, stdout=out, stderr=err, env=env, cwd=self.tmp,
-                                        preexec_fn=_default_sigint)
+                                        preexec_fn=default_sigint)
         out.close()
         err.close()
         return self.p[name]

@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers import ROOT, msagv, run_msagv
+from helpers import ROOT, default_sigint, msagv, run_msagv
 
 from msagv import __version__
 from msagv.cli import main
@@ -268,7 +268,7 @@ def test_ctrl_c_prints_the_result_so_far_and_exits_130(tmp_path):
     p = subprocess.Popen(msagv("run", "--speed", "5", "--duration", "60", "--json",
                                "--progress", "--log", log),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path,
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                         preexec_fn=default_sigint)
     os.set_blocking(p.stderr.fileno(), False)
     err = b""
     deadline = time.monotonic() + 240
