@@ -639,14 +639,132 @@ def wheel_loop(w, raw, tct, xw, yw, dt, FN, k_t, r_w, v_eps, lonB, lonC, lonD, l
 
 
 # ---- the tile: LANES candidates in structure-of-arrays form --------------------------
+def load_tile(w, Z, b0, nb, x0, nw):
+    """The lanes' decision rows (spare lanes repeat candidate ``b0 + nb - 1``), the start
+    state ``x0`` (body and wheel angles) in every lane, the cost sums zeroed."""
+    wdel = N_FIXED_ROWS  # first wheel-angle row
+    wz = N_FIXED_ROWS + nw  # first decision row
+    last = nb - 1
+    for d in range(Z.shape[1]):
+        for b in range(L):
+            w[(wz + d) * L + b] = Z[b0 + (b if b < last else last), d]
+    x_, y_, phi_ = x0[X0_X], x0[X0_Y], x0[X0_PHI]
+    vx_, vy_, r_ = x0[X0_VX], x0[X0_VY], x0[X0_R]
+    for b in range(L):
+        w[W_X * L + b] = x_
+        w[W_Y * L + b] = y_
+        w[W_PHI * L + b] = phi_
+        w[W_VX * L + b] = vx_
+        w[W_VY * L + b] = vy_
+        w[W_R * L + b] = r_
+        w[W_JT * L + b] = 0.0
+        w[W_JW * L + b] = 0.0
+    for j in range(nw):
+        dj = x0[X0_DELTA + j]
+        for b in range(L):
+            w[(wdel + j) * L + b] = dj
+
+
+def policy_rows(w, ref, k, tw, twist, tct, k_pos, v_fb_max, k_phi, r_fb_max, k_alpha):
+    """Step ``k``'s head of the policy in every lane: the twist offsets (rows from ``tw``,
+    or none), the desired body velocity and the body-frame velocity; the step's sums
+    (Jacobian, forces, wear powers) zeroed for the wheels to add to."""
+    rx, ry, rphi = ref[k, REF_X], ref[k, REF_Y], ref[k, REF_PHI]
+    rvx, rvy, rr = ref[k, REF_VX], ref[k, REF_VY], ref[k, REF_R]
+    vref = math.sqrt(rvx * rvx + rvy * rvy)
+    if twist:
+        for b in range(L):
+            w[W_T0 * L + b] = w[tw + b]
+            w[W_T1 * L + b] = w[tw + L + b]
+            w[W_T2 * L + b] = w[tw + 2 * L + b]
+    else:
+        for b in range(L):
+            w[W_T0 * L + b] = 0.0
+            w[W_T1 * L + b] = 0.0
+            w[W_T2 * L + b] = 0.0
+    for b in range(L):  # vectorised: the policy's head, the body velocity
+        phi = w[W_PHI * L + b]
+        c = cos(phi)
+        s = sin(phi)
+        ubd, vbd, rd, aco = policy_head(
+            w[W_X * L + b], w[W_Y * L + b], phi, c, s, rx, ry, rphi, rvx, rvy, rr,
+            k_pos, v_fb_max, k_phi, r_fb_max, k_alpha, twist, w[W_T0 * L + b],
+            w[W_T1 * L + b], w[W_T2 * L + b])
+        w[W_UBD * L + b] = ubd
+        w[W_VBD * L + b] = vbd
+        w[W_RD * L + b] = rd
+        w[W_ACO * L + b] = aco
+        vx = w[W_VX * L + b]
+        vy = w[W_VY * L + b]
+        w[W_UB * L + b] = vref if tct else c * vx + s * vy
+        w[W_VB * L + b] = -s * vx + c * vy
+        w[W_A00 * L + b] = 0.0
+        w[W_A01 * L + b] = 0.0
+        w[W_A02 * L + b] = 0.0
+        w[W_A10 * L + b] = 0.0
+        w[W_A11 * L + b] = 0.0
+        w[W_A12 * L + b] = 0.0
+        w[W_A20 * L + b] = 0.0
+        w[W_A21 * L + b] = 0.0
+        w[W_A22 * L + b] = 0.0
+        w[W_F0 * L + b] = 0.0
+        w[W_F1 * L + b] = 0.0
+        w[W_F2 * L + b] = 0.0
+        w[W_PS * L + b] = 0.0
+        w[W_PA * L + b] = 0.0
+        w[W_PT * L + b] = 0.0
+
+
+def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls, la, lt,
+              les, lea, let):
+    """Step ``k``'s body update in every lane (``KINEMATIC``: bound per tile) from the
+    wheels' sums, and its tracking and wear terms added to the lanes' costs."""
+    rx1, ry1, rphi1 = ref[k + 1, REF_X], ref[k + 1, REF_Y], ref[k + 1, REF_PHI]
+    if KINEMATIC:
+        for b in range(L):  # vectorised: the kinematic body
+            x, y, phi, vx, vy, r = kinematic_update(
+                w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], nw, sx, sy, sxx, syy,
+                w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b], dt)
+            w[W_X * L + b] = x
+            w[W_Y * L + b] = y
+            w[W_PHI * L + b] = phi
+            w[W_VX * L + b] = vx
+            w[W_VY * L + b] = vy
+            w[W_R * L + b] = r
+            w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx,
+                                             qy, qphi)
+            w[W_JW * L + b] = wear_term(w[W_JW * L + b], 0.0, 0.0, w[W_PT * L + b],
+                                        ls, la, lt, les, lea, let)
+    else:
+        for b in range(L):  # vectorised: the rigid body's step and the cost
+            x, y, phi, vx, vy, r = rigid_body_update(
+                tct, w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], w[W_VX * L + b],
+                w[W_VY * L + b], w[W_R * L + b], w[W_UB * L + b], w[W_VB * L + b],
+                w[W_A00 * L + b], w[W_A01 * L + b], w[W_A02 * L + b], w[W_A10 * L + b],
+                w[W_A11 * L + b], w[W_A12 * L + b], w[W_A20 * L + b], w[W_A21 * L + b],
+                w[W_A22 * L + b], w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b],
+                m, Iz, dt)
+            w[W_X * L + b] = x
+            w[W_Y * L + b] = y
+            w[W_PHI * L + b] = phi
+            w[W_VX * L + b] = vx
+            w[W_VY * L + b] = vy
+            w[W_R * L + b] = r
+            w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx,
+                                             qy, qphi)
+            w[W_JW * L + b] = wear_term(w[W_JW * L + b], w[W_PS * L + b],
+                                        w[W_PA * L + b], w[W_PT * L + b], ls, la, lt,
+                                        les, lea, let)
+
+
 def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit, w,
          out, poses, wear, cmds):
     """Predict and cost candidates ``Z[b0 : b0 + nb]`` (``nb <= LANES``; spare lanes
     repeat the last one) in the workspace ``w`` (:func:`workspace_size`); the costs
     end in row ``W_J``. With ``out``, also writes their ``poses``, ``wear`` and
-    first commands ``cmds`` (rows b0 ..). The lane loops touch ``w`` only."""
+    first commands ``cmds`` (rows b0 ..). The lane loops touch ``w`` only. Each step:
+    :func:`policy_rows`, then every wheel (:func:`wheel_loop`), then :func:`body_rows`."""
     nw = wx.shape[0]
-    D = Z.shape[1]
     Np = block.shape[0]
     dt = S[S_DT]
     stride = int(S[S_STRIDE])
@@ -680,72 +798,11 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
         syy += wy[j] * wy[j]
     wdel = N_FIXED_ROWS  # first wheel-angle row
     wz = N_FIXED_ROWS + nw  # first decision row
-    last = nb - 1
-    for d in range(D):
-        for b in range(L):
-            w[(wz + d) * L + b] = Z[b0 + (b if b < last else last), d]
-    x_, y_, phi_ = x0[X0_X], x0[X0_Y], x0[X0_PHI]
-    vx_, vy_, r_ = x0[X0_VX], x0[X0_VY], x0[X0_R]
-    for b in range(L):
-        w[W_X * L + b] = x_
-        w[W_Y * L + b] = y_
-        w[W_PHI * L + b] = phi_
-        w[W_VX * L + b] = vx_
-        w[W_VY * L + b] = vy_
-        w[W_R * L + b] = r_
-        w[W_JT * L + b] = 0.0
-        w[W_JW * L + b] = 0.0
-    for j in range(nw):
-        dj = x0[X0_DELTA + j]
-        for b in range(L):
-            w[(wdel + j) * L + b] = dj
+    load_tile(w, Z, b0, nb, x0, nw)  # noqa: F821 (bound by make_prediction)
     for k in range(Np):
-        rx, ry, rphi = ref[k, REF_X], ref[k, REF_Y], ref[k, REF_PHI]
-        rvx, rvy, rr = ref[k, REF_VX], ref[k, REF_VY], ref[k, REF_R]
-        vref = math.sqrt(rvx * rvx + rvy * rvy)
         base = block[k] * stride
-        tw = (wz + base) * L  # the twist offsets (du, dv, dr)
-        if twist:
-            for b in range(L):
-                w[W_T0 * L + b] = w[tw + b]
-                w[W_T1 * L + b] = w[tw + L + b]
-                w[W_T2 * L + b] = w[tw + 2 * L + b]
-        else:
-            for b in range(L):
-                w[W_T0 * L + b] = 0.0
-                w[W_T1 * L + b] = 0.0
-                w[W_T2 * L + b] = 0.0
-        for b in range(L):  # vectorised: the policy's head, the body velocity
-            phi = w[W_PHI * L + b]
-            c = cos(phi)
-            s = sin(phi)
-            ubd, vbd, rd, aco = policy_head(
-                w[W_X * L + b], w[W_Y * L + b], phi, c, s, rx, ry, rphi, rvx, rvy, rr,
-                k_pos, v_fb_max, k_phi, r_fb_max, k_alpha, twist, w[W_T0 * L + b],
-                w[W_T1 * L + b], w[W_T2 * L + b])
-            w[W_UBD * L + b] = ubd
-            w[W_VBD * L + b] = vbd
-            w[W_RD * L + b] = rd
-            w[W_ACO * L + b] = aco
-            vx = w[W_VX * L + b]
-            vy = w[W_VY * L + b]
-            w[W_UB * L + b] = vref if tct else c * vx + s * vy
-            w[W_VB * L + b] = -s * vx + c * vy
-            w[W_A00 * L + b] = 0.0
-            w[W_A01 * L + b] = 0.0
-            w[W_A02 * L + b] = 0.0
-            w[W_A10 * L + b] = 0.0
-            w[W_A11 * L + b] = 0.0
-            w[W_A12 * L + b] = 0.0
-            w[W_A20 * L + b] = 0.0
-            w[W_A21 * L + b] = 0.0
-            w[W_A22 * L + b] = 0.0
-            w[W_F0 * L + b] = 0.0
-            w[W_F1 * L + b] = 0.0
-            w[W_F2 * L + b] = 0.0
-            w[W_PS * L + b] = 0.0
-            w[W_PA * L + b] = 0.0
-            w[W_PT * L + b] = 0.0
+        policy_rows(w, ref, k, (wz + base) * L, twist, tct, k_pos, v_fb_max, k_phi,  # noqa: F821
+                    r_fb_max, k_alpha)
         for j in range(nw):
             jw = (wz + base + j) * L  # the wheel's variables (offsets / raw)
             jd = (wz + base + nw + j) * L
@@ -768,42 +825,8 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
                 for b in range(nb):
                     cmds[b0 + b, CMD_W, j] = w[W_OMW * L + b]
                     cmds[b0 + b, CMD_S, j] = w[W_OMS * L + b]
-        rx1, ry1, rphi1 = ref[k + 1, REF_X], ref[k + 1, REF_Y], ref[k + 1, REF_PHI]
-        if KINEMATIC:
-            for b in range(L):  # vectorised: the kinematic body
-                x, y, phi, vx, vy, r = kinematic_update(
-                    w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], nw, sx, sy, sxx, syy,
-                    w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b], dt)
-                w[W_X * L + b] = x
-                w[W_Y * L + b] = y
-                w[W_PHI * L + b] = phi
-                w[W_VX * L + b] = vx
-                w[W_VY * L + b] = vy
-                w[W_R * L + b] = r
-                w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx,
-                                                 qy, qphi)
-                w[W_JW * L + b] = wear_term(w[W_JW * L + b], 0.0, 0.0, w[W_PT * L + b],
-                                            ls, la, lt, les, lea, let)
-        else:
-            for b in range(L):  # vectorised: the rigid body's step and the cost
-                x, y, phi, vx, vy, r = rigid_body_update(
-                    tct, w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], w[W_VX * L + b],
-                    w[W_VY * L + b], w[W_R * L + b], w[W_UB * L + b], w[W_VB * L + b],
-                    w[W_A00 * L + b], w[W_A01 * L + b], w[W_A02 * L + b], w[W_A10 * L + b],
-                    w[W_A11 * L + b], w[W_A12 * L + b], w[W_A20 * L + b], w[W_A21 * L + b],
-                    w[W_A22 * L + b], w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b],
-                    m, Iz, dt)
-                w[W_X * L + b] = x
-                w[W_Y * L + b] = y
-                w[W_PHI * L + b] = phi
-                w[W_VX * L + b] = vx
-                w[W_VY * L + b] = vy
-                w[W_R * L + b] = r
-                w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx,
-                                                 qy, qphi)
-                w[W_JW * L + b] = wear_term(w[W_JW * L + b], w[W_PS * L + b],
-                                            w[W_PA * L + b], w[W_PT * L + b], ls, la, lt,
-                                            les, lea, let)
+        body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi,  # noqa: F821
+                  ls, la, lt, les, lea, let)
         if out:
             for b in range(nb):
                 poses[b0 + b, k, POSE_X] = w[W_X * L + b]
@@ -867,7 +890,8 @@ KINEMATIC = DUGOFF = LON_E0 = False  # bound per kind of step by make_prediction
 
 _KERNELS = ("policy_head", "policy_wheel", "policy_raw", "tire_forces", "wheel_terms",
             "rigid_body_update", "kinematic_update")
-_RAW_NAMES = _KERNELS + ("wheel_lane", "commands_from_policy", "wheel_loop", "tile", "rollout_batch",
+_RAW_NAMES = _KERNELS + ("wheel_lane", "commands_from_policy", "wheel_loop", "load_tile",
+                         "policy_rows", "body_rows", "tile", "rollout_batch",
                          "rollout_batch_parallel", "evaluate")
 
 
@@ -889,14 +913,14 @@ def make_prediction(prims: _approx.Primitives, fastmath) -> Prediction:
         fn = _tire.bind_globals(_RAW[name], g if gl is None else gl, (bound_name or name) + sfx)
         return njit(cache=True, fastmath=fastmath, error_model="numpy", **kw)(fn)
 
-    for name in _KERNELS:
+    for name in _KERNELS + ("load_tile", "policy_rows"):
         g[name] = inline(_tire.bind_globals(_RAW[name], g, name + sfx))
     cfp = kernel("commands_from_policy")
     kernels = {}
     for kind in KINDS:
         # the globals of this kind's kernels: its flags, its wheel loop, its tile
         gl = dict(g, KINEMATIC=kind == "kin", DUGOFF=kind == "dugoff", LON_E0=kind == "rigid_e0")
-        for name in ("tire_forces", "wheel_terms", "wheel_lane"):  # they read the flags
+        for name in ("tire_forces", "wheel_terms", "wheel_lane", "body_rows"):  # they read the flags
             gl[name] = inline(_tire.bind_globals(_RAW[name], gl, f"{name}_{kind}{sfx}"))
         gl["wheel_loop"] = kernel("wheel_loop", "wheel_loop_" + kind, gl)
         gl["tile"] = kernel("tile", "tile_" + kind, gl)
