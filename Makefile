@@ -35,7 +35,7 @@ CHROMIUM_CHECK = command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] &&
 
 test: $(STAMP) $(ACADOS_STAMP)
 	@$(CHROMIUM_CHECK)
-	$(BIN)/python -m pytest -q --durations=30
+	$(BIN)/python -m pytest -q -n 2 --dist loadscope --durations=30
 
 test-all: $(STAMP) $(ACADOS_STAMP)
 	$(BIN)/python -m pytest -q -m ''

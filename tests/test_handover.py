@@ -358,7 +358,7 @@ def _flood_run(procs, n: int):
                                  "--exit-at-end", "--json", "-q"))
         t0 = time.monotonic()
         while len(states) < 150:
-            assert time.monotonic() - t0 < 180, procs.err("plant")
+            assert time.monotonic() - t0 < 180, both()
             time.sleep(0.02)
         t0 = time.monotonic()
         small = M.pack({"v": 1})
@@ -450,6 +450,10 @@ def test_lockstep_survives_a_2s_sigstop_of_the_plant(procs):
     --timeout (2 of 3 runs under load). Now the plant sends the unanswered state again and
     the controller answers it: the run completes."""
     P = free_port()
+
+    def both():  # what each process said (a failure here needs both sides)
+        return (f"plant:\n{procs.err('plant')[-3000:]}\n--- controller:\n"
+                f"{procs.err('ctl')[-3000:]}")
     procs.start("plant", msagv("plant", "--duration", 8, "--listen", ep(P), "--timeout", 30,
                                "--json", "-q"))
     procs.start("ctl", msagv("controller", "--connect", ep(P), "--exit-at-end", "--json",
@@ -460,15 +464,15 @@ def test_lockstep_survives_a_2s_sigstop_of_the_plant(procs):
             msgpack.unpackb(x.payload.to_bytes())["seq"]))
         t0 = time.monotonic()
         while not seqs or seqs[-1] < 200:
-            assert time.monotonic() - t0 < 180, procs.err("plant")
+            assert time.monotonic() - t0 < 180, both()
             time.sleep(0.005)
         os.kill(procs.p["plant"].pid, signal.SIGSTOP)
         time.sleep(2.0)
         os.kill(procs.p["plant"].pid, signal.SIGCONT)
         rc = procs.wait("plant", 120)
         sub.undeclare()
-    assert rc == 0, procs.err("plant")[-3000:]
-    assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-3000:]
+    assert rc == 0, both()
+    assert procs.wait("ctl", 60) == 0, both()
     st, c = procs.json("plant"), procs.json("ctl")
     assert st["completed"] and st["steps"] == 800 and st["commands"]["lost"] == 0
     print(f"\nSIGSTOP 2 s of the lockstep plant: completed {st['steps']} steps; states sent "
