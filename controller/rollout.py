@@ -639,6 +639,16 @@ def wheel_loop(w, raw, tct, xw, yw, dt, FN, k_t, r_w, v_eps, lonB, lonC, lonD, l
 
 
 # ---- the tile: LANES candidates in structure-of-arrays form --------------------------
+def set_body(w, b, x, y, phi, vx, vy, r):
+    """Lane ``b``'s body state (pose and world-frame velocity) into ``w``."""
+    w[W_X * L + b] = x
+    w[W_Y * L + b] = y
+    w[W_PHI * L + b] = phi
+    w[W_VX * L + b] = vx
+    w[W_VY * L + b] = vy
+    w[W_R * L + b] = r
+
+
 def load_tile(w, Z, b0, nb, x0, nw):
     """The lanes' decision rows (spare lanes repeat candidate ``b0 + nb - 1``), the start
     state ``x0`` (body and wheel angles) in every lane, the cost sums zeroed."""
@@ -651,12 +661,7 @@ def load_tile(w, Z, b0, nb, x0, nw):
     x_, y_, phi_ = x0[X0_X], x0[X0_Y], x0[X0_PHI]
     vx_, vy_, r_ = x0[X0_VX], x0[X0_VY], x0[X0_R]
     for b in range(L):
-        w[W_X * L + b] = x_
-        w[W_Y * L + b] = y_
-        w[W_PHI * L + b] = phi_
-        w[W_VX * L + b] = vx_
-        w[W_VY * L + b] = vy_
-        w[W_R * L + b] = r_
+        set_body(w, b, x_, y_, phi_, vx_, vy_, r_)  # noqa: F821 (bound by make_prediction)
         w[W_JT * L + b] = 0.0
         w[W_JW * L + b] = 0.0
     for j in range(nw):
@@ -715,6 +720,17 @@ def policy_rows(w, ref, k, tw, twist, tct, k_pos, v_fb_max, k_phi, r_fb_max, k_a
         w[W_PT * L + b] = 0.0
 
 
+def store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi, ps, pa, ls, la,
+               lt, les, lea, let):
+    """Lane ``b``'s new body state into ``w``, its tracking term against the reference's
+    next pose and its wear term (slip powers ``ps``, ``pa``; the step's ``P_t`` from
+    ``w``) added to its costs."""
+    set_body(w, b, x, y, phi, vx, vy, r)  # noqa: F821
+    w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx, qy, qphi)
+    w[W_JW * L + b] = wear_term(w[W_JW * L + b], ps, pa, w[W_PT * L + b], ls, la, lt, les,
+                                lea, let)
+
+
 def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls, la, lt,
               les, lea, let):
     """Step ``k``'s body update in every lane (``KINEMATIC``: bound per tile) from the
@@ -725,16 +741,8 @@ def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls,
             x, y, phi, vx, vy, r = kinematic_update(
                 w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], nw, sx, sy, sxx, syy,
                 w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b], dt)
-            w[W_X * L + b] = x
-            w[W_Y * L + b] = y
-            w[W_PHI * L + b] = phi
-            w[W_VX * L + b] = vx
-            w[W_VY * L + b] = vy
-            w[W_R * L + b] = r
-            w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx,
-                                             qy, qphi)
-            w[W_JW * L + b] = wear_term(w[W_JW * L + b], 0.0, 0.0, w[W_PT * L + b],
-                                        ls, la, lt, les, lea, let)
+            store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi, 0.0,  # noqa: F821
+                       0.0, ls, la, lt, les, lea, let)
     else:
         for b in range(L):  # vectorised: the rigid body's step and the cost
             x, y, phi, vx, vy, r = rigid_body_update(
@@ -744,17 +752,8 @@ def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls,
                 w[W_A11 * L + b], w[W_A12 * L + b], w[W_A20 * L + b], w[W_A21 * L + b],
                 w[W_A22 * L + b], w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b],
                 m, Iz, dt)
-            w[W_X * L + b] = x
-            w[W_Y * L + b] = y
-            w[W_PHI * L + b] = phi
-            w[W_VX * L + b] = vx
-            w[W_VY * L + b] = vy
-            w[W_R * L + b] = r
-            w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx,
-                                             qy, qphi)
-            w[W_JW * L + b] = wear_term(w[W_JW * L + b], w[W_PS * L + b],
-                                        w[W_PA * L + b], w[W_PT * L + b], ls, la, lt,
-                                        les, lea, let)
+            store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi,  # noqa: F821
+                       w[W_PS * L + b], w[W_PA * L + b], ls, la, lt, les, lea, let)
 
 
 def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit, w,
@@ -890,9 +889,10 @@ KINEMATIC = DUGOFF = LON_E0 = False  # bound per kind of step by make_prediction
 
 _KERNELS = ("policy_head", "policy_wheel", "policy_raw", "tire_forces", "wheel_terms",
             "rigid_body_update", "kinematic_update")
-_RAW_NAMES = _KERNELS + ("wheel_lane", "commands_from_policy", "wheel_loop", "load_tile",
-                         "policy_rows", "body_rows", "tile", "rollout_batch",
-                         "rollout_batch_parallel", "evaluate")
+_TILE_PARTS = ("set_body", "load_tile", "policy_rows", "store_body")  # inlined into the tile
+_RAW_NAMES = _KERNELS + _TILE_PARTS + (
+    "wheel_lane", "commands_from_policy", "wheel_loop", "body_rows", "tile", "rollout_batch",
+    "rollout_batch_parallel", "evaluate")
 
 
 def make_prediction(prims: _approx.Primitives, fastmath) -> Prediction:
@@ -913,7 +913,7 @@ def make_prediction(prims: _approx.Primitives, fastmath) -> Prediction:
         fn = _tire.bind_globals(_RAW[name], g if gl is None else gl, (bound_name or name) + sfx)
         return njit(cache=True, fastmath=fastmath, error_model="numpy", **kw)(fn)
 
-    for name in _KERNELS + ("load_tile", "policy_rows"):
+    for name in _KERNELS + _TILE_PARTS:
         g[name] = inline(_tire.bind_globals(_RAW[name], g, name + sfx))
     cfp = kernel("commands_from_policy")
     kernels = {}
