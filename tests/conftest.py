@@ -59,6 +59,23 @@ PROCESS_MODULES = frozenset({
 })
 
 
+@pytest.fixture(scope="session")
+def warm_kernels():
+    """The default controller's and the plant's kernels in numba's on-disk cache, compiled
+    once (``msagv run`` for a few periods) before the first test that starts processes. On
+    a clean clone a controller process compiles them first: over a minute on a loaded
+    2-core machine (66 s measured), longer than a plant waits for its controller by default
+    (60 s); from the cache it starts in seconds."""
+    r = helpers.run_msagv("run", "--duration", "0.05", "-q", timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+
+
+@pytest.fixture(autouse=True)
+def _warm_before_processes(request):
+    if request.node.module.__name__ in PROCESS_MODULES:
+        request.getfixturevalue("warm_kernels")
+
+
 def _scope(nodeid: str) -> str:
     """A test's unit of scheduling: the process modules' tests are one, any other test its
     own."""
