@@ -83,6 +83,7 @@ def _scope(nodeid: str) -> str:
     return "processes" if module in PROCESS_MODULES else nodeid
 
 
+@pytest.hookimpl(optionalhook=True)  # (a run with -p no:xdist does not know the hook)
 def pytest_xdist_make_scheduler(config, log):
     """xdist's loadscope scheduling over :func:`_scope` (xdist's own grouping mark,
     ``xdist_group``, does not take with pytest 9.2: it renames a node id pytest no longer
