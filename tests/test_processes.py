@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import signal
 import subprocess
@@ -38,12 +39,14 @@ class Bus:
     """The test's own session: listens on ``port``; collects states and commands of ``vid``
     (protocol 2: on ``state/*`` and ``cmd/*``, the senders' identities in the last chunk)."""
 
-    def __init__(self, port: int, vid: str = "agv0"):
+    def __init__(self, port: int, vid: str = "agv0", lease_ms: int | None = None):
         self.port = port
         self.keys = Keys(vid)
-        self.session = open_session(SessionOptions(id=vid, listen=[ep(port)]), "tool")
+        lease = {} if lease_ms is None else {"lease_ms": lease_ms}
+        self.session = open_session(SessionOptions(id=vid, listen=[ep(port)], **lease), "tool")
         self.states: list[tuple[float, dict]] = []
         self.cmds: list[tuple[float, dict]] = []
+        self.on_state = None  # called with each state, on Zenoh's thread
         self._cond = threading.Condition()
         self._subs = [
             self.session.declare_subscriber(f"{self.keys.state}/*", self._on_state),
@@ -59,6 +62,9 @@ class Bus:
             m = M.decode_state(s.payload.to_bytes(), 4)
         except M.MessageError:
             return
+        hook = self.on_state
+        if hook is not None:
+            hook(m)
         with self._cond:
             self.states.append((time.monotonic(), m))
             self._cond.notify_all()
@@ -100,6 +106,19 @@ class Bus:
 @pytest.fixture
 def bus():
     b = Bus(free_port())
+    try:
+        yield b
+    finally:
+        b.close()
+
+
+HOLD_LEASE_MS = 20_000  # a process stopped on purpose must not be taken for dead (1 s)
+
+
+@pytest.fixture
+def held_bus():
+    """The bus, for a run held by stopping a process: a lease that outlasts the hold."""
+    b = Bus(free_port(), lease_ms=HOLD_LEASE_MS)
     try:
         yield b
     finally:
@@ -201,20 +220,45 @@ def test_lockstep_over_zenoh_is_identical_to_msagv_run(procs, bus, tmp_path, in_
 def _flood_run(procs, bus, tmp_path, n: int, duration: float):
     """n malformed commands at the plant before the run and n during it, n malformed
     states and n references at the controller during the run: both keep running, every
-    message is counted, and the run is identical to the clean in-process one."""
+    message is counted, and the run is identical to the clean in-process one.
+
+    The flood during the run is sent while the run is held: the controller is stopped
+    (SIGSTOP) as the first state reaches the test's session, so the lockstep plant waits
+    for its answer (and sends that state again every second) until the flood is in and the
+    controller is continued. Without the hold, a loaded machine could end the 1 s run
+    before the flood reached the plant (CI: 900 of 1000 counted). Every session has a
+    lease longer than the hold (the default 1 s would take the stopped controller for
+    dead: its token gone, the vehicle latched, the flood at it sent to nobody)."""
     P = free_port()
     rec = tmp_path / "plant.rec"
-    procs.start("plant", msagv("plant", "--duration", duration, "--listen", ep(P), "--connect",
+    steps = int(round(duration / T))
+    procs.start("plant", msagv("plant", "--duration", duration, "--timeout", 60,
+                               "--lease-ms", HOLD_LEASE_MS, "--listen", ep(P), "--connect",
                                ep(bus.port), "--record", rec, "--json", "-q"))
     bus.wait_present("plant", 60)
     time.sleep(0.2)  # let the plant's subscriber be known to our publisher
     sent_plant = faults.flood(bus.transport, "agv0", "cmd", 4, n)["sent"]
+    held = threading.Event()
+
+    def hold(st: dict) -> None:
+        if not held.is_set():
+            os.kill(procs.p["ctl"].pid, signal.SIGSTOP)
+            held.set()
+
     procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
-                             "--json", "-q"))
-    bus.wait_present("controller", 120)
-    time.sleep(0.2)
-    t0 = time.monotonic()
-    sent_plant += faults.flood(bus.transport, "agv0", "cmd", 4, n)["sent"]
+                             "--lease-ms", HOLD_LEASE_MS, "--json", "-q"))
+    bus.on_state = hold
+    try:
+        bus.wait_for(lambda s: held.is_set(), 120, "the first state")
+        # the controller answers at most the state it has: the plant is within a step of 0
+        newest = bus.states[-1][1]["seq"]
+        assert newest < steps - 1 and not bus.states[-1][1].get("end"), newest
+        t0 = time.monotonic()
+        sent_plant += faults.flood(bus.transport, "agv0", "cmd", 4, n)["sent"]
+        time.sleep(0.5)  # the plant takes them in while it waits
+    finally:
+        bus.on_state = None
+        os.kill(procs.p["ctl"].pid, signal.SIGCONT)
     sent_ctl = faults.flood(bus.transport, "agv0", "state", 4, n)["sent"]
     refs = faults.flood(bus.transport, "agv0", "reference", 4, n)
     sent_ctl += refs["sent"]
@@ -232,18 +276,19 @@ def _flood_run(procs, bus, tmp_path, n: int, duration: float):
     assert ps["rejected"]["by_reason"] == {M.NOT_OWNER: 2 * n}
     assert cs["rejected"]["total"] == sent_ctl == 2 * n
     assert cs["rejected"]["by_reason"] == dict(refs["by_reason"], **{M.NOT_BOUND: n})
-    steps = int(round(duration / T))
     assert cs["references"] == 0 and cs["answered"] == steps and ps["steps"] == steps
     _assert_same_as_in_process(rec, ps, in_process(duration))
     assert "rejected" in procs.err("ctl")  # logged with the reason (rate-limited)
     print(f"\n{3 * n} malformed messages in {flood_s:.2f} s during the run\n"
-          f"plant rejections {ps['rejected']['by_reason']}\n"
+          f"plant rejections {ps['rejected']['by_reason']}, held at state {newest} "
+          f"(sent again {ps['resent_states']} times)\n"
           f"controller rejections {cs['rejected']['by_reason']}")
 
 
 @pytest.mark.timeout(300)
-def test_malformed_floods_are_counted_and_change_nothing(procs, bus, tmp_path, in_process_1s):
-    _flood_run(procs, bus, tmp_path, n=500, duration=1.0)
+def test_malformed_floods_are_counted_and_change_nothing(procs, held_bus, tmp_path,
+                                                         in_process_1s):
+    _flood_run(procs, held_bus, tmp_path, n=500, duration=1.0)
 
 
 @pytest.mark.timeout(180)
@@ -528,5 +573,5 @@ def test_realtime_soak_60s_targets(procs, bus, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(1200)
-def test_malformed_floods_10000(procs, bus, tmp_path):
-    _flood_run(procs, bus, tmp_path, n=10_000, duration=3.0)
+def test_malformed_floods_10000(procs, held_bus, tmp_path):
+    _flood_run(procs, held_bus, tmp_path, n=10_000, duration=3.0)
