@@ -42,9 +42,17 @@ Methods and accuracy (maximum errors measured against the math library by
 The kernels that use these compile with ``fastmath`` limited to ``contract`` (fused
 multiply-add), ``nsz`` and ``arcp``: no reassociation, which would undo the Cody-Waite
 reduction, and no ``nnan``/``ninf``, so infinities and NaN
-keep their IEEE meaning in the selects. The functions are compiled with these flags as
-ordinary numba functions marked ``forceinline`` (LLVM's ``alwaysinline``), so LLVM inlines
-them into the loops that call them, where the loops vectorise. Left to LLVM's inlining
+keep their IEEE meaning in the selects. The polynomials are evaluated by Estrin's scheme
+(pairs of terms, then pairs of pairs), not by Horner's rule: the prediction's wheel loop
+is bound by the latency of its chains of dependent operations (a wheel-step chains three
+arc tangents and two sine-cosine pairs), and for ``P`` of degree 5 Estrin is four
+dependent steps deep where Horner is six (docs/PERFORMANCE.md: 10-13 % more
+wheel-steps per second). A shorter ``P`` for ``atan`` (degree 3, relative error 2e-8)
+was 6 % faster again but moved the predicted poses by up to 6e-6 m over a horizon
+(the dynamics amplify it), more than the 1e-6 m asked: not kept. The functions are
+compiled with these flags as ordinary numba functions marked ``forceinline`` (LLVM's
+``alwaysinline``), so LLVM inlines them into the loops that call them, where the loops
+vectorise. Left to LLVM's inlining
 heuristic they were inlined on one machine (an Intel Xeon) and not on another (an AMD
 EPYC, Zen 3: the cost model priced ``atan2`` over its threshold), where every lane called
 them as scalar functions and the prediction ran 1.4x *slower* than on the math library
@@ -89,10 +97,13 @@ _PI = 3.14159265358979323846
 
 
 @_inline
-def _atan_core(t):
-    """atan(t) - t for |t| <= tan(pi/8), as ``t z P(z)``."""
+def _atan_poly(t):
+    """atan(t) for |t| <= tan(pi/8), as ``t + t z P(z)``, ``P`` by Estrin's scheme."""
     z = t * t
-    return t * (z * (_A0 + z * (_A1 + z * (_A2 + z * (_A3 + z * (_A4 + z * _A5))))))
+    z2 = z * z
+    tz = t * z
+    p = (_A0 + z * _A1) + z2 * ((_A2 + z * _A3) + z2 * (_A4 + z * _A5))
+    return t + tz * p
 
 
 @_inline
@@ -105,7 +116,7 @@ def atan(x):
     den = ax if big else (ax + 1.0 if mid else 1.0)
     t = num / den
     y0 = _PIO2 if big else (_PIO4 if mid else 0.0)
-    return math.copysign(y0 + (_atan_core(t) + t), x)
+    return math.copysign(y0 + _atan_poly(t), x)
 
 
 @_inline
@@ -121,7 +132,7 @@ def atan2(y, x):
     mid = lo > _TP8 * hi
     den = lo + hi if mid else (hi if hi > 0.0 else 1.0)  # (never a division by 0)
     t = (lo - hi if mid else lo) / den
-    r = (_PIO4 if mid else 0.0) + (_atan_core(t) + t)
+    r = (_PIO4 if mid else 0.0) + _atan_poly(t)
     r = _PIO2 - r if swap else r
     r = _PI - r if math.copysign(1.0, x) < 0.0 else r
     r = math.copysign(r, y)
@@ -148,8 +159,9 @@ def sincos(x):
     n = np.floor(x * _INVPIO2 + 0.5)
     r = (x - n * _PIO2_1) - n * _PIO2_2
     z = r * r
-    s = r + r * (z * (_S0 + z * (_S1 + z * (_S2 + z * _S3))))
-    c = (1.0 - 0.5 * z) + z * z * (_C0 + z * (_C1 + z * (_C2 + z * _C3)))
+    z2 = z * z  # (Estrin's scheme, as in atan)
+    s = r + (r * z) * ((_S0 + z * _S1) + z2 * (_S2 + z * _S3))
+    c = (1.0 - 0.5 * z) + z2 * ((_C0 + z * _C1) + z2 * (_C2 + z * _C3))
     q = n - 4.0 * np.floor(0.25 * n)  # the quadrant, 0..3, kept in floating point
     # one comparison per mask (a boolean | of two masks cost packing instructions):
     # q in {1, 3} <=> |q - 2| = 1; q in {1, 2} <=> |q - 1.5| = 0.5
