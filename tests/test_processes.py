@@ -26,7 +26,7 @@ from msagv.bridge import faults
 from msagv.bridge import messages as M
 from msagv.bridge.presence import Presence
 from msagv.bridge.recording import read_recording
-from msagv.bridge.session import Keys, SessionOptions, open_session
+from msagv.bridge.session import DEFAULT_LEASE_MS, Keys, SessionOptions, open_session
 from msagv.bridge.zenoh_transport import ZenohTransport
 from msagv.experiments.recorded import evaluate
 from helpers import ep, free_port, msagv
@@ -39,11 +39,11 @@ class Bus:
     """The test's own session: listens on ``port``; collects states and commands of ``vid``
     (protocol 2: on ``state/*`` and ``cmd/*``, the senders' identities in the last chunk)."""
 
-    def __init__(self, port: int, vid: str = "agv0", lease_ms: int | None = None):
+    def __init__(self, port: int, vid: str = "agv0", lease_ms: int = DEFAULT_LEASE_MS):
         self.port = port
         self.keys = Keys(vid)
-        lease = {} if lease_ms is None else {"lease_ms": lease_ms}
-        self.session = open_session(SessionOptions(id=vid, listen=[ep(port)], **lease), "tool")
+        self.session = open_session(SessionOptions(id=vid, listen=[ep(port)], lease_ms=lease_ms),
+                                    "tool")
         self.states: list[tuple[float, dict]] = []
         self.cmds: list[tuple[float, dict]] = []
         self.on_state = None  # called with each state, on Zenoh's thread
@@ -112,13 +112,13 @@ def bus():
         b.close()
 
 
-HOLD_LEASE_MS = 20_000  # a process stopped (or stalled) must not be taken for dead (1 s)
+LONG_LEASE_MS = 20_000  # a process stopped (or stalled) must not be taken for dead (1 s)
 
 
 @pytest.fixture
 def held_bus():
     """The bus, for a run held by stopping a process: a lease that outlasts the hold."""
-    b = Bus(free_port(), lease_ms=HOLD_LEASE_MS)
+    b = Bus(free_port(), lease_ms=LONG_LEASE_MS)
     try:
         yield b
     finally:
@@ -233,7 +233,7 @@ def _flood_run(procs, bus, tmp_path, n: int, duration: float):
     rec = tmp_path / "plant.rec"
     steps = int(round(duration / T))
     procs.start("plant", msagv("plant", "--duration", duration, "--timeout", 60,
-                               "--lease-ms", HOLD_LEASE_MS, "--listen", ep(P), "--connect",
+                               "--lease-ms", LONG_LEASE_MS, "--listen", ep(P), "--connect",
                                ep(bus.port), "--record", rec, "--json", "-q"))
     bus.wait_present("plant", 60)
     time.sleep(0.2)  # let the plant's subscriber be known to our publisher
@@ -246,7 +246,7 @@ def _flood_run(procs, bus, tmp_path, n: int, duration: float):
             held.set()
 
     procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
-                             "--lease-ms", HOLD_LEASE_MS, "--json", "-q"))
+                             "--lease-ms", LONG_LEASE_MS, "--json", "-q"))
     bus.on_state = hold
     try:
         bus.wait_for(lambda s: held.is_set(), 120, "the first state")
@@ -474,7 +474,7 @@ def test_two_vehicles_through_a_router(procs, tmp_path):
     # on a lost owner have their own tests). In one clean-clone run plant agv_b saw its
     # live controller's token go (and latched) 0.06 s into its run; not reproduced in 6
     # runs under load.
-    lease = ("--lease-ms", HOLD_LEASE_MS)
+    lease = ("--lease-ms", LONG_LEASE_MS)
     procs.start("router", msagv("router", "--listen", ep(R), *lease))
     # zenoh >= 1.9 routes between a router's clients and between a client and a peer, not
     # between two peers that are not connected to each other: one side at least a client
