@@ -1,6 +1,6 @@
 """The ``msagv`` application: the command line and the in-process runner.
 
-Every sub-command's parser lives here (:mod:`msagv.cli` dispatches, :mod:`msagv.args` holds
+Every sub-command's parser lives here (:mod:`msagv.cli` dispatches, :mod:`msagv.cli.args` holds
 the shared option builders); the work is done by the packages below it:
 ``plant <- controller <- (bridge, fmu_build) <- experiments <- benchmarks <- msagv``.
 """

@@ -22,8 +22,8 @@ def main(argv: list[str] | None = None) -> int:
     from msagv.bridge.session import open_session
     from msagv.bridge.zenoh_transport import ZenohTransport
 
-    from .args import add_session_args, options_from_args
-    from .errors import USAGE_ERRORS
+    from .cli.args import add_session_args, options_from_args
+    from .cli.errors import USAGE_ERRORS
 
     ap = argparse.ArgumentParser(prog="python -m msagv.faults",
                                  description=__doc__.splitlines()[0])

@@ -49,7 +49,7 @@ def random_solver(tmp_path, monkeypatch):
 
 
 def test_the_documented_solver_is_one_module_and_one_line(random_solver, capsys):
-    from msagv import run as run_cmd
+    from msagv.cli import run as run_cmd
 
     assert random_solver in solvers.SOLVERS
     rc = run_cmd.main(["--case", "curve", "--speed", "15", "--duration", "1.0",

@@ -1,4 +1,4 @@
-"""``msagv experiment`` (experiments/, msagv/experiment.py): reduced experiments (two speeds, 2 s of
+"""``msagv experiment`` (experiments/, msagv/cli/experiment.py): reduced experiments (two speeds, 2 s of
 vehicle time) into a temporary directory: the files, the paper's table layout, the
 best/second marking, resuming without redoing finished runs, determinism, ``--json``;
 plus the report helpers on hand-made data and the transcription of the paper's tables."""
@@ -15,7 +15,7 @@ from msagv.controller.models import MPCSettings
 from msagv.experiments import cases as ex
 from msagv.experiments.paper import PAPER_COLUMNS, paper_table
 from msagv.experiments.tables import (COLUMNS, check_targets, fmt, lower_front, table_rows, wear_at)
-from msagv import experiment as ex_cli
+from msagv.cli import experiment as ex_cli
 
 CASE1_ARGS = ["case1", "--duration", "2", "--speeds", "15,35", "--no-progress"]
 HEADER = ("| | Method | Omega | W_tw (J) | W_alpha (J) | W_s (J) | W_t (J) | e_bar | "

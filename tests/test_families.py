@@ -86,7 +86,7 @@ def test_a_bad_entry_is_refused_naming_it(make, words):
 
 
 def test_the_command_line_offers_the_tables_rows(capsys):
-    from msagv import experiment
+    from msagv.cli import experiment
 
     with pytest.raises(SystemExit):
         experiment.main(["--help"])

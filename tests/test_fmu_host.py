@@ -429,7 +429,7 @@ def test_closed_loop_runs_unchanged_on_the_fmu(fmu_prefixed, tmp_path):
     import argparse
 
     from msagv.controller.loop import closed_loop
-    from msagv.args import add_case_args, add_mpc_args, scenario_from_args
+    from msagv.cli.args import add_case_args, add_mpc_args, scenario_from_args
 
     ap = argparse.ArgumentParser()
     add_case_args(ap)
@@ -453,10 +453,10 @@ def test_closed_loop_runs_unchanged_on_the_fmu(fmu_prefixed, tmp_path):
 
 
 def test_cli_options_make_an_fmu_plant(fmu_prefixed, tmp_path):
-    """msagv.args.add_fmu_args / scenario_from_args: FILE.fmu --map FILE --param ..."""
+    """msagv.cli.args.add_fmu_args / scenario_from_args: FILE.fmu --map FILE --param ..."""
     import argparse
 
-    from msagv.args import add_fmu_args, scenario_from_args
+    from msagv.cli.args import add_fmu_args, scenario_from_args
 
     def fmu_plant_from_args(a, initial=None):
         sc = scenario_from_args(a)

@@ -1,7 +1,8 @@
 """The layout of the house: which package may import which (README, docs/ARCHITECTURE.md).
 
-Everything installs as one top-level package, ``msagv``: the folders at the top of the
-repository are its subpackages (pyproject.toml's ``package-dir``). Imports are read from
+Everything installs as one top-level package, ``msagv``, and the import path is the file path:
+``msagv/plant/tire.py`` is ``msagv.plant.tire`` (the design card's folders at the top of the
+repository are links into ``msagv/``). Imports are read from
 the source with ``ast`` (every ``import`` and ``from ... import``, also those inside
 functions, and the ``module:Class`` targets of the solver table), so the rules hold for
 lazily imported modules too:
@@ -9,8 +10,8 @@ lazily imported modules too:
     plant <- controller <- (bridge, fmu_build) <- experiments <- benchmarks <- app
     plant, controller <- bridge <- ros2 <- app      (the ROS 2 nodes)
 
-An arrow points from a package to those that may import it (``app``: the modules of
-``msagv/`` itself, the command line); nothing imports upwards; there are no cycles between
+An arrow points from a package to those that may import it (``app``: the command line,
+``msagv/cli/``, and the modules at the top of ``msagv/``); nothing imports upwards; there are no cycles between
 packages, nor between files. bridge/ is transport only: no matplotlib, no experiments, no
 app. No module imports a top-level ``plant``, ``controller``, ... (a user's own module of
 that name would be found instead).
@@ -29,10 +30,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-FOLDERS = {"plant": "plant", "controller": "controller", "bridge": "bridge",
-           "fmu_build": "fmu_build", "experiments": "experiments", "benchmarks": "benchmarks",
-           "ros2": "ros2", "app": "msagv"}
-PACKAGES = tuple(FOLDERS)
+PKG = ROOT / "msagv"
+SUBPACKAGES = ("plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks",
+               "ros2")
+PACKAGES = SUBPACKAGES + ("app",)
 ALLOWED = {
     "plant": set(),
     "controller": {"plant"},
@@ -44,19 +45,14 @@ ALLOWED = {
     "ros2": {"plant", "controller", "bridge"},
     "app": {"plant", "controller", "bridge", "fmu_build", "experiments", "benchmarks", "ros2"},
 }
-SUBPACKAGES = {k for k in FOLDERS if k != "app"}
 # 'module:attribute' strings in the solver table are imports too
 _TARGET = re.compile(r"""["'](msagv(?:\.\w+)+):\w+["']""")
 
 
 def module_name(path: Path) -> str:
-    """The dotted module name of a source file, as installed (``msagv.plant.tire``)."""
-    rel = path.relative_to(ROOT).with_suffix("")
-    parts = list(rel.parts)
-    folder = parts[0]
-    sub = next(k for k, v in FOLDERS.items() if v == folder)
-    head = ["msagv"] if sub == "app" else ["msagv", sub]
-    parts = head + parts[1:]
+    """The dotted module name of a source file: its path below the repository's root
+    (``msagv/plant/tire.py`` is ``msagv.plant.tire``)."""
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts = parts[:-1]
     return ".".join(parts)
@@ -78,13 +74,9 @@ def _file_of(module: str) -> Path | None:
     parts = module.split(".")
     if parts[0] != "msagv":
         return None
-    if len(parts) > 1 and parts[1] in SUBPACKAGES:
-        base, rest = ROOT / FOLDERS[parts[1]], parts[2:]
-    else:
-        base, rest = ROOT / FOLDERS["app"], parts[1:]
-    p = base.joinpath(*rest)
-    for f in (p.with_suffix(".py") if rest else None, p / "__init__.py"):
-        if f is not None and f.is_file():
+    p = ROOT.joinpath(*parts)
+    for f in (p.with_suffix(".py"), p / "__init__.py"):
+        if f.is_file():
             return f
     return None
 
@@ -123,7 +115,11 @@ def package_of(module: str) -> str | None:
 
 
 def _sources(package: str):
-    return sorted((ROOT / FOLDERS[package]).rglob("*.py"))
+    """The source files of a floor: a subpackage's folder, or for ``app`` the command line
+    (``msagv/cli/``) and the modules at the top of ``msagv/``."""
+    if package == "app":
+        return sorted([*(ROOT / "msagv" / "cli").rglob("*.py"), *(ROOT / "msagv").glob("*.py")])
+    return sorted((PKG / package).rglob("*.py"))
 
 
 def all_sources():
@@ -227,8 +223,8 @@ def test_no_imports_by_string():
 
 
 def test_the_checker_sees_lazy_relative_and_table_imports(tmp_path, monkeypatch):
-    d = tmp_path / "bridge"
-    d.mkdir()
+    d = tmp_path / "msagv" / "bridge"
+    d.mkdir(parents=True)
     f = d / "m.py"
     f.write_text("from . import x\nfrom .y import z\n\ndef g():\n    import msagv.experiments.runs\n"
                  "    from msagv.plant import a\n\nT = 'msagv.controller.mpc:MPC'\n")
@@ -260,7 +256,7 @@ def test_the_wheel_installs_one_top_level_package(tmp_path):
     tops = {t for t in tops if not t.endswith((".dist-info", ".data"))}
     assert tops == {"msagv"}, tops
     assert {"msagv/plant/tire.py", "msagv/plant/data/paper-2axle.toml",
-            "msagv/controller/mirrors/rollout_ref.c", "msagv/cli.py"} <= names
+            "msagv/controller/mirrors/rollout_ref.c", "msagv/cli/__init__.py"} <= names
     user = tmp_path / "user"
     user.mkdir()
     (user / "plant.py").write_text("WHO = 'the user plant'\n")
@@ -278,10 +274,10 @@ def test_the_wheel_installs_one_top_level_package(tmp_path):
 
 
 def test_the_error_list_does_not_load_the_fmu_exporter():
-    """msagv.errors names the FMU host's error; the host reads the FMU's configuration
+    """msagv.cli.errors names the FMU host's error; the host reads the FMU's configuration
     file name from fmu_build.variables, not from the exporter (fmu_build.slave), so
     pythonfmu is loaded only by the commands that build an FMU."""
-    code = ("import sys, msagv.errors, msagv.fmu_build.host\n"
+    code = ("import sys, msagv.cli.errors, msagv.fmu_build.host\n"
             "print('pythonfmu' in sys.modules)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        timeout=300)
@@ -296,3 +292,40 @@ def test_the_slave_carries_the_fmu_configuration_names():
 
     assert (slave.CONFIG_FILE, slave.CONFIG_FORMAT) == (variables.CONFIG_FILE,
                                                         variables.CONFIG_FORMAT)
+
+
+def test_the_import_path_is_the_file_path_without_an_install():
+    """From the repository's root, with the installed package's finder taken away, every
+    module of ours is the file its dotted name spells (what ``python -m pytest`` from a clean
+    checkout and static tools see)."""
+    code = ("import sys\n"
+            "sys.meta_path = [m for m in sys.meta_path if 'editable' not in repr(m)]\n"
+            "import msagv.plant.vehicle, msagv.controller.mpc, msagv.bridge.plant_node, msagv.cli\n"
+            "for m in (msagv.plant.vehicle, msagv.controller.mpc, msagv.bridge.plant_node, msagv.cli):\n"
+            "    print(m.__name__, m.__file__)\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    for line in r.stdout.splitlines():
+        name, path = line.split()
+        assert Path(path).resolve() == _file_of(name).resolve(), line
+
+
+def test_jedi_goes_to_the_definition_across_packages():
+    """Go-to-definition, as an editor does it (jedi), from names imported across packages to
+    the file and line that define them."""
+    jedi = pytest.importorskip("jedi", reason="jedi is in the test extra")
+    src = ("from msagv.plant.vehicle import load_vehicle\n"
+           "from msagv.controller.mpc import MPC\n"
+           "from msagv.bridge.plant_node import PlantConfig\n")
+    script = jedi.Script(src, path=str(ROOT / "probe.py"), project=jedi.Project(str(ROOT)))
+    for line, name, rel in [(1, "load_vehicle", "msagv/plant/vehicle.py"),
+                            (2, "MPC", "msagv/controller/mpc.py"),
+                            (3, "PlantConfig", "msagv/bridge/plant_node.py")]:
+        col = src.splitlines()[line - 1].rindex(name)
+        defs = script.goto(line, col, follow_imports=True)
+        assert defs, f"jedi found no definition of {name}"
+        d = defs[0]
+        assert Path(d.module_path).resolve() == (ROOT / rel).resolve(), (name, d.module_path)
+        text = (ROOT / rel).read_text().splitlines()[d.line - 1]
+        assert f"class {name}" in text or f"def {name}" in text, (name, text)

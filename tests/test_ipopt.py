@@ -283,7 +283,7 @@ def test_ipopt_closed_loop_tracks():
 # ---- (e) errors: no CasADi, a baseline model --------------------------------------------
 def test_without_casadi_a_clear_error(monkeypatch, capsys):
     import msagv.controller.ipopt as ip
-    from msagv import run as run_cmd
+    from msagv.cli import run as run_cmd
 
     monkeypatch.setattr(ip, "ca", None)
     ref, _ = make_case("curve", 15.0)
@@ -299,7 +299,7 @@ def test_without_casadi_a_clear_error(monkeypatch, capsys):
 
 @needs_casadi
 def test_ipopt_rejects_baseline_models(capsys):
-    from msagv import run as run_cmd
+    from msagv.cli import run as run_cmd
     from msagv.controller.mpc import MPC
 
     with pytest.raises(ControllerError, match="'mf' only"):
@@ -330,7 +330,7 @@ def test_controller_process_solver_errors_exit_2():
 def test_msagv_run_solver_ipopt_json(capfd):
     """``msagv run --solver ipopt --json`` prints the metric keys of ``--solver sa``. capfd
     (file-descriptor level), so anything CasADi/IPOPT printed to stdout would break the JSON."""
-    from msagv import run as run_cmd
+    from msagv.cli import run as run_cmd
 
     argv = ["--case", "curve", "--speed", "15", "--duration", "1", "--json"]
     assert run_cmd.main(argv + ["--solver", "ipopt"]) == 0
@@ -351,8 +351,8 @@ def test_msagv_run_solver_ipopt_json(capfd):
 def test_controller_process_ipopt_lockstep_equals_in_process(capfd):
     """``msagv controller --solver ipopt`` over Zenoh in lockstep gives the run of
     ``msagv run --solver ipopt`` in-process (same commands, so the same metrics)."""
-    from msagv import run as run_cmd
-    from msagv.demo import run_demo
+    from msagv.cli import run as run_cmd
+    from msagv.cli.demo import run_demo
 
     r = run_demo(duration=1.0, speed="15", run_mode="lockstep", deadline_ms=None,
                  extra_controller=["--solver", "ipopt"])

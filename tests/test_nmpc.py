@@ -171,7 +171,7 @@ def test_closed_loop_tracks():
 def test_msagv_run_solver_acados_json_with_a_fresh_build(capfd, tmp_path, monkeypatch):
     """``msagv run --solver acados --json`` builds the solver into an empty cache and still
     prints one clean JSON document on stdout (capfd: file-descriptor level)."""
-    from msagv import run as run_cmd
+    from msagv.cli import run as run_cmd
 
     monkeypatch.setenv("MSAGV_ACADOS_CACHE", str(tmp_path))
     argv = ["--case", "curve", "--speed", "15", "--duration", "0.5", "--json",
@@ -186,7 +186,7 @@ def test_msagv_run_solver_acados_json_with_a_fresh_build(capfd, tmp_path, monkey
 
 def test_without_acados_a_clear_error(monkeypatch, capsys, tmp_path):
     import msagv.controller.acados_rti as ar
-    from msagv import run as run_cmd
+    from msagv.cli import run as run_cmd
 
     monkeypatch.setattr(ar, "_acados", None)
     monkeypatch.setattr(ar, "_acados_error", None)
@@ -203,7 +203,7 @@ def test_without_acados_a_clear_error(monkeypatch, capsys, tmp_path):
 
 
 def test_acados_rejects_baseline_models(capsys):
-    from msagv import run as run_cmd
+    from msagv.cli import run as run_cmd
     from msagv.controller.mpc import MPC
 
     with pytest.raises(ControllerError, match="'mf' only"):
@@ -219,8 +219,8 @@ def test_acados_rejects_baseline_models(capsys):
 def test_controller_process_acados_lockstep_equals_in_process(capfd):
     """``msagv controller --solver acados`` over Zenoh in lockstep gives the run of
     ``msagv run --solver acados`` in-process (same commands, so the same metrics)."""
-    from msagv import run as run_cmd
-    from msagv.demo import run_demo
+    from msagv.cli import run as run_cmd
+    from msagv.cli.demo import run_demo
 
     r = run_demo(duration=1.0, speed="15", run_mode="lockstep", deadline_ms=None,
                  extra_controller=["--solver", "acados"])

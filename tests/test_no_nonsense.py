@@ -100,7 +100,7 @@ def test_the_processes_try_their_recording_path_first(cmd, tmp_path):
 
 
 def test_an_existing_read_only_file_is_tried_too(tmp_path, capsys):
-    from msagv.args import OptionError, check_output
+    from msagv.cli.args import OptionError, check_output
 
     f = tmp_path / "old.json"
     f.write_text("keep me")
@@ -268,7 +268,7 @@ def test_warnings_print_once_per_kind_with_a_count_at_the_end(capsys):
     import logging
     import warnings
 
-    from msagv.args import warn, warning_kind, warning_style
+    from msagv.cli.args import warn, warning_kind, warning_style
 
     assert warning_kind("TWO 15 km/h: solve p99 11.62 ms over 200 solves") == \
         warning_kind("solve p99 9.5 ms over 100 solves")
@@ -281,7 +281,7 @@ def test_warnings_print_once_per_kind_with_a_count_at_the_end(capsys):
         warn("msagv test", ["TWO 15 km/h: solve p99 8.0 ms over 5 solves", "something else"])
         logging.getLogger("msagv.controller").info("not shown without -v")
         # Python's warnings: ours in the same style, a third party's not at all (-v: shown)
-        import msagv.args as ours
+        import msagv.cli.args as ours
 
         warnings.warn_explicit("our own", UserWarning, ours.__file__, 1)
         warnings.warn_explicit("Ignoring fixed y limits", UserWarning,
@@ -393,7 +393,7 @@ def test_an_old_recording_is_labelled_from_its_reference_not_guessed():
     from types import SimpleNamespace
 
     from msagv.plant.vehicle import default_vehicle
-    from msagv.report import _recording_scenario
+    from msagv.cli.report import _recording_scenario
 
     log = SimpleNamespace(t=[0.0] * 150)
     base = {"role": "plant", "period": 0.01, "vehicle": default_vehicle().to_dict()}

@@ -165,7 +165,7 @@ def test_bad_polish_setting_refused():
 
 _FIRST_COMMAND = """
 import argparse, json
-from msagv.args import add_case_args, add_mpc_args, scenario_from_args
+from msagv.cli.args import add_case_args, add_mpc_args, scenario_from_args
 from msagv.controller.loop import closed_loop
 ap = argparse.ArgumentParser(); add_case_args(ap); add_mpc_args(ap)
 b = scenario_from_args(ap.parse_args(["--duration", "0.02"])).build()

@@ -144,7 +144,7 @@ def in_process(duration: float):
     if duration in _IN_PROCESS:
         return _IN_PROCESS[duration]
     from msagv.controller.loop import closed_loop
-    from msagv.args import add_case_args, add_mpc_args, scenario_from_args
+    from msagv.cli.args import add_case_args, add_mpc_args, scenario_from_args
 
     ap = argparse.ArgumentParser()
     add_case_args(ap)

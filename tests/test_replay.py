@@ -1,4 +1,4 @@
-"""``msagv plant replay`` (plant/replay.py, msagv/cli.py) as a user runs it: a 3-axle vehicle
+"""``msagv plant replay`` (plant/replay.py, msagv/cli/__init__.py) as a user runs it: a 3-axle vehicle
 file, a CSV of random held commands, compared with the independent reference model; and
 malformed CSVs rejected with exit code 2 and a message naming the line."""
 

@@ -359,7 +359,7 @@ def test_a_users_scenario_is_whole_on_its_own_and_refused_when_undrivable(tmp_pa
     exit 2 before any run."""
     from helpers import THREE_AXLE_TOML
 
-    from msagv import experiment as ex_cli
+    from msagv.cli import experiment as ex_cli
     from msagv.experiments import study
 
     veh = tmp_path / "v.toml"

@@ -24,7 +24,7 @@ from pathlib import Path
 from msagv.bridge.session import DEFAULT_ID, DEFAULT_LEASE_MS, SessionOptions, check_id
 from msagv.experiments.scenario import AFTER_END, Scenario
 
-from . import __version__
+from .. import __version__
 
 
 class OptionError(ValueError):

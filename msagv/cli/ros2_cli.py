@@ -2,7 +2,7 @@
 (docs/ROS2.md).
 
 Each parses the same options as its Zenoh twin (``msagv controller``, ``msagv plant``),
-builds its part of the scenario (:func:`msagv.args.scenario_from_args`) and hands a factory
+builds its part of the scenario (:func:`msagv.cli.args.scenario_from_args`) and hands a factory
 or a plant to the node (:mod:`msagv.ros2`). Everything after ``--ros-args`` goes to rclpy:
 remapping (``-r odom:=/robot/odom``), parameters (``-p method:=ntwo``), a params file.
 """

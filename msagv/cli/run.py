@@ -3,7 +3,7 @@
 The controller at 100 Hz on the plant in this process: the built-in stepping plant, or an
 FMU stepped by fmpy (``msagv fmu simulate FILE.fmu``: the same loop and options with
 :class:`fmu_build.host.FmuPlant` as the plant). The scenario comes from the options
-(:func:`msagv.args.scenario_from_args`), is assembled by
+(:func:`msagv.cli.args.scenario_from_args`), is assembled by
 :meth:`experiments.scenario.Scenario.build` and run by :func:`controller.loop.closed_loop`.
 """
 

@@ -6,7 +6,7 @@ curve or Case 2 line at a speed, or a ``t,x,y,phi`` CSV), the initial state (on 
 reference unless ``from_rest``, plus overrides), the controller (MPC settings and solver),
 the plant (the built-in stepping plant, or an FMU with its name mapping and parameters),
 the duration and the control period. It is built from command-line options
-(:mod:`msagv.args`), from an experiment's run spec (:mod:`experiments.runs`) or from a
+(:mod:`msagv.cli.args`), from an experiment's run spec (:mod:`experiments.runs`) or from a
 TOML file (:meth:`Scenario.from_file`), and :meth:`Scenario.build` turns it into the plant,
 the controller and the reference that every caller (``msagv run``, ``msagv plant``,
 ``msagv controller``, the experiments, the benchmarks) then connects its own way.

@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         print(_usage())
         return 0
     if argv[0] in ("--version", "-V"):
-        from . import __version__
+        from .. import __version__
 
         print(f"msagv {__version__}")
         return 0
