@@ -1,8 +1,11 @@
-"""The ``msagv`` application: the command line and the in-process runner.
+"""``msagv``: tire-wear-aware trajectory tracking for multi-axle swerve-drive AGVs.
 
-Every sub-command's parser lives here (:mod:`msagv.cli` dispatches, :mod:`msagv.cli.args` holds
-the shared option builders); the work is done by the packages below it:
-``plant <- controller <- (bridge, fmu_build) <- experiments <- benchmarks <- msagv``.
+The import path is the file path: ``msagv/plant/`` (the vehicle), ``msagv/controller/`` (the
+MPC), ``msagv/bridge/`` (Zenoh transport and the processes), ``msagv/fmu_build/`` (the FMU),
+``msagv/experiments/``, ``msagv/benchmarks/``, ``msagv/ros2/`` and ``msagv/cli/`` (the command
+line: :mod:`msagv.cli` dispatches, :mod:`msagv.cli.args` holds the shared option builders).
+They import only downwards:
+``plant <- controller <- (bridge, fmu_build) <- experiments <- benchmarks <- cli``.
 """
 
 from importlib.metadata import PackageNotFoundError, version
