@@ -113,7 +113,7 @@ def test_symbolic_rollout_matches_numba(axles):
                       ("far", fast), ("far", fast), ("far", slow)]:
         x0, R, z, _ = _random_case(rng, model, ref, kind)
         poses, wear, cmds = _numba(model, x0, R, z)
-        P, W, C = (np.asarray(v) for v in nlp.rollout_fn(x0, R, z, 0.0))  # eps = 0: exact |.|
+        P, W, C = (np.asarray(v) for v in nlp.rollout_fn(x0, R, z, 0.0, nlp.disturbance()))  # eps = 0: exact |.|
         assert np.all(np.isfinite(poses)) and np.all(np.isfinite(wear))
         np.testing.assert_allclose(P, poses, rtol=1e-9, atol=1e-9, err_msg=f"poses ({kind})")
         np.testing.assert_allclose(W, wear, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(wear).max()),
@@ -137,7 +137,7 @@ def test_smoothing_bounds_the_wear_powers():
     for kind in ("near", "far"):
         x0, R, z, _ = _random_case(rng, model, ref, kind)
         _, wear, _ = _numba(model, x0, R, z)
-        W = np.asarray(nlp.rollout_fn(x0, R, z, 1.0)[1])
+        W = np.asarray(nlp.rollout_fn(x0, R, z, 1.0, nlp.disturbance())[1])
         assert np.all(W >= wear - 1e-9 * np.abs(wear).max())
         assert np.all(W <= wear + model.n_wheels * 1.0 + 1e-9 * np.abs(wear).max())
 

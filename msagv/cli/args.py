@@ -304,6 +304,14 @@ def add_case_args(ap: argparse.ArgumentParser, default_case: str = "curve") -> N
                          "vx, vy are global, u= is the forward speed in the body frame")
 
 
+def add_plant_vehicle_arg(ap: argparse.ArgumentParser) -> None:
+    """``--plant-vehicle FILE``: where a plant is simulated, its own vehicle (a model error
+    of the controller, as a real vehicle's would be)."""
+    ap.add_argument("--plant-vehicle", metavar="FILE",
+                    help="the plant's own vehicle TOML (tires, mass, inertia, lags), while the "
+                         "controller keeps --vehicle as its belief (default: the same vehicle)")
+
+
 def _choices_help(table: dict, default: str, lead: str = "") -> str:
     """``lead``, then ``name: what it is`` for each entry of a table, the default marked."""
     items = [f"{k}: {v}{' (default)' if k == default else ''}" for k, v in table.items()]
@@ -325,6 +333,11 @@ def add_mpc_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--model", choices=list(MODELS), default=None,
                     help=_choices_help({k: m.summary for k, m in MODELS.items()}, d.model,
                                        "prediction model: "))
+    ap.add_argument("--offset-free", action=argparse.BooleanOptionalAction, default=None,
+                    help="carry a disturbance estimated from the measured states in the "
+                         "prediction, so that tires or a mass the model does not know leave no "
+                         "steady tracking error (default: on for the mf and dugoff models, off "
+                         "for kinematic and tct; docs/CONTROLLER.md)")
     ap.add_argument("--seed", type=int, default=None, help=f"annealer seed (default {d.seed})")
     ap.add_argument("--iterations", type=int, help="annealing iterations per solve")
     ap.add_argument("--chains", type=int, help="annealing chains")
@@ -359,7 +372,8 @@ def settings_from_args(a) -> dict:
     from msagv.controller.models import MPCSettings
 
     kw = {}
-    for k in ("method", "model", "policy", "seed", "iterations", "chains", "threads"):
+    for k in ("method", "model", "policy", "seed", "iterations", "chains", "threads",
+              "offset_free"):
         if getattr(a, k, None) is not None:
             kw[k] = getattr(a, k)
     if getattr(a, "deadline_ms", None) is not None:
@@ -377,7 +391,9 @@ def settings_from_args(a) -> dict:
         try:
             if isinstance(cur, tuple):
                 kw[k] = tuple(type(cur[0])(x) for x in v.split(","))
-            elif isinstance(cur, bool):
+            elif isinstance(cur, bool) or k == "offset_free":
+                if v.lower() not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+                    raise ValueError(v)
                 kw[k] = v.lower() in ("1", "true", "yes", "on")
             elif cur is None:
                 kw[k] = float(v)
@@ -396,7 +412,8 @@ def scenario_from_args(a, default_case: str = "curve") -> Scenario:
     settings = settings_from_args(a) if hasattr(a, "method") else {}
     given = {"vehicle": has("vehicle"), "mass_kg": has("mass"), "speed": has("speed"),
              "duration": has("duration"), "after_end": has("after_end"),
-             "solver": has("solver"), "fmu": has("fmu"), "fmu_map": has("fmu_map")}
+             "solver": has("solver"), "fmu": has("fmu"), "fmu_map": has("fmu_map"),
+             "plant_vehicle": has("plant_vehicle")}
     given = {k: v for k, v in given.items() if v is not None}
     if has("from_rest"):
         given["from_rest"] = True
@@ -419,7 +436,13 @@ def scenario_from_args(a, default_case: str = "curve") -> Scenario:
     merged["case"] = has("case") or merged.get("case")
     if merged["trajectory"] is None and merged["case"] is None:
         merged["case"] = default_case
-    return Scenario(**merged)
+    pv = has("plant_vehicle")
+    if pv is not None and not Path(pv).is_file():
+        raise OptionError(f"--plant-vehicle: no such file {pv}")
+    sc = Scenario(**merged)
+    if pv is not None:
+        sc.actual_vehicle(sc.resolve_vehicle())  # loads it and checks its wheels now
+    return sc
 
 
 # ---- tire life ----------------------------------------------------------------------------

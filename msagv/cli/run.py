@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from .args import (PLOT_SUFFIXES, OptionError, add_case_args, add_common_args, add_fmu_args,
+                   add_plant_vehicle_arg,
                    add_mpc_args, add_tire_price_arg, check_distinct, check_output,
                    check_tire_price, fail, scenario_from_args, tire_price, warn)
 from .foxglove_cli import add_foxglove_args, check_foxglove_args
@@ -37,6 +38,7 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
                         help="a scenario file (docs/SCENARIOS.md), as --scenario; the options "
                              "below override its values")
     add_case_args(ap)
+    add_plant_vehicle_arg(ap)
     add_mpc_args(ap)
     ap.add_argument("--json", action="store_true",
                     help="print the result as one JSON object (docs/SCENARIOS.md#results)")
@@ -230,6 +232,8 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
                        vehicle.wheel_radius, tire_price(a, vehicle))  # axle, per km
     doc = result(prog.split(" ", 1)[1], info, m, warnings, completed=not interrupted, wear=wear)
     doc["budget"] = budget  # the controller's time budget (Controller.budget)
+    dist = getattr(built.controller, "disturbance", None)
+    doc["disturbance"] = dist() if dist is not None else None  # offset-free estimate at the end
     if a.log:
         log.to_csv(a.log)
     if a.plot:

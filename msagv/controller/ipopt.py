@@ -122,13 +122,16 @@ class HorizonNLP:
         ref = ca.SX.sym("ref", Np + 1, lay.N_REF)
         zprev = ca.SX.sym("zprev", 2 * nw)
         eps = ca.SX.sym("eps")
+        dist = ca.SX.sym("dist", 3)  # the offset-free disturbance (controller.disturbance)
+        self.model = model
         poses, wear, cmds = symbolic_rollout(x0, ref, z, model.block, model.P, model.S,
-                                             model.wx, model.wy, eps=eps)
+                                             model.wx, model.wy, eps=eps,
+                                             dist=[dist[i] for i in range(3)])
         L = settings.effective_L
         J = symbolic_cost(poses, wear, ref, z, zprev, settings.Q, L, settings.R, nw)
-        p = ca.vertcat(x0, ca.vec(ref), zprev, eps)
+        p = ca.vertcat(x0, ca.vec(ref), zprev, eps, dist)
         self.rollout_fn = ca.Function(
-            "rollout", [x0, ref, z, eps],
+            "rollout", [x0, ref, z, eps, dist],
             [ca.vertcat(*[ca.horzcat(*pk) for pk in poses]),
              ca.vertcat(*[ca.horzcat(*wk) for wk in wear]),
              ca.vertcat(ca.horzcat(*cmds[0]), ca.horzcat(*cmds[1]))])
@@ -142,9 +145,15 @@ class HorizonNLP:
         self.solver = ca.nlpsol("horizon", "ipopt", {"x": z, "p": p, "f": J}, opts)
 
     def params(self, x0, ref, zprev, eps=None) -> np.ndarray:
+        """The NLP's parameters: the state, the reference rows, the previous first block,
+        the |.| smoothing and the model's current offset-free disturbance."""
         e = self.options.eps_w if eps is None else eps
         return np.r_[np.asarray(x0, float), np.asarray(ref, float).reshape(-1, order="F"),
-                     np.asarray(zprev, float), e]
+                     np.asarray(zprev, float), e, self.disturbance()]
+
+    def disturbance(self) -> np.ndarray:
+        """The offset-free disturbance the prediction carries now (the model's ``S``)."""
+        return self.model.S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]].copy()
 
     def solve(self, x0, ref, zprev, z_init, lower, upper):
         """``(z, stats)``: IPOPT's answer from ``z_init`` inside [lower, upper] (its last

@@ -101,6 +101,12 @@ class MPCSettings:
       inside by about ``ref_smoothing^2 kappa / 2``; errors are still measured against the
       reference itself. 0 (default): the reference as given. The study's wear-blind lever
       of accuracy (docs/RESULTS.md).
+    offset_free: carry a body-frame disturbance estimated from the measured states in the
+      prediction (:mod:`controller.disturbance`), so that a constant model error (tires,
+      mass, floor) leaves no steady tracking error. None (default): on for the prediction
+      models where it does not hurt the nominal case (:data:`OFFSET_FREE_DEFAULT`: mf and
+      dugoff; measured in docs/CONTROLLER.md), off for kinematic and tct.
+      disturbance_tau [s]: its filter's time constant.
     """
 
     method: str = "two-energy"
@@ -137,6 +143,8 @@ class MPCSettings:
     policy: str = "offsets"
     dugoff_stiffness: str = "derived"
     ref_smoothing: float = 0.0
+    offset_free: bool | None = None
+    disturbance_tau: float = 0.05
 
     def __post_init__(self):
         bad = None
@@ -178,6 +186,10 @@ class MPCSettings:
             bad = f"seed: must be an integer >= 0, got {self.seed!r}"
         elif not (math.isfinite(self.ref_smoothing) and self.ref_smoothing >= 0):
             bad = f"ref_smoothing: must be a finite length >= 0 m, got {self.ref_smoothing}"
+        elif self.offset_free not in (None, True, False):
+            bad = f"offset_free: expected true or false, got {self.offset_free!r}"
+        elif not (math.isfinite(self.disturbance_tau) and self.disturbance_tau > 0):
+            bad = f"disturbance_tau: must be a finite time > 0 s, got {self.disturbance_tau}"
         elif self.deadline_ms is not None and not self.deadline_ms > 0:
             bad = f"deadline_ms: must be > 0, got {self.deadline_ms}"
         elif min(self.K_servo, self.offset_w_max, self.offset_d_max, self.sigma_w,
@@ -188,6 +200,14 @@ class MPCSettings:
         if bad:
             raise ValueError(f"MPCSettings.{bad}")
         object.__setattr__(self, "blocks", tuple(int(b) for b in self.blocks))
+
+    @property
+    def offset_free_on(self) -> bool:
+        """Whether the prediction carries the offset-free disturbance (``offset_free``, or
+        by default :data:`OFFSET_FREE_DEFAULT` of the model)."""
+        if self.offset_free is None:
+            return OFFSET_FREE_DEFAULT.get(self.model, False)
+        return bool(self.offset_free)
 
     @property
     def N_c(self) -> int:
@@ -236,6 +256,7 @@ def pack_settings(vehicle: Vehicle, s: MPCSettings) -> np.ndarray:
     S[lay.S_K_ALPHA] = k_alpha
     S[lay.S_POLICY] = POLICIES[s.policy][0]
     S[lay.S_STRIDE] = policy_stride(s.policy, vehicle.n_wheels)
+    S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = 0.0  # set each solve by the observer
     return S
 
 
@@ -392,6 +413,12 @@ class TCTModel(PredictionModel):
     model_id = _ro.MODEL_TCT
     name = "tct"
 
+
+# the offset-free disturbance by default (MPCSettings.offset_free = None): on where it does
+# not hurt the nominal case. Measured (docs/CONTROLLER.md): the kinematic model's prediction
+# error is its missing velocity dynamics, not a constant, and TCT's is its missing
+# longitudinal forces; a constant disturbance made both track worse with the right tires.
+OFFSET_FREE_DEFAULT = {"mf": True, "dugoff": True, "kinematic": False, "tct": False}
 
 MODELS = {"mf": MagicFormulaModel, "dugoff": DugoffModel, "kinematic": KinematicModel,
           "tct": TCTModel}

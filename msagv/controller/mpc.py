@@ -25,6 +25,7 @@ from msagv.plant.interface import BODY_FIELDS
 from msagv.plant.vehicle import Vehicle
 
 from . import solvers
+from .disturbance import DisturbanceObserver
 from .horizon import Horizon
 from .interface import Command, ControllerError
 from .models import MPCSettings
@@ -37,6 +38,8 @@ BUDGET_SOLVES = 20  # timed warm-up solves (MPC.warmup)
 BUDGET_SECONDS = 0.5  # ... for at most this long
 BUDGET_CHECK = 100  # during a run, check the solve p99 every this many solves
 BUDGET_WINDOW = 500  # ... over the last this many
+DIST_MAX_ACCEL = 5.0  # m/s^2: bound of the offset-free disturbance's accelerations (0.5 g)
+DIST_MAX_YAW_ACCEL = 2.0  # rad/s^2: ... and of its yaw acceleration
 
 _log = logging.getLogger("msagv.controller")
 
@@ -83,6 +86,12 @@ class MPC:
         self.model = self.horizon.model
         self.nw = vehicle.n_wheels
         self.solver = cls(self.horizon, options)
+        self.observer = None  # the offset-free disturbance (settings.offset_free)
+        if self.settings.offset_free_on:
+            kin = self.settings.model == "kinematic"
+            self.observer = DisturbanceObserver(
+                self.model, self.period, self.settings.disturbance_tau,
+                (1.0, 0.5) if kin else (DIST_MAX_ACCEL, DIST_MAX_YAW_ACCEL))
         self.warmup_solve_ms: list[float] = []
         self._smooth: tuple[Reference, Reference] | None = None  # (given, smoothed)
         self.budget_warnings: list[str] = []
@@ -95,6 +104,8 @@ class MPC:
         self._fresh = True  # no solution yet: the warm start is the plain feed-forward
         self._last = None  # (x0, R) of the last solve, for predicted_poses
         self.solver.reset()
+        if self.observer is not None:
+            self.observer.reset()
         self.solve_times_ms: list[float] = []
         self._run_warned = False
 
@@ -133,6 +144,8 @@ class MPC:
         if self.settings.ref_smoothing > 0:
             ref = self._smoothed(ref)
         t, x0 = self._state_vector(state)
+        if self.observer is not None:
+            self.observer.update(t, x0)
         s = self.settings
         R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
         if self._fresh:
@@ -154,6 +167,8 @@ class MPC:
         self.z, cost, iterations = self.solver.solve(x0, R, zprev, warm, t0)
         self._last = (x0, R)
         om_w, om_s = self.horizon.commands(x0, R[0], self.z)
+        if self.observer is not None:
+            self.observer.commanded(om_w, om_s)
         ms = (time.perf_counter() - t0) * 1000.0
         self.solve_times_ms.append(ms)
         self._check_budget()
@@ -161,6 +176,11 @@ class MPC:
         if self.on_solve is not None:
             self.on_solve(state, z_prev, cmd)
         return cmd
+
+    def disturbance(self) -> dict | None:
+        """The offset-free disturbance estimate now (:meth:`DisturbanceObserver.as_dict`),
+        None when ``settings.offset_free`` is off."""
+        return None if self.observer is None else self.observer.as_dict()
 
     def predicted_poses(self) -> np.ndarray | None:
         """The last solve's predicted poses ``(N_p + 1, 3)``: x, y, phi from the state it

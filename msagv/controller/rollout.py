@@ -90,7 +90,8 @@ from msagv.plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S,
                           N_L, P_V_EPS, P_WHEEL_RADIUS, P_YAW_INERTIA, POLICY_RAW, POLICY_TWIST,
                           POSE_PHI, POSE_X, POSE_Y, Q_PHI, Q_X, Q_Y, R_DD, R_DW, R_OD, R_OW,
                           REF_PHI, REF_R, REF_VX, REF_VY, REF_X, REF_Y, S_DT, S_K_ALPHA,
-                          S_K_PHI, S_K_POS, S_K_SERVO, S_POLICY, S_R_FB_MAX, S_STRIDE,
+                          S_DIST_R, S_DIST_U, S_DIST_V, S_K_PHI, S_K_POS, S_K_SERVO, S_POLICY,
+                          S_R_FB_MAX, S_STRIDE,
                           S_V_FB_MAX, WEAR_ALPHA, WEAR_S, WEAR_T, X0_DELTA, X0_PHI, X0_R,
                           X0_VX, X0_VY, X0_X, X0_Y)
 
@@ -500,10 +501,12 @@ def wheel_terms(dugoff, tct, ub, vb, r, delta, om_w, om_s, xw, yw, dt, FN, r_w, 
 
 
 def rigid_body_update(tct, x, y, phi, vx, vy, r, ub, vb, a00, a01, a02, a10, a11, a12,
-                      a20, a21, a22, f0, f1, f2, m, Iz, dt):
+                      a20, a21, a22, f0, f1, f2, m, Iz, dt, du, dv, dr):
     """The linearly implicit trapezoidal step (the module's DEVIATION) from the sums of
-    the wheels' terms: ``A = sum Lw^T M Lw``, ``F = sum Lw^T R F_W``; returns the new
-    ``(x, y, phi, vx, vy, r)``."""
+    the wheels' terms: ``A = sum Lw^T M Lw``, ``F = sum Lw^T R F_W``, plus the offset-free
+    disturbance ``(du, dv, dr)`` (body-frame accelerations [m/s^2, rad/s^2], constant over
+    the horizon: :mod:`controller.disturbance`); returns the new ``(x, y, phi, vx, vy,
+    r)``."""
     # (I - THETA dt M^-1 A) du = dt M^-1 F + transport terms of the body-frame eq. (17):
     # u' = F/m + (r vb, -r ub), r' = M_z / I_vz; the transport terms enter the Jacobian
     hm = THETA * dt / m
@@ -517,9 +520,9 @@ def rigid_body_update(tct, x, y, phi, vx, vy, r, ub, vb, a00, a01, a02, a10, a11
     a20 = -hi * a20
     a21 = -hi * a21
     a22 = 1.0 - hi * a22
-    f0 = dt / m * f0 + dt * r * vb
-    f1 = dt / m * f1 - dt * r * ub
-    f2 = dt / Iz * f2
+    f0 = dt / m * f0 + dt * r * vb + dt * du
+    f1 = dt / m * f1 - dt * r * ub + dt * dv
+    f2 = dt / Iz * f2 + dt * dr
     if tct:  # the longitudinal row is not modelled: no longitudinal acceleration
         a00 = 1.0
         a01 = 0.0
@@ -538,12 +541,17 @@ def rigid_body_update(tct, x, y, phi, vx, vy, r, ub, vb, a00, a01, a02, a10, a11
     return x + 0.5 * dt * (vx + vx1), y + 0.5 * dt * (vy + vy1), phi1, vx1, vy1, r1
 
 
-def kinematic_update(x, y, phi, nw, sx, sy, sxx, syy, sw1, sw2, sw3, dt):
+def kinematic_update(x, y, phi, nw, sx, sy, sxx, syy, sw1, sw2, sw3, dt, du, dv, dr):
     """Kinematic baseline (Zhang et al. 2016): the body twist is the least-squares rigid
     motion of the commanded wheel velocities (sums ``sw*`` of ``omega_w r_w (cos delta,
     sin delta)``, their moments about the centre); wheels roll without slip (no slip
-    wear). Returns the new pose and velocity (forward Euler)."""
+    wear). The offset-free disturbance ``(du, dv, dr)`` is a body-frame twist offset
+    [m/s, rad/s] (:mod:`controller.disturbance`). Returns the new pose and velocity
+    (forward Euler)."""
     ub, vb, r = _solve3(nw, 0.0, -sy, 0.0, nw, sx, -sy, sx, sxx + syy, sw1, sw2, sw3)
+    ub += du
+    vb += dv
+    r += dr
     c = cos(phi)
     s = sin(phi)
     vx = c * ub - s * vb
@@ -732,7 +740,7 @@ def store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi, ps, pa
 
 
 def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls, la, lt,
-              les, lea, let):
+              les, lea, let, du, dv, dr):
     """Step ``k``'s body update in every lane (``KINEMATIC``: bound per tile) from the
     wheels' sums, and its tracking and wear terms added to the lanes' costs."""
     rx1, ry1, rphi1 = ref[k + 1, REF_X], ref[k + 1, REF_Y], ref[k + 1, REF_PHI]
@@ -740,7 +748,7 @@ def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls,
         for b in range(L):  # vectorised: the kinematic body
             x, y, phi, vx, vy, r = kinematic_update(
                 w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], nw, sx, sy, sxx, syy,
-                w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b], dt)
+                w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b], dt, du, dv, dr)
             store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi, 0.0,  # noqa: F821
                        0.0, ls, la, lt, les, lea, let)
     else:
@@ -751,7 +759,7 @@ def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls,
                 w[W_A00 * L + b], w[W_A01 * L + b], w[W_A02 * L + b], w[W_A10 * L + b],
                 w[W_A11 * L + b], w[W_A12 * L + b], w[W_A20 * L + b], w[W_A21 * L + b],
                 w[W_A22 * L + b], w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b],
-                m, Iz, dt)
+                m, Iz, dt, du, dv, dr)
             store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi,  # noqa: F821
                        w[W_PS * L + b], w[W_PA * L + b], ls, la, lt, les, lea, let)
 
@@ -784,6 +792,7 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
     k_pos, v_fb_max, k_phi = S[S_K_POS], S[S_V_FB_MAX], S[S_K_PHI]
     r_fb_max, k_alpha = S[S_R_FB_MAX], S[S_K_ALPHA]
     kservo = (1.0 - math.exp(-S[S_K_SERVO] * dt)) / dt
+    du, dv, dr = S[S_DIST_U], S[S_DIST_V], S[S_DIST_R]
     qx, qy, qphi = Q[Q_X], Q[Q_Y], Q[Q_PHI]
     ls, la, lt, les, lea, let = Lw[L_S], Lw[L_ALPHA], Lw[L_T], Lw[LE_S], Lw[LE_ALPHA], Lw[LE_T]
     sx = 0.0
@@ -825,7 +834,7 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
                     cmds[b0 + b, CMD_W, j] = w[W_OMW * L + b]
                     cmds[b0 + b, CMD_S, j] = w[W_OMS * L + b]
         body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi,  # noqa: F821
-                  ls, la, lt, les, lea, let)
+                  ls, la, lt, les, lea, let, du, dv, dr)
         if out:
             for b in range(nb):
                 poses[b0 + b, k, POSE_X] = w[W_X * L + b]

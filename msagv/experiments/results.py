@@ -8,7 +8,10 @@ one document, and ``msagv experiment --json`` one per row under ``rows``::
      "scenario":  {"case", "trajectory", "reference", "speed_kmh",
                    "vehicle": {"name", "axles", "mass_kg", "file"},
                    "method", "model", "solver", "seed",
-                   "duration_s", "period_s", "after_end", "plant", "initial"},
+                   "duration_s", "period_s", "after_end", "plant",
+                   "plant_vehicle": null | {"name", "axles", "mass_kg", "file", "tire_scale",
+                                            "options"},
+                   "offset_free", "initial"},
      "metrics":   {"W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg",
                    "e_bar", "Omega", "solve_ms": {"p50", "p99", "max"}, "steps"},
      "completed": true,                # false: cut short (Ctrl-C), the metrics so far
@@ -71,7 +74,23 @@ def scenario_info(scenario, vehicle, reference, settings=None,
             "period_s": scenario.period,
             "after_end": scenario.after_end,
             "plant": f"fmu {Path(scenario.fmu).name}" if scenario.fmu else "native",
+            "plant_vehicle": _plant_vehicle_info(scenario, vehicle),
+            "offset_free": getattr(settings, "offset_free_on", None),
             "initial": "rest" if scenario.from_rest else "reference"}
+
+
+def _plant_vehicle_info(scenario, vehicle) -> dict | None:
+    """The plant's own vehicle where it is not the controller's (``plant_vehicle``,
+    ``plant_tire_scale``, ``plant_options``), else None."""
+    pv = getattr(scenario, "plant_vehicle", None)
+    if (pv is None and getattr(scenario, "plant_tire_scale", 1.0) == 1.0
+            and not getattr(scenario, "plant_options", None)):
+        return None
+    info = vehicle_info(scenario.actual_vehicle(vehicle),
+                        pv if isinstance(pv, (str, Path)) else None)
+    info["tire_scale"] = float(scenario.plant_tire_scale)
+    info["options"] = dict(scenario.plant_options)
+    return info
 
 
 def result(command: str, scenario: dict, metrics: dict, warnings: Iterable[str] = (),

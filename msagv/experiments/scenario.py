@@ -91,6 +91,10 @@ class Scenario:
     plant_tire_scale : the plant's Magic Formula stiffness factors B and peak friction mu
         (both curves) times this factor; the controller keeps the nominal tires (a model
         error of the prediction, as a real tire would make).
+    plant_vehicle : the plant's own vehicle (a file path or a :class:`plant.vehicle.Vehicle`):
+        its tires, mass, inertia, lags and geometry, while the controller keeps ``vehicle``
+        (its belief). ``plant_options`` and ``plant_tire_scale`` apply on top of it. It must
+        have as many wheels as the controller's vehicle.
     """
 
     vehicle: Any = None
@@ -112,6 +116,7 @@ class Scenario:
     path_seed: int = 0
     plant_options: dict = field(default_factory=dict)
     plant_tire_scale: float = 1.0
+    plant_vehicle: Any = None
 
     def __post_init__(self):
         if self.trajectory is not None and self.case is not None:
@@ -142,9 +147,11 @@ class Scenario:
             raise ScenarioError(f"axles: must be an integer >= 1, got {self.axles!r}")
         if not (math.isfinite(self.plant_tire_scale) and self.plant_tire_scale > 0):
             raise ScenarioError(f"plant_tire_scale: must be > 0, got {self.plant_tire_scale}")
-        if self.fmu is not None and (self.plant_options or self.plant_tire_scale != 1.0):
-            raise ScenarioError("plant_options and plant_tire_scale apply to the built-in "
-                                "plant, not to an FMU (set the FMU's parameters instead)")
+        if self.fmu is not None and (self.plant_options or self.plant_tire_scale != 1.0
+                                     or self.plant_vehicle is not None):
+            raise ScenarioError("plant_vehicle, plant_options and plant_tire_scale apply to the "
+                                "built-in plant, not to an FMU (set the FMU's parameters "
+                                "instead)")
         if self.fmu_map is not None and self.fmu is None:
             raise ScenarioError("--map applies to --fmu: a name mapping needs an FMU plant")
 
@@ -268,17 +275,29 @@ class Scenario:
         from msagv.plant.stepping import Plant
 
         vehicle = self.resolve_vehicle()
-        actual = self.plant_vehicle(vehicle)
+        actual = self.actual_vehicle(vehicle)
         initial = self.initial_state(actual, start)
         return Plant(actual, initial=initial), vehicle, ref, initial
 
-    def plant_vehicle(self, vehicle):
-        """The vehicle the plant simulates: ``vehicle`` with ``plant_options`` and
-        ``plant_tire_scale`` applied (the controller's is ``vehicle`` itself)."""
+    def actual_vehicle(self, vehicle):
+        """The vehicle the plant simulates: ``plant_vehicle`` (default ``vehicle``) with
+        ``plant_options`` and ``plant_tire_scale`` applied (the controller's is ``vehicle``
+        itself)."""
+        from msagv.plant.vehicle import Vehicle, VehicleError, load_vehicle, vehicle_from_dict
+
+        if self.plant_vehicle is not None:
+            try:
+                own = (self.plant_vehicle if isinstance(self.plant_vehicle, Vehicle)
+                       else load_vehicle(self.plant_vehicle))
+            except VehicleError as e:
+                raise ScenarioError(f"plant_vehicle: {e}") from None
+            if own.n_wheels != vehicle.n_wheels:
+                raise ScenarioError(
+                    f"plant_vehicle: {own.n_axles} axles, but the controller's vehicle has "
+                    f"{vehicle.n_axles}: the plant must have as many wheels as the commands")
+            vehicle = own
         if not self.plant_options and self.plant_tire_scale == 1.0:
             return vehicle
-        from msagv.plant.vehicle import vehicle_from_dict
-
         d = vehicle.to_dict()
         unknown = sorted(set(self.plant_options) - set(d["plant"]))
         if unknown:
@@ -343,6 +362,8 @@ class Scenario:
         d = {f.name: getattr(self, f.name) for f in fields(self)}
         if isinstance(self.vehicle, Vehicle):
             d["vehicle"] = self.vehicle.to_dict()
+        if isinstance(self.plant_vehicle, Vehicle):
+            d["plant_vehicle"] = self.plant_vehicle.to_dict()
         d["settings"] = {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in self.settings.items()}
         return d
@@ -405,18 +426,19 @@ class Scenario:
                 SpeedProfile.parse(sp)
             except ReferenceError as e:
                 raise ScenarioError(f"speed: {e}") from None
-        v = kw.get("vehicle")
-        if isinstance(v, Mapping):
-            try:
-                kw["vehicle"] = vehicle_from_dict(v)
-            except VehicleError as e:
-                raise ScenarioError(f"vehicle.{e}") from None
-        elif v is not None:
-            if not isinstance(v, str):
-                raise ScenarioError(f"vehicle: expected a file path or a table, got {v!r}")
-            kw["vehicle"] = _resolve(v, base)
-            if not Path(kw["vehicle"]).is_file():
-                raise ScenarioError(f"vehicle: no such file {kw['vehicle']}")
+        for key in ("vehicle", "plant_vehicle"):
+            v = kw.get(key)
+            if isinstance(v, Mapping):
+                try:
+                    kw[key] = vehicle_from_dict(v)
+                except VehicleError as e:
+                    raise ScenarioError(f"{key}.{e}") from None
+            elif v is not None:
+                if not isinstance(v, str):
+                    raise ScenarioError(f"{key}: expected a file path or a table, got {v!r}")
+                kw[key] = _resolve(v, base)
+                if not Path(kw[key]).is_file():
+                    raise ScenarioError(f"{key}: no such file {kw[key]}")
         sc = cls(**kw)
         try:
             sc.mpc_settings()  # a bad setting is named now
@@ -428,6 +450,8 @@ class Scenario:
                 sc.resolve_vehicle()
             except VehicleError as e:
                 raise ScenarioError(f"vehicle: {e}") from None
+        if sc.plant_vehicle is not None:
+            sc.actual_vehicle(sc.resolve_vehicle())  # loads it, checks its wheels
         return sc
 
     @classmethod

@@ -166,7 +166,7 @@ class StudyScenario:
         """What the report says of this instance: its vehicle, its reference's real speed
         (a trajectory's too) and duration."""
         sc = self.scenario()
-        v = sc.plant_vehicle(sc.resolve_vehicle())
+        v = sc.actual_vehicle(sc.resolve_vehicle())
         ref, _ = sc.reference()
         dur = sc.run_duration(ref)
         R = ref.sample(ref.t[(ref.t >= ref.t[0]) & (ref.t <= ref.t[0] + dur)])
@@ -290,7 +290,7 @@ def floor_task(sc_dict: dict, digest: str) -> dict:
     t0 = time.perf_counter()
     sc = StudyScenario(**sc_dict)
     scen = sc.scenario()
-    vehicle = scen.plant_vehicle(scen.resolve_vehicle())
+    vehicle = scen.actual_vehicle(scen.resolve_vehicle())
     ref, _ = scen.reference()
     dur = scen.run_duration(ref)
     f = wear_floors(ref, vehicle, float(ref.t[0]), float(ref.t[0]) + dur, dt=0.05)

@@ -95,7 +95,10 @@ S_R_FB_MAX = 5        # heading feedback limit [rad/s]
 S_K_ALPHA = 6         # cornering feed-forward gain [rad per (m/s)(rad/s)]
 S_POLICY = 7          # decision parametrisation: POLICY_* below (an integer held as float)
 S_STRIDE = 8          # decision variables per move block (an integer held as float)
-N_SETTINGS = 9
+S_DIST_U = 9          # the offset-free disturbance, body frame (controller.disturbance): the
+S_DIST_V = 10         # dynamic models add (a_u, a_v) [m/s^2] and alpha_r [rad/s^2] to the body's
+S_DIST_R = 11         # accelerations, the kinematic one (u, v) [m/s] and r [rad/s] to its twist
+N_SETTINGS = 12
 
 # decision parametrisations (S_POLICY); the policy maps a block's variables to commands
 POLICY_OFFSETS = 0    # per-wheel offsets of wheel speed and steering target from the feed-forward

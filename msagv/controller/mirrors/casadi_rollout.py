@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from msagv.plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX, P_DELTA_MIN, P_G,
+from msagv.plant.layout import (S_DIST_R, S_DIST_U, S_DIST_V, CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX, P_DELTA_MIN, P_G,
                           N_REF, P_K_T, P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C,
                           P_LON_E, P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN,
                           P_OMEGA_W_MAX, P_V_EPS, P_WHEEL_RADIUS, P_YAW_INERTIA, POSE_PHI,
@@ -124,14 +124,16 @@ def _solve3(A, b):
             (a * (e * b[2] - b[1] * h) - bb * (d * b[2] - b[1] * g) + b[0] * (d * h - e * g)) / det)
 
 
-def symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps=0.0):
+def symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps=0.0, dist=None):
     """One step of the MF prediction (the loop body of :func:`symbolic_rollout`): from the
     pose ``X`` (x, y, phi in :mod:`plant.layout`'s POSE order), the global-frame velocity
     ``V`` (vx, vy, r) and the steering angles ``delta`` (lists of CasADi expressions), the
     reference row ``refk`` (6) and the offsets ``z[base : base + 2n]`` of the step's block.
     ``P``, ``S``, ``wx``, ``wy`` are plain numbers. Returns ``(X, V, delta, wear, cmds)``
     after the step: the new pose, velocity and angles (lists), the step's wear powers
-    ``(P_s, P_alpha, P_t)`` [W] in WEAR order and its commands ``(om_w, om_s)``."""
+    ``(P_s, P_alpha, P_t)`` [W] in WEAR order and its commands ``(om_w, om_s)``. ``dist``:
+    the offset-free disturbance (body-frame accelerations, three numbers or expressions);
+    None: ``S``'s (:data:`plant.layout.S_DIST_U` ..)."""
     nw = len(wx)
     P = [float(p) for p in P]
     S = [float(v) for v in S]
@@ -214,6 +216,10 @@ def symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps=0.0):
         F[i] = dt * inv * F[i]
     F[0] += dt * r * vb
     F[1] -= dt * r * ub
+    if dist is None:
+        dist = [S[S_DIST_U], S[S_DIST_V], S[S_DIST_R]]
+    for i in range(3):
+        F[i] += dt * dist[i]
     A[0][1] -= th * dt * r
     A[0][2] -= th * dt * vb
     A[1][0] += th * dt * r
@@ -233,14 +239,15 @@ def symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps=0.0):
     return X, V, delta, tuple(wk), (om_w, om_s)
 
 
-def symbolic_rollout(x0, ref, z, block, P, S, wx, wy, eps=0.0):
+def symbolic_rollout(x0, ref, z, block, P, S, wx, wy, eps=0.0, dist=None):
     """The MF prediction of one candidate, symbolically (paper eq. 9-21 with the
     DEVIATIONs of :mod:`controller.rollout`: linearly implicit trapezoidal body-frame step),
     :func:`symbolic_step` once per prediction step.
 
     ``x0`` (6 + 2n) and ``ref`` ((N_p + 1) x 6, indexable as ref[k, i]) and ``z`` are CasADi
     expressions; ``block``, ``P``, ``S``, ``wx``, ``wy`` plain numbers (they are baked into
-    the graph). ``eps`` [W]: smoothing of |.| in eq. (13)-(15) (0: exact).
+    the graph). ``eps`` [W]: smoothing of |.| in eq. (13)-(15) (0: exact). ``dist``: the
+    offset-free disturbance (:func:`symbolic_step`; an expression to make it a parameter).
     Returns ``(poses, wear, cmds)``: lists of N_p ``(x, y, phi)``, N_p ``(P_s, P_alpha,
     P_t)`` [W] and the first step's ``(om_w, om_s)``.
     """
@@ -256,7 +263,8 @@ def symbolic_rollout(x0, ref, z, block, P, S, wx, wy, eps=0.0):
     for k in range(Np):
         refk = [ref[k, i] for i in range(N_REF)]
         base = int(block[k]) * 2 * nw
-        X, V, delta, wk, cmd = symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps)
+        X, V, delta, wk, cmd = symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps,
+                                             dist)
         if k == 0:
             cmds = cmd
         pose = [None] * 3

@@ -1,0 +1,134 @@
+"""Offset-free tracking: a constant body-frame disturbance estimated from the measured states
+and carried by the prediction.
+
+With tires (or a mass, a floor, a slope) that the model does not know, the prediction of
+every MPC is wrong by a force that changes slowly, and the closed loop settles into a steady
+tracking bias. The remedy of offset-free MPC (Pannocchia and Rawlings 2003; Maeder, Borrelli
+and Morari 2009) is a disturbance model with as many integrating states as tracked outputs,
+estimated from the measurements, that the prediction carries. Here it is a body-frame
+disturbance ``d = (d_u, d_v, d_r)``:
+
+- dynamic models (mf, dugoff, tct): accelerations [m/s^2, m/s^2, rad/s^2] added to the body's
+  equations of motion (eq. 17: ``u' = F_x / m + r v + d_u``, ``v' = F_y / m - r u + d_v``,
+  ``r' = M_z / I_z + d_r``), constant over the horizon;
+- the kinematic model: a twist offset [m/s, m/s, rad/s] added to the body twist the wheels
+  command.
+
+The estimate (:class:`DisturbanceObserver`) compares, each control period ``T``, the body
+velocity measured at ``t`` with the model's one-period prediction from the state measured at
+``t - T`` under the command sent then and the current ``d`` (the controller's own kernels at
+step ``T``; the predicted velocity is read off the predicted pose exactly, by inverting the
+trapezoidal update). The prediction error ``e`` (body frame of the measured heading) updates
+
+    dynamic:    d <- d + e / tau              (e / T is the acceleration the model missed)
+    kinematic:  d <- d + (T / tau) e          (e is the twist the model missed)
+
+a first-order filter with time constant ``tau`` (``MPCSettings.disturbance_tau``) on the
+disturbance that explains the last period: the steady-state Kalman filter of a random-walk
+disturbance with no measurement noise model. A constant model error then leaves no steady
+tracking error: at a steady state the prediction with ``d`` reproduces the measured motion,
+and the MPC's optimum puts that motion on the reference. ``|d|`` is bounded
+(``disturbance_max``) so that a state jump (a reset, a teleport) cannot wind it up; a period
+that is not one control period after the last (a lost or repeated state) skips the update.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from msagv.plant import layout as lay
+
+from . import rollout as _ro
+
+SLOTS = [lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]
+
+
+class DisturbanceObserver:
+    """The offset-free disturbance of one prediction model (module docstring).
+
+    Parameters
+    ----------
+    model : the controller's prediction model (:mod:`controller.models`); its ``S`` carries
+        the estimate into every solver's prediction (slots ``S_DIST_*``).
+    period : the control period T [s].
+    tau : the filter's time constant [s] (> 0).
+    limit : bounds of ``|d|`` per component: (translational, rotational), in the units of
+        the model's disturbance.
+    """
+
+    def __init__(self, model, period: float, tau: float, limit: tuple[float, float]):
+        if not (tau > 0 and period > 0):
+            raise ValueError("disturbance observer: tau and period must be > 0")
+        self.model = model
+        self.period = float(period)
+        self.tau = float(tau)
+        self.kinematic = model.model_id == _ro.MODEL_KINEMATIC
+        self.limit = np.array([limit[0], limit[0], limit[1]], dtype=float)
+        nw = model.n_wheels
+        self._S1 = model.S.copy()  # one raw-command step of length T
+        self._S1[lay.S_DT] = self.period
+        self._S1[lay.S_POLICY] = lay.POLICY_RAW
+        self._S1[lay.S_STRIDE] = 2 * nw
+        self._block = np.zeros(1, dtype=np.int64)
+        self._poses = np.empty((1, 1, lay.N_POSE))
+        self._wear = np.empty((1, 1, lay.N_WEAR))
+        self._cmds = np.empty((1, 2, nw))
+        self._ref = np.zeros((2, lay.N_REF))
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the estimate and the last state (d = 0)."""
+        self.d = np.zeros(3)
+        self.model.S[SLOTS] = 0.0
+        self._last = None  # (t, x0, z_raw) of the last period
+        self.updates = 0
+
+    def predict_velocity(self, x0: np.ndarray, om_w: np.ndarray, om_s: np.ndarray
+                         ) -> tuple[float, float, float, float]:
+        """The model's prediction one control period after ``x0`` under the commands
+        ``(om_w, om_s)`` and the current ``d``: ``(phi, vx, vy, r)`` (global frame)."""
+        self._S1[SLOTS] = self.d
+        z = np.ascontiguousarray(np.r_[om_w, om_s], dtype=float)[None, :]
+        _ro.EXACT.rollout_batch(self.model.model_id, np.ascontiguousarray(x0), self._ref, z,
+                                self._block, self.model.P, self._S1, self.model.wx,
+                                self.model.wy, self._poses, self._wear, self._cmds)
+        T = self.period
+        x1, y1, phi1 = self._poses[0, 0]
+        if self.kinematic:  # forward Euler: the new twist moved the pose
+            return phi1, (x1 - x0[lay.X0_X]) / T, (y1 - x0[lay.X0_Y]) / T, (phi1 - x0[lay.X0_PHI]) / T
+        # the trapezoidal update x1 = x0 + T (v0 + v1) / 2, inverted
+        return (phi1, 2.0 * (x1 - x0[lay.X0_X]) / T - x0[lay.X0_VX],
+                2.0 * (y1 - x0[lay.X0_Y]) / T - x0[lay.X0_VY],
+                2.0 * (phi1 - x0[lay.X0_PHI]) / T - x0[lay.X0_R])
+
+    def update(self, t: float, x0: np.ndarray) -> np.ndarray:
+        """Take the state measured at ``t`` (the MPC's state vector): compare it with the
+        prediction from the last period's state and command, update ``d`` and put it into
+        the model's ``S``. Returns ``d``."""
+        last = self._last
+        if (last is not None and last[2] is not None
+                and abs((t - last[0]) - self.period) <= 0.25 * self.period):
+            _, xp, omw, oms = last
+            _, vx, vy, r = self.predict_velocity(xp, omw, oms)
+            c, s = math.cos(x0[lay.X0_PHI]), math.sin(x0[lay.X0_PHI])
+            ex, ey = x0[lay.X0_VX] - vx, x0[lay.X0_VY] - vy
+            e = np.array([c * ex + s * ey, -s * ex + c * ey, x0[lay.X0_R] - r])
+            gain = (self.period / self.tau) if self.kinematic else (1.0 / self.tau)
+            self.d = np.clip(self.d + gain * e, -self.limit, self.limit)
+            self.updates += 1
+        self.model.S[SLOTS] = self.d
+        self._last = (t, x0.copy(), None, None)
+        return self.d
+
+    def commanded(self, om_w: np.ndarray, om_s: np.ndarray) -> None:
+        """The command sent for the state of the last :meth:`update` (held over T)."""
+        if self._last is not None:
+            t, x0, _, _ = self._last
+            self._last = (t, x0, np.array(om_w, dtype=float), np.array(om_s, dtype=float))
+
+    def as_dict(self) -> dict:
+        """The estimate for reports: ``d_u``, ``d_v``, ``d_r`` and the number of updates."""
+        return {"d_u": float(self.d[0]), "d_v": float(self.d[1]), "d_r": float(self.d[2]),
+                "updates": int(self.updates)}
