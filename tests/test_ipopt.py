@@ -27,6 +27,9 @@ from msagv.controller.loop import closed_loop
 from msagv.controller.models import MPCSettings, make_model
 from msagv.controller.mpc import MPC, ControllerError
 from msagv.plant import Plant, default_vehicle, n_axle_vehicle
+from msagv.plant import layout as lay
+
+DIST = [lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]
 from helpers import assert_commands_within_bounds
 
 try:
@@ -109,9 +112,12 @@ def test_symbolic_rollout_matches_numba(axles):
     rng = np.random.default_rng(100 + axles)
     lim = model.vehicle.limits
     hit = {"om_s at a rate limit": False, "om_w clipped to 0": False}
+    dist = [lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]
     for kind, ref in [("near", fast), ("near", slow), ("wrap", fast), ("crawl", slow),
-                      ("far", fast), ("far", fast), ("far", slow)]:
-        x0, R, z, _ = _random_case(rng, model, ref, kind)
+                      ("far", fast), ("far", fast), ("far", slow), ("zero", fast)]:
+        x0, R, z, _ = _random_case(rng, model, ref, "far" if kind == "zero" else kind)
+        # the offset-free disturbance (body accelerations) carried by both, zero or not
+        model.S[dist] = 0.0 if kind == "zero" else rng.uniform(-1.0, 1.0, 3) * [0.5, 0.5, 0.1]
         poses, wear, cmds = _numba(model, x0, R, z)
         P, W, C = (np.asarray(v) for v in nlp.rollout_fn(x0, R, z, 0.0, nlp.disturbance()))  # eps = 0: exact |.|
         assert np.all(np.isfinite(poses)) and np.all(np.isfinite(wear))
@@ -123,6 +129,7 @@ def test_symbolic_rollout_matches_numba(axles):
         hit["om_s at a rate limit"] |= bool(np.any(np.isclose(om_s, lim.omega_s_max))
                                             or np.any(np.isclose(om_s, lim.omega_s_min)))
         hit["om_w clipped to 0"] |= bool(np.any(cmds[0] == 0.0))
+    model.S[dist] = 0.0  # (the model is shared by the session's tests)
     # the draws really exercised the policy's clips (not only its smooth interior)
     assert all(hit.values()), hit
 
@@ -177,7 +184,9 @@ def annealer_run():
     prev = [np.zeros(mpc.model.dim)]  # closed_loop resets the MPC after its warm-up
 
     def on_step(k, st, cmd):
-        steps.append((dict(st), prev[0].copy(), mpc.z.copy(), cmd.cost))
+        # (the offset-free disturbance the prediction carried in this solve, too)
+        steps.append((dict(st), prev[0].copy(), mpc.z.copy(), cmd.cost,
+                      mpc.model.S[DIST].copy()))
         prev[0] = mpc.z.copy()
 
     closed_loop(plant, mpc, ref, 0.6, on_step=on_step)
@@ -193,7 +202,8 @@ def test_ipopt_reaches_at_most_the_annealer_cost(annealer_run):
     s = ip.settings
     gains = []
     for k in (5, 20, 40, 59):
-        st, z_before, z_sa, J_sa = steps[k]
+        st, z_before, z_sa, J_sa, dist = steps[k]
+        ip.model.S[DIST] = dist  # the same problem as the annealer's, disturbance and all
         t, x0 = ip._state_vector(st)
         R = np.ascontiguousarray(ref.sample(t + s.dt * np.arange(s.N_p + 1)))
         zprev = z_before[: 2 * ip.nw]

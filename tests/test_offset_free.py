@@ -1,0 +1,181 @@
+"""Offset-free tracking (controller/disturbance.py, issue 28): the disturbance the prediction
+carries, its observer, and the closed loop on a plant whose tires are not the model's."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from msagv.controller.disturbance import SLOTS, DisturbanceObserver
+from msagv.controller.loop import closed_loop
+from msagv.controller.models import MPCSettings, make_model
+from msagv.controller.reference import make_case
+from msagv.experiments.scenario import Scenario, ScenarioError
+from msagv.plant import default_vehicle
+from msagv.plant import layout as lay
+
+import helpers
+
+
+def _x0(vehicle, ref, t=0.0):
+    st = ref.initial_state(vehicle)
+    x0 = np.zeros(lay.x0_size(vehicle.n_wheels))
+    for i, k in enumerate(("x", "y", "phi", "vx", "vy", "r")):
+        x0[i] = st[k]
+    return x0
+
+
+def test_the_kinematic_twist_offset_moves_the_prediction_as_computed_by_hand():
+    """Kinematic model: a body-frame twist offset (d_u, 0, 0) at heading phi moves every
+    predicted pose by k dt d_u (cos phi, sin phi) (forward Euler, the heading unchanged;
+    the policy's pose feedback off, so that it does not answer the move)."""
+    v = default_vehicle()
+    s = MPCSettings(model="kinematic", policy="twist", method="ntwo", K_pos=0.0, K_phi=0.0)
+    m = make_model(v, s)
+    ref, _ = make_case("line", 10.0)
+    R = np.ascontiguousarray(ref.sample(s.dt * np.arange(s.N_p + 1)))
+    x0 = _x0(v, ref)
+    x0[lay.X0_PHI] = 0.3
+    z = np.zeros((1, m.dim))
+    base = m.rollout(x0, R, z, exact=True).poses[0].copy()
+    m.S[SLOTS] = [0.4, 0.0, 0.0]
+    moved = m.rollout(x0, R, z, exact=True).poses[0].copy()
+    k = np.arange(1, s.N_p + 1)
+    np.testing.assert_allclose(moved[:, lay.POSE_X] - base[:, lay.POSE_X],
+                               k * s.dt * 0.4 * math.cos(0.3), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(moved[:, lay.POSE_Y] - base[:, lay.POSE_Y],
+                               k * s.dt * 0.4 * math.sin(0.3), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(moved[:, lay.POSE_PHI], base[:, lay.POSE_PHI], atol=1e-12)
+
+
+def test_a_body_acceleration_changes_the_dynamic_prediction_in_its_direction():
+    """MF model: a forward acceleration disturbance makes the vehicle go further, a positive
+    yaw acceleration turns it left; zero changes nothing (bit for bit). (The wheels' speeds
+    and angles are held: their tire forces resist the push, so the move is small.)"""
+    v = default_vehicle()
+    s = MPCSettings(method="ntwo", K_pos=0.0, K_phi=0.0)
+    m = make_model(v, s)
+    ref, _ = make_case("line", 10.0)
+    R = np.ascontiguousarray(ref.sample(s.dt * np.arange(s.N_p + 1)))
+    x0 = _x0(v, ref)
+    z = np.zeros((1, m.dim))
+    base = m.rollout(x0, R, z).poses[0].copy()
+    m.S[SLOTS] = [0.0, 0.0, 0.0]
+    assert np.array_equal(m.rollout(x0, R, z).poses[0], base)
+    m.S[SLOTS] = [0.5, 0.0, 0.0]
+    ahead = m.rollout(x0, R, z).poses[0].copy()
+    m.S[SLOTS] = [0.0, 0.0, 0.2]
+    left = m.rollout(x0, R, z).poses[0].copy()
+    assert ahead[-1, lay.POSE_X] > base[-1, lay.POSE_X] + 1e-3
+    assert abs(ahead[-1, lay.POSE_Y] - base[-1, lay.POSE_Y]) < 1e-3
+    assert left[-1, lay.POSE_PHI] > base[-1, lay.POSE_PHI] + 1e-4
+
+
+@pytest.mark.parametrize("model", ["mf", "kinematic"])
+def test_the_observer_finds_a_constant_disturbance(model):
+    """A 'plant' that is the model's own one-period prediction plus a known constant
+    disturbance: the observer's estimate converges to it (and stays 0 without one)."""
+    v = default_vehicle()
+    s = MPCSettings(model=model, policy="twist" if model == "kinematic" else "offsets")
+    m = make_model(v, s)
+    ref, _ = make_case("curve", 15.0)
+    T = 0.01
+    truth = np.array([0.3, -0.4, 0.05]) if model == "mf" else np.array([0.1, -0.05, 0.01])
+    for d_true in (np.zeros(3), truth):
+        obs = DisturbanceObserver(m, T, 0.05, (5.0, 2.0))
+        plant = DisturbanceObserver(make_model(v, s), T, 0.05, (5.0, 2.0))  # the 'plant'
+        plant.d = d_true.copy()
+        x = _x0(v, ref)
+        om_w = np.full(v.n_wheels, x[lay.X0_VX] / v.wheel_radius)
+        om_s = np.zeros(v.n_wheels)
+        for k in range(150):
+            obs.update(k * T, x)
+            obs.commanded(om_w, om_s)
+            phi, vx, vy, r = plant.predict_velocity(x, om_w, om_s)
+            x1, y1, phi1 = plant._poses[0, 0]
+            x = x.copy()
+            x[lay.X0_X], x[lay.X0_Y], x[lay.X0_PHI] = x1, y1, phi1
+            x[lay.X0_VX], x[lay.X0_VY], x[lay.X0_R] = vx, vy, r
+        np.testing.assert_allclose(obs.d, d_true, atol=2e-3 * (1 + np.abs(d_true).max()),
+                                   err_msg=f"{model}: estimate {obs.d} for {d_true}")
+        # the estimate is what the model's S carries into every solver
+        np.testing.assert_array_equal(m.S[SLOTS], obs.d)
+
+
+def test_the_observer_skips_periods_that_are_not_one_period_apart():
+    v = default_vehicle()
+    m = make_model(v, MPCSettings())
+    obs = DisturbanceObserver(m, 0.01, 0.05, (5.0, 2.0))
+    ref, _ = make_case("curve", 15.0)
+    x = _x0(v, ref)
+    obs.update(0.0, x)
+    obs.commanded(np.zeros(v.n_wheels), np.zeros(v.n_wheels))  # would brake hard
+    x2 = x.copy()
+    obs.update(0.05, x2)  # a lost state: 5 periods later
+    assert obs.updates == 0 and np.all(obs.d == 0)
+
+
+def _lateral_rms(scale: float, offset_free: bool, case="curve", speed=25.0, duration=8.0):
+    sc = Scenario(case=case, speed=speed, plant_tire_scale=scale,
+                  settings={"offset_free": offset_free, "method": "ntwo"})
+    b = sc.build()
+    try:
+        log = closed_loop(b.plant, b.controller, b.reference, duration, period=0.01,
+                          progress=False, outputs=False)
+    finally:
+        b.close()
+    return log.metrics()["e_y_cm"], b.controller.disturbance()
+
+
+def test_offset_free_tracking_on_a_plant_with_other_tires():
+    """Plant tires x0.8 (B and mu), the model's as in the file: without the disturbance
+    the MPC settles into a lateral bias (several times the true-model error); with it the
+    error is back near the true-model's, and the estimate is a lateral acceleration."""
+    nominal, d0 = _lateral_rms(1.0, True)
+    wrong_off, _ = _lateral_rms(0.8, False)
+    wrong_on, d = _lateral_rms(0.8, True)
+    assert wrong_off > 4 * nominal, (nominal, wrong_off)
+    assert wrong_on < 1.5 * nominal, (nominal, wrong_on, d)
+    assert abs(d["d_v"]) > 10 * abs(d0["d_v"]) and d["updates"] > 700
+
+
+def test_the_nominal_case_is_unchanged_by_the_observer():
+    """With the plant's tires the model's, the estimate stays small and the tracking is the
+    same to 0.01 cm."""
+    on, d = _lateral_rms(1.0, True)
+    off, _ = _lateral_rms(1.0, False)
+    assert abs(on - off) < 0.01, (on, off)
+    assert max(abs(d["d_u"]), abs(d["d_v"])) < 0.05 and abs(d["d_r"]) < 0.01, d
+
+
+def test_a_plant_vehicle_of_its_own(tmp_path):
+    """plant_vehicle: the plant simulates its own file while the controller keeps its
+    vehicle; a plant with other wheels is refused naming the key; the CLI's
+    --plant-vehicle runs and reports it."""
+    src = helpers.ROOT / "scenarios" / "vehicles" / "agv-3axle.toml"
+    text = src.read_text()
+    own = tmp_path / "own.toml"
+    own.write_text(text.replace("B = 7.69", "B = 9.0"))
+    sc = Scenario(case="curve", speed=10.0, vehicle=str(src), plant_vehicle=str(own))
+    ctl = sc.resolve_vehicle()
+    actual = sc.actual_vehicle(ctl)
+    assert actual.tire_lateral.B == 9.0 and ctl.tire_lateral.B == 7.69
+    with pytest.raises(ScenarioError, match="plant_vehicle: 3 axles"):
+        Scenario(case="curve", plant_vehicle=str(own)).actual_vehicle(
+            Scenario(case="curve").resolve_vehicle())
+    scen = tmp_path / "s.toml"
+    scen.write_text(f'case = "curve"\nspeed = 10\nvehicle = "{src}"\nplant_vehicle = "own.toml"\n')
+    assert Scenario.from_file(scen).plant_vehicle == str(own)
+    r = helpers.run_msagv("run", "--vehicle", src, "--plant-vehicle", own, "--duration", "0.5",
+                          "--json", "-q", timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads(r.stdout)
+    assert doc["scenario"]["plant_vehicle"]["file"] == str(own)
+    assert doc["scenario"]["offset_free"] is True
+    assert set(doc["disturbance"]) == {"d_u", "d_v", "d_r", "updates"}
+    r = helpers.run_msagv("run", "--plant-vehicle", tmp_path / "missing.toml", timeout=120)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert "--plant-vehicle: no such file" in r.stderr
