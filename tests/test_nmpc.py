@@ -27,6 +27,7 @@ import pytest
 
 from msagv.controller import make_case
 from msagv.controller.loop import closed_loop
+from msagv.plant import layout as lay
 from msagv.controller.models import MPCSettings
 from msagv.controller.mpc import MPC, ControllerError
 from msagv.plant import Plant, default_vehicle
@@ -84,18 +85,21 @@ def test_ocp_cost_is_the_nlp_cost(method):
     mpc.step(st)  # (acados' cost evaluation reads weights that its first solve prepares)
     x0, R, zprev, warm = mpc.horizon_problem(st)
     sv = ocp.solver
-    for _ in range(3):
+    slots = [lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]
+    for dist in ([0.0, 0.0, 0.0], [0.3, -0.2, 0.05], [0.0, 0.0, 0.0]):
+        # the offset-free disturbance: acados' stage parameter, IPOPT's NLP parameter
+        mpc.model.S[slots] = dist
         z = np.clip(warm + rng.normal(0.0, 1.0, warm.size) * mpc.horizon.sigma, mpc.horizon.lower, mpc.horizon.upper)
         zprev = rng.normal(0.0, 0.1, zprev.size)
         s0 = np.r_[x0, zprev, np.ones(3)]
-        S = ocp.trajectory(s0, R, z).copy()
+        S = ocp.trajectory(s0, R, z, np.asarray(dist)).copy()
         U = np.zeros((ocp.N, ocp.nu))
         zb = zprev
         for b, k in enumerate(ocp.starts):
             U[k] = z[b * ocp.nu:(b + 1) * ocp.nu] - zb
             zb = z[b * ocp.nu:(b + 1) * ocp.nu]
         for k in range(ocp.N + 1):
-            sv.set(k, "p", R[k])
+            sv.set(k, "p", np.r_[R[k], dist])
             sv.set(k, "x", S[k])
             if k < ocp.N:
                 sv.set(k, "u", U[k])

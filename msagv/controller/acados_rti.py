@@ -101,7 +101,8 @@ from .models import MPCSettings
 
 ACADOS_ENV = "MSAGV_ACADOS"  # the directory of an isolated install (pip install --target)
 CACHE_ENV = "MSAGV_ACADOS_CACHE"
-FORMULATION = 3  # bump when the generated problem changes (part of the cache key)
+N_PARAM = lay.N_REF + 3  # a stage's parameters: the reference row, the disturbance
+FORMULATION = 4  # bump when the generated problem changes (part of the cache key)
 RUNTIME_OPTIONS = ("iterations", "keep_best", "line_search")  # not in the generated code
 LINE_SEARCH = tuple(0.5 ** i for i in range(_ro.LANES))  # step sizes, one SIMD tile
 INSTALL_HINT = ("pip install --no-deps --target .venv/acados comma-deps-acados (make test "
@@ -286,7 +287,7 @@ class HorizonOCP:
         nx6, nu = self.nx6, self.nu
         s = ca.SX.sym("s", self.nx)
         u = ca.SX.sym("u", nu)
-        p = ca.SX.sym("p", lay.N_REF)
+        p = ca.SX.sym("p", N_PARAM)  # the reference row, then the offset-free disturbance
         zc = s[nx6:nx6 + nu]
         wp = s[nx6 + nu:]
         znew = zc + u
@@ -296,7 +297,8 @@ class HorizonOCP:
         delta = [s[lay.X0_DELTA + j] for j in range(self.nw)]
         refk = [p[i] for i in range(lay.N_REF)]
         X1, V1, delta1, wear, _ = symbolic_step(X, V, delta, refk, znew, 0, model.P, model.S,
-                                                model.wx, model.wy, eps=self.options.eps_w)
+                                                model.wx, model.wy, eps=self.options.eps_w,
+                                                dist=[p[lay.N_REF + i] for i in range(3)])
         nxt = [None] * nx6
         nxt[lay.X0_X], nxt[lay.X0_Y], nxt[lay.X0_PHI] = X1[lay.POSE_X], X1[lay.POSE_Y], X1[lay.POSE_PHI]
         nxt[lay.X0_VX], nxt[lay.X0_VY], nxt[lay.X0_R] = V1
@@ -350,7 +352,7 @@ class HorizonOCP:
         # acados scales each stage's cost by its time step: 1, so that the OCP's cost is
         # J (the dynamics are discrete and do not see it)
         ocp.solver_options.tf = float(Np)
-        ocp.parameter_values = np.zeros(lay.N_REF)
+        ocp.parameter_values = np.zeros(N_PARAM)
         ocp.cost.cost_type = "NONLINEAR_LS"
         ocp.cost.cost_type_e = "NONLINEAR_LS"
         ocp.cost.W = self.W[1]
@@ -389,6 +391,7 @@ class HorizonOCP:
         x0 = ca.SX.sym("x0", self.nx)
         ref = ca.SX.sym("ref", Np + 1, lay.N_REF)
         z = ca.SX.sym("z", model.dim)
+        dist = ca.SX.sym("dist", 3)
         Fs = ca.Function("f", [s, u, p], [f])
         traj = [x0]
         cur = x0
@@ -396,9 +399,9 @@ class HorizonOCP:
             b = int(model.block[k])
             uk = z[b * nu:(b + 1) * nu] - cur[nx6:nx6 + nu] if k in self.starts \
                 else ca.DM.zeros(nu)
-            cur = Fs(cur, uk, ref[k, :].T)
+            cur = Fs(cur, uk, ca.vertcat(ref[k, :].T, dist))
             traj.append(cur)
-        return ca.Function("msagv_traj", [x0, ref, z], [ca.horzcat(*traj)]).expand()
+        return ca.Function("msagv_traj", [x0, ref, z, dist], [ca.horzcat(*traj)]).expand()
 
     def _build(self, ocp, d: Path) -> None:
         """Generate and compile the solver and the trajectory into ``d`` once per
@@ -474,20 +477,26 @@ class HorizonOCP:
         fn.restype = ctypes.c_int
         f = self.traj_fn
         self._traj_lib, self._traj = lib, fn
-        self._traj_arg = (ctypes.c_void_p * max(f.sz_arg(), 3))()
+        self._traj_arg = (ctypes.c_void_p * max(f.sz_arg(), 4))()
         self._traj_res = (ctypes.c_void_p * max(f.sz_res(), 1))()
         self._traj_iw = np.zeros(max(f.sz_iw(), 1), dtype=np.int64)
         self._traj_w = np.zeros(max(f.sz_w(), 1))
         self._traj_out = np.zeros((self.N + 1, self.nx))
         self._traj_ref = np.zeros((lay.N_REF, self.N + 1))  # column-major (N + 1, 6)
+        self._dist = np.zeros(3)
+        self._stage_p = np.zeros((self.N + 1, N_PARAM))  # per stage: reference row, dist
 
-    def trajectory(self, s0: np.ndarray, ref: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """``(N + 1, nx)``: the OCP's states along the prediction of ``z`` from ``s0``."""
+    def trajectory(self, s0: np.ndarray, ref: np.ndarray, z: np.ndarray,
+                   dist: np.ndarray | None = None) -> np.ndarray:
+        """``(N + 1, nx)``: the OCP's states along the prediction of ``z`` from ``s0`` (with
+        the offset-free disturbance ``dist``; None: zero)."""
         s0 = np.ascontiguousarray(s0, dtype=float)
         z = np.ascontiguousarray(z, dtype=float)
         self._traj_ref[:] = ref.T
+        self._dist[:] = 0.0 if dist is None else dist
         a = self._traj_arg
         a[0], a[1], a[2] = s0.ctypes.data, self._traj_ref.ctypes.data, z.ctypes.data
+        a[3] = self._dist.ctypes.data
         self._traj_res[0] = self._traj_out.ctypes.data
         if self._traj(a, self._traj_res, self._traj_iw.ctypes.data, self._traj_w.ctypes.data, 0):
             raise RuntimeError("acados: the trajectory function failed")
@@ -496,8 +505,10 @@ class HorizonOCP:
     @staticmethod
     def _key(model, settings, options, acados) -> str:
         """The cache key: what the generated code depends on."""
+        S = model.S.copy()
+        S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = 0.0  # a parameter, not in the code
         cfg = {"formulation": FORMULATION, "P": list(map(float, model.P)),
-               "S": list(map(float, model.S)), "wx": list(map(float, model.wx)),
+               "S": list(map(float, S)), "wx": list(map(float, model.wx)),
                "wy": list(map(float, model.wy)), "block": list(map(int, model.block)),
                # the weights and bounds are set at run time: only the residual's shape
                "linear": any(v > 0 for v in settings.effective_L[3:]),
@@ -539,15 +550,16 @@ class HorizonOCP:
         v = np.ascontiguousarray(v, dtype=float)
         self._cons(self._cfg, self._dims, self._in, k, field.encode(), v.ctypes.data)
 
-    def solve(self, x0, ref, zprev, z_init):
+    def solve(self, x0, ref, zprev, z_init, dist=None):
         """One SQP iteration from ``z_init`` (its state trajectory as the linearisation
-        point): ``(z, status)``, the new offsets (unclipped) and acados' status."""
+        point) with the offset-free disturbance ``dist`` (None: zero): ``(z, status)``, the
+        new offsets (unclipped) and acados' status."""
         Np, nu, nx6 = self.N, self.nu, self.nx6
         s0 = np.empty(self.nx)
         s0[:nx6] = x0
         s0[nx6:nx6 + nu] = zprev
         s0[nx6 + nu:] = 1.0  # the wear slots of stage 0 are not weighed (> 0 for sqrt)
-        S = self.trajectory(s0, ref, z_init)
+        S = self.trajectory(s0, ref, z_init, dist)
         U = np.zeros((Np, nu))
         zb_prev = zprev
         blocks = z_init.reshape(-1, nu)
@@ -559,8 +571,11 @@ class HorizonOCP:
         self._con_set(0, "lbx", s0)
         self._con_set(0, "ubx", s0)
         dp = ctypes.POINTER(ctypes.c_double)
+        sp = self._stage_p
+        sp[:, :lay.N_REF] = ref
+        sp[:, lay.N_REF:] = self._dist
         for k in range(Np + 1):
-            self._params(self._capsule, k, ref[k].ctypes.data_as(dp), lay.N_REF)
+            self._params(self._capsule, k, sp[k].ctypes.data_as(dp), N_PARAM)
             self._out_set(cfg, dims, out, k, b"x", S[k].ctypes.data)
             if k < Np:
                 self._out_set(cfg, dims, out, k, b"u", U[k].ctypes.data)
@@ -613,11 +628,12 @@ class Acados:
     def solve(self, x0, R, zprev, warm, t0: float) -> Solution:
         h = self.horizon
         z, J = h.better_start(x0, R, zprev, warm)
+        dist = h.model.S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]]  # offset-free
         its = 0
         for _ in range(self.options.iterations):
             its += 1
             try:
-                zn, status = self.ocp.solve(x0, R, zprev, z)
+                zn, status = self.ocp.solve(x0, R, zprev, z, dist)
             except RuntimeError:  # CasADi's evaluation of the trajectory
                 status, zn = -1, z
             self.last_status = status

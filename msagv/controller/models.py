@@ -107,6 +107,9 @@ class MPCSettings:
       models where it does not hurt the nominal case (:data:`OFFSET_FREE_DEFAULT`: mf and
       dugoff; measured in docs/CONTROLLER.md), off for kinematic and tct.
       disturbance_tau [s]: its filter's time constant.
+    adapt: re-estimate the prediction's tire factors (cornering and longitudinal stiffness,
+      friction) online (:mod:`controller.adaptation`); the 'mf' model and the annealer or
+      feed-forward solvers only (IPOPT and acados build the tires into their code).
     """
 
     method: str = "two-energy"
@@ -145,6 +148,7 @@ class MPCSettings:
     ref_smoothing: float = 0.0
     offset_free: bool | None = None
     disturbance_tau: float = 0.05
+    adapt: bool = False
 
     def __post_init__(self):
         bad = None
@@ -188,6 +192,8 @@ class MPCSettings:
             bad = f"ref_smoothing: must be a finite length >= 0 m, got {self.ref_smoothing}"
         elif self.offset_free not in (None, True, False):
             bad = f"offset_free: expected true or false, got {self.offset_free!r}"
+        elif self.adapt and self.model != "mf":
+            bad = f"adapt: the online tire adaptation needs the model 'mf', not {self.model!r}"
         elif not (math.isfinite(self.disturbance_tau) and self.disturbance_tau > 0):
             bad = f"disturbance_tau: must be a finite time > 0 s, got {self.disturbance_tau}"
         elif self.deadline_ms is not None and not self.deadline_ms > 0:

@@ -25,6 +25,7 @@ from msagv.plant.interface import BODY_FIELDS
 from msagv.plant.vehicle import Vehicle
 
 from . import solvers
+from .adaptation import TireAdaptation
 from .disturbance import DisturbanceObserver
 from .horizon import Horizon
 from .interface import Command, ControllerError
@@ -81,6 +82,9 @@ class MPC:
         self.period = float(period)
         cls = solvers.solver_class(solver)
         cls.check_supported(self.settings)
+        if self.settings.adapt and solver in ("ipopt", "acados"):
+            raise ControllerError(f"adapt: the {solver} solver builds the tires into its code; "
+                                  f"the online adaptation runs with the annealer (--solver sa)")
         self.name = solver
         self.horizon = Horizon(vehicle, self.settings, self.period)
         self.model = self.horizon.model
@@ -92,6 +96,9 @@ class MPC:
             self.observer = DisturbanceObserver(
                 self.model, self.period, self.settings.disturbance_tau,
                 (1.0, 0.5) if kin else (DIST_MAX_ACCEL, DIST_MAX_YAW_ACCEL))
+        self.adaptation = None  # the online tire factors (settings.adapt)
+        if self.settings.adapt:
+            self.adaptation = TireAdaptation(self.model, self.period)
         self.warmup_solve_ms: list[float] = []
         self._smooth: tuple[Reference, Reference] | None = None  # (given, smoothed)
         self.budget_warnings: list[str] = []
@@ -106,6 +113,8 @@ class MPC:
         self.solver.reset()
         if self.observer is not None:
             self.observer.reset()
+        if self.adaptation is not None:
+            self.adaptation.reset()
         self.solve_times_ms: list[float] = []
         self._run_warned = False
 
@@ -144,6 +153,8 @@ class MPC:
         if self.settings.ref_smoothing > 0:
             ref = self._smoothed(ref)
         t, x0 = self._state_vector(state)
+        if self.adaptation is not None:
+            self.adaptation.update(t, x0)
         if self.observer is not None:
             self.observer.update(t, x0)
         s = self.settings
@@ -169,6 +180,8 @@ class MPC:
         om_w, om_s = self.horizon.commands(x0, R[0], self.z)
         if self.observer is not None:
             self.observer.commanded(om_w, om_s)
+        if self.adaptation is not None:
+            self.adaptation.commanded(om_w, om_s)
         ms = (time.perf_counter() - t0) * 1000.0
         self.solve_times_ms.append(ms)
         self._check_budget()
@@ -181,6 +194,11 @@ class MPC:
         """The offset-free disturbance estimate now (:meth:`DisturbanceObserver.as_dict`),
         None when ``settings.offset_free`` is off."""
         return None if self.observer is None else self.observer.as_dict()
+
+    def adapted_tires(self) -> dict | None:
+        """The online tire factors now (:meth:`TireAdaptation.as_dict`), None without
+        ``settings.adapt``."""
+        return None if self.adaptation is None else self.adaptation.as_dict()
 
     def predicted_poses(self) -> np.ndarray | None:
         """The last solve's predicted poses ``(N_p + 1, 3)``: x, y, phi from the state it

@@ -1,0 +1,189 @@
+"""Online adaptation of the prediction's tires (``--adapt``): cornering stiffness, longitudinal
+stiffness and friction re-estimated while driving.
+
+The offset-free disturbance (:mod:`controller.disturbance`) removes a *constant* model error;
+a tire that is stiffer or softer than the file errs in proportion to its slip, so the error
+changes with every curve and the disturbance lags it. The adaptation estimates three scale
+factors of the prediction's Magic Formula tires,
+
+    theta = (c_lat, c_lon, f):   B_lat = B_lat0 c_lat / f,   B_lon = B_lon0 c_lon / f,
+                                  mu_lat = mu_lat0 f,         mu_lon = mu_lon0 f,
+
+so that the cornering stiffness ``B C D`` of each curve scales with ``c`` alone and its peak
+``D = mu F_N`` with ``f`` alone (a run that never reaches past the linear part of the curve
+identifies ``c`` and leaves ``f`` where it was). Each control period, from the state measured
+at ``t - T``, the command sent then and the state measured at ``t``, a Kalman filter on
+``theta`` (a random walk, :class:`AdaptOptions`) takes the one-period velocity prediction
+error of the prediction model *without* the offset-free disturbance,
+
+    e = v_meas(t) - g(x(t - T), u(t - T); theta),   J = dg/dtheta (central differences),
+    P <- P + Q T;  K = P J^T (J P J^T + R)^-1;  theta <- theta + K e;  P <- (I - K J) P,
+
+(body frame; ``R`` the velocity measurement's variance), bounded to
+``[theta_min, theta_max]``; a parameter whose column of ``J`` carries less information than
+``R`` in a period (``|J_i|^2 < R``: a straight line at constant speed for ``c_lat``, a run far
+from the friction limit for ``f``) is not updated in that period (frozen; its covariance
+kept). The estimate goes into the model's parameters (and the feed-forward's cornering
+slip gain ``m / (n C_alpha)``), so every solve after it predicts with the adapted tires; the
+disturbance then removes what the three factors cannot explain.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from msagv.plant import layout as lay
+
+from . import rollout as _ro
+
+NAMES = ("c_lat", "c_lon", "f")
+
+
+@dataclass(frozen=True)
+class AdaptOptions:
+    """The adaptation's filter.
+
+    sigma_v [m/s]: standard deviation of a measured body velocity (the filter's R).
+    drift [1/sqrt(s)]: how fast the true factors may wander (the random walk's Q = drift^2).
+    sigma0: the factors' initial standard deviation (their prior: 1, the file's tires).
+    bounds: the factors stay in [bounds[0], bounds[1]].
+    """
+
+    sigma_v: float = 1e-3
+    drift: float = 0.02
+    sigma0: float = 0.3
+    bounds: tuple[float, float] = (0.5, 2.0)
+
+    def __post_init__(self):
+        if not (self.sigma_v > 0 and self.drift >= 0 and self.sigma0 > 0
+                and 0 < self.bounds[0] < 1 < self.bounds[1]):
+            raise ValueError("AdaptOptions: sigma_v, sigma0 > 0, drift >= 0, "
+                             "0 < bounds[0] < 1 < bounds[1]")
+
+
+class TireAdaptation:
+    """Online estimate of the prediction model's tire factors (module docstring).
+
+    Parameters
+    ----------
+    model : the controller's prediction model (its ``P`` is adapted in place).
+    period : the control period T [s].
+    options : :class:`AdaptOptions`.
+    """
+
+    def __init__(self, model, period: float, options: AdaptOptions | None = None):
+        if model.model_id not in (_ro.MODEL_MF,):
+            raise ValueError("tire adaptation needs the Magic Formula prediction model 'mf'")
+        self.model = model
+        self.period = float(period)
+        self.options = options or AdaptOptions()
+        self.P0 = model.P.copy()  # the file's tires
+        self.k_alpha0 = float(model.S[lay.S_K_ALPHA])  # the feed-forward's m / (n C_alpha)
+        nw = model.n_wheels
+        self._S1 = model.S.copy()
+        self._S1[lay.S_DT] = self.period
+        self._S1[lay.S_POLICY] = lay.POLICY_RAW
+        self._S1[lay.S_STRIDE] = 2 * nw
+        self._S1[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = 0.0
+        self._block = np.zeros(1, dtype=np.int64)
+        self._poses = np.empty((1, 1, lay.N_POSE))
+        self._wear = np.empty((1, 1, lay.N_WEAR))
+        self._cmds = np.empty((1, 2, nw))
+        self._ref = np.zeros((2, lay.N_REF))
+        self._Pk = model.P.copy()
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the file's tires (theta = 1) and the prior covariance."""
+        self.theta = np.ones(3)
+        self.cov = np.eye(3) * self.options.sigma0 ** 2
+        self._apply(self.theta, self.model.P)
+        self.model.S[lay.S_K_ALPHA] = self.k_alpha0
+        self._last = None
+        self.updates = 0
+        self.excited = np.zeros(3, dtype=np.int64)
+
+    def _apply(self, theta, P) -> None:
+        c_lat, c_lon, f = theta
+        P0 = self.P0
+        P[lay.P_LAT_B] = P0[lay.P_LAT_B] * c_lat / f
+        P[lay.P_LON_B] = P0[lay.P_LON_B] * c_lon / f
+        P[lay.P_LAT_MU] = P0[lay.P_LAT_MU] * f
+        P[lay.P_LON_MU] = P0[lay.P_LON_MU] * f
+
+    def _velocity(self, theta, x0, z) -> np.ndarray:
+        """The body-frame velocity (u, v, r) one period after ``x0`` under the raw command
+        ``z`` with the factors ``theta`` (no disturbance)."""
+        self._apply(theta, self._Pk)
+        _ro.EXACT.rollout_batch(self.model.model_id, x0, self._ref, z, self._block, self._Pk,
+                                self._S1, self.model.wx, self.model.wy, self._poses,
+                                self._wear, self._cmds)
+        T = self.period
+        x1, y1, phi1 = self._poses[0, 0]
+        vx = 2.0 * (x1 - x0[lay.X0_X]) / T - x0[lay.X0_VX]
+        vy = 2.0 * (y1 - x0[lay.X0_Y]) / T - x0[lay.X0_VY]
+        r = 2.0 * (phi1 - x0[lay.X0_PHI]) / T - x0[lay.X0_R]
+        c, s = math.cos(phi1), math.sin(phi1)
+        return np.array([c * vx + s * vy, -s * vx + c * vy, r])
+
+    def update(self, t: float, x0: np.ndarray) -> None:
+        """Take the state measured at ``t`` (the MPC's state vector); update the factors from
+        the last period's state and command, and put them into the model's ``P``."""
+        last = self._last
+        self._last = (t, x0.copy(), None)
+        if (last is None or last[2] is None
+                or abs((t - last[0]) - self.period) > 0.25 * self.period):
+            return
+        _, xp, z = last
+        xp = np.ascontiguousarray(xp)
+        g = self._velocity(self.theta, xp, z)
+        J = np.empty((3, 3))
+        for i in range(3):
+            h = 1e-4 * self.theta[i]
+            tp, tm = self.theta.copy(), self.theta.copy()
+            tp[i] += h
+            tm[i] -= h
+            J[:, i] = (self._velocity(tp, xp, z) - self._velocity(tm, xp, z)) / (2 * h)
+        c, s = math.cos(x0[lay.X0_PHI]), math.sin(x0[lay.X0_PHI])
+        vx, vy = x0[lay.X0_VX], x0[lay.X0_VY]
+        meas = np.array([c * vx + s * vy, -s * vx + c * vy, x0[lay.X0_R]])
+        e = meas - g
+        o = self.options
+        Rn = o.sigma_v ** 2
+        live = np.sum(J * J, axis=0) > Rn  # the parameters this period informs
+        self.excited += live
+        if not live.any():
+            return
+        idx = np.flatnonzero(live)
+        Jl = J[:, idx]
+        P = self.cov[np.ix_(idx, idx)] + np.eye(len(idx)) * o.drift ** 2 * self.period
+        S = Jl @ P @ Jl.T + np.eye(3) * Rn
+        K = P @ Jl.T @ np.linalg.inv(S)
+        th = self.theta.copy()
+        th[idx] = np.clip(th[idx] + K @ e, o.bounds[0], o.bounds[1])
+        P = (np.eye(len(idx)) - K @ Jl) @ P
+        self.cov[np.ix_(idx, idx)] = 0.5 * (P + P.T)
+        self.theta = th
+        self.updates += 1
+        self._apply(self.theta, self.model.P)
+        # the feed-forward's steady cornering slip angle follows the cornering stiffness
+        self.model.S[lay.S_K_ALPHA] = self.k_alpha0 / self.theta[0]
+
+    def commanded(self, om_w: np.ndarray, om_s: np.ndarray) -> None:
+        """The command sent for the state of the last :meth:`update`."""
+        if self._last is not None:
+            t, x0, _ = self._last
+            self._last = (t, x0, np.ascontiguousarray(np.r_[om_w, om_s], dtype=float)[None, :])
+
+    def as_dict(self) -> dict:
+        """The estimate for reports: each factor with its standard deviation, the periods
+        that informed it, and the updates."""
+        sd = np.sqrt(np.maximum(np.diag(self.cov), 0.0))
+        out = {n: float(v) for n, v in zip(NAMES, self.theta)}
+        out.update({f"{n}_sd": float(v) for n, v in zip(NAMES, sd)})
+        out.update({f"{n}_excited": int(v) for n, v in zip(NAMES, self.excited)})
+        out["updates"] = int(self.updates)
+        return out
