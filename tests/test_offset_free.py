@@ -179,3 +179,56 @@ def test_a_plant_vehicle_of_its_own(tmp_path):
     r = helpers.run_msagv("run", "--plant-vehicle", tmp_path / "missing.toml", timeout=120)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
     assert "--plant-vehicle: no such file" in r.stderr
+
+
+# ---- online adaptation (controller/adaptation.py) -----------------------------------------
+def _adapted_run(scale: float, case="curve", speed=25.0, duration=8.0, adapt=True,
+                 trajectory=None):
+    where = {"trajectory": str(trajectory)} if trajectory else {"case": case, "speed": speed}
+    sc = Scenario(plant_tire_scale=scale, settings={"adapt": adapt, "method": "ntwo"}, **where)
+    b = sc.build()
+    try:
+        log = closed_loop(b.plant, b.controller, b.reference, duration, period=0.01,
+                          progress=False, outputs=False)
+    finally:
+        b.close()
+    return log.metrics()["e_y_cm"], b.controller.adapted_tires()
+
+
+def test_the_adaptation_finds_the_plants_cornering_stiffness():
+    """Plant tires B and mu x1.2: the cornering stiffness B C D is x1.44 (the friction is not
+    reached on this curve, so the friction factor stays where it was); the adapted controller
+    tracks within 1.5x of the controller given the plant's tires."""
+    e_adapt, est = _adapted_run(1.2)
+    assert est["c_lat"] == pytest.approx(1.2 ** 2, rel=0.03), est
+    assert est["c_lat_excited"] > 500
+    base = Scenario(case="curve", plant_tire_scale=1.2)
+    truth = Scenario(case="curve", speed=25.0, vehicle=base.actual_vehicle(base.resolve_vehicle()),
+                     settings={"method": "ntwo"}).build()
+    log = closed_loop(truth.plant, truth.controller, truth.reference, 8.0, period=0.01,
+                      progress=False, outputs=False)
+    e_true = log.metrics()["e_y_cm"]
+    assert e_adapt < 1.5 * e_true, (e_adapt, e_true)
+
+
+def test_a_straight_line_does_not_excite_the_lateral_tire(tmp_path):
+    """At constant speed on a straight line, started on it, no period informs the cornering
+    stiffness or the friction: they are never updated and stay the file's (1), however
+    wrong the plant's tires are. (Case 2's recovery from its offset start does inform them:
+    the cornering factor 0.64 and the friction 0.80 of x0.8 tires, measured.)"""
+    csv = tmp_path / "straight.csv"
+    t = np.arange(0.0, 4.01, 0.1)
+    csv.write_text("t,x,y,phi\n" + "".join(f"{ti:.2f},{3.0 * ti:.4f},0,0\n" for ti in t))
+    _, est = _adapted_run(0.8, duration=3.0, trajectory=csv)
+    assert est["c_lat_excited"] == 0 and est["c_lat"] == 1.0, est
+    assert est["f_excited"] == 0 and est["f"] == 1.0, est
+
+
+def test_adapt_is_refused_where_it_cannot_act():
+    from msagv.controller.mpc import MPC, ControllerError
+
+    with pytest.raises(ValueError, match="adapt: the online tire adaptation needs the model 'mf'"):
+        MPCSettings(adapt=True, model="kinematic", policy="twist")
+    pytest.importorskip("casadi")
+    with pytest.raises(ControllerError, match="adapt: the ipopt solver builds the tires"):
+        MPC(default_vehicle(), MPCSettings(adapt=True), solver="ipopt")

@@ -338,6 +338,10 @@ def add_mpc_args(ap: argparse.ArgumentParser) -> None:
                          "prediction, so that tires or a mass the model does not know leave no "
                          "steady tracking error (default: on for the mf and dugoff models, off "
                          "for kinematic and tct; docs/CONTROLLER.md)")
+    ap.add_argument("--adapt", action="store_true", default=None,
+                    help="re-estimate the prediction's tires (cornering and longitudinal "
+                         "stiffness, friction) while driving: for a vehicle whose tires are "
+                         "not known to 10 %% (the mf model, the annealer; docs/CONTROLLER.md)")
     ap.add_argument("--seed", type=int, default=None, help=f"annealer seed (default {d.seed})")
     ap.add_argument("--iterations", type=int, help="annealing iterations per solve")
     ap.add_argument("--chains", type=int, help="annealing chains")
@@ -373,7 +377,7 @@ def settings_from_args(a) -> dict:
 
     kw = {}
     for k in ("method", "model", "policy", "seed", "iterations", "chains", "threads",
-              "offset_free"):
+              "offset_free", "adapt"):
         if getattr(a, k, None) is not None:
             kw[k] = getattr(a, k)
     if getattr(a, "deadline_ms", None) is not None:

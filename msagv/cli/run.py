@@ -234,6 +234,8 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     doc["budget"] = budget  # the controller's time budget (Controller.budget)
     dist = getattr(built.controller, "disturbance", None)
     doc["disturbance"] = dist() if dist is not None else None  # offset-free estimate at the end
+    tires = getattr(built.controller, "adapted_tires", None)
+    doc["adapted_tires"] = tires() if tires is not None else None  # --adapt's factors
     if a.log:
         log.to_csv(a.log)
     if a.plot:

@@ -1,0 +1,107 @@
+"""Tires the model does not know: tracking and wear of the MPC on a plant whose tires differ
+from the controller's file, with and without the offset-free disturbance and the online
+adaptation, against the same MPC given the plant's own tires.
+
+    python -m msagv.benchmarks.mismatch_bench [--scales 0.8,1.2] [--paths curve:25,lane:15,random:20]
+        [--method ntwo] [--duration 15] [--json]
+
+Per path and plant tire factor (B and mu of both Magic Formula curves times the factor, as
+``Scenario.plant_tire_scale``), four controllers:
+
+- ``wrong``: the file's tires, no offset-free disturbance (the MPC before issue 28);
+- ``offset-free``: the file's tires, the disturbance on (the default of the mf model);
+- ``adapted``: the file's tires adapted online (``--adapt``) and the disturbance on;
+- ``true``: the plant's own tires (the model right), the default settings.
+
+Prints the lateral RMS error [cm] and the tire wear W_tw [J] of each, and the ratio of each
+lateral RMS to the true model's. docs/CONTROLLER.md quotes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+VARIANTS = ("wrong", "offset-free", "adapted", "true")
+
+
+def run_one(case: str, speed: float, scale: float, variant: str, method: str,
+            duration: float, path_seed: int = 0) -> dict:
+    """One closed loop: the metrics and the controller's estimates."""
+    from msagv.controller.loop import closed_loop
+    from msagv.experiments.scenario import Scenario
+
+    settings = {"method": method}
+    kw = {"plant_tire_scale": scale}
+    if variant == "wrong":
+        settings["offset_free"] = False
+    elif variant == "adapted":
+        settings["adapt"] = True
+    elif variant == "true":
+        base = Scenario(case=case, plant_tire_scale=scale)
+        kw = {"vehicle": base.actual_vehicle(base.resolve_vehicle())}
+    sc = Scenario(case=case, speed=speed, path_seed=path_seed, settings=settings, **kw)
+    b = sc.build()
+    try:
+        log = closed_loop(b.plant, b.controller, b.reference, min(duration, b.duration),
+                          period=sc.period, progress=False, outputs=False)
+    finally:
+        b.close()
+    m = log.metrics()
+    return {"case": case, "speed_kmh": speed, "path_seed": path_seed, "scale": scale,
+            "variant": variant, "e_lat_rms_cm": m["e_lat_rms_cm"], "e_y_cm": m["e_y_cm"],
+            "W_tw": m["W_tw"], "disturbance": b.controller.disturbance(),
+            "adapted": b.controller.adapted_tires()}
+
+
+def _paths(text: str) -> list[tuple[str, float, int]]:
+    out = []
+    for item in text.split(","):
+        name, _, kmh = item.partition(":")
+        case, _, seed = name.partition("#")
+        out.append((case.strip(), float(kmh), int(seed or 0)))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.mismatch_bench",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scales", default="0.8,1.2", help="plant tire factors (default 0.8,1.2)")
+    ap.add_argument("--paths", default="curve:25,lane:15,random:20,random#1:20,random#2:20",
+                    help="CASE[#PATH_SEED]:KMH,... (default: the Case 1 curve at 25, the lane "
+                         "change at 15, three random paths at 20 km/h)")
+    ap.add_argument("--method", default="ntwo", help="the MPC's wear term (default ntwo)")
+    ap.add_argument("--duration", type=float, default=15.0, help="seconds per run (default 15)")
+    ap.add_argument("--json", action="store_true", help="print the rows as JSON")
+    a = ap.parse_args(argv)
+    from tqdm import tqdm
+
+    scales = [float(s) for s in a.scales.split(",")]
+    jobs = [(c, v, s, p, var) for c, v, p in _paths(a.paths) for s in scales for var in VARIANTS]
+    rows = []
+    t0 = time.time()
+    for c, v, s, p, var in tqdm(jobs, file=sys.stderr, disable=a.json or not sys.stderr.isatty()):
+        rows.append(run_one(c, v, s, var, a.method, a.duration, p))
+    if a.json:
+        print(json.dumps({"rows": rows, "wall_s": time.time() - t0}, indent=1))
+        return 0
+    print(f"lateral RMS [cm] (ratio to the true model) and W_tw [J]; {a.method}, "
+          f"{a.duration:g} s per run")
+    print(f"{'path':<16}{'tires':>6}" + "".join(f"{v:>22}" for v in VARIANTS))
+    for c, v, p in _paths(a.paths):
+        for s in scales:
+            sel = {r["variant"]: r for r in rows if (r["case"], r["speed_kmh"], r["path_seed"],
+                                                     r["scale"]) == (c, v, p, s)}
+            true = sel["true"]["e_lat_rms_cm"]
+            cells = "".join(f"{sel[k]['e_lat_rms_cm']:7.3f} ({sel[k]['e_lat_rms_cm'] / true:4.2f}) "
+                            f"{sel[k]['W_tw']:6.0f}" for k in VARIANTS)
+            name = f"{c}{'#' + str(p) if p else ''} {v:g}"
+            print(f"{name:<16}{s:>6g}{cells}")
+    print(f"({len(rows)} runs in {time.time() - t0:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
