@@ -23,9 +23,11 @@ import os
 
 import numpy as np
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 from . import BENCH_METHOD
 
-T = 0.01  # s, control period
+T = CONTROL_PERIOD  # s, control period
 SPEED_KMH = 25.0
 
 

@@ -34,9 +34,11 @@ import time
 
 import numpy as np
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 from . import BENCH_METHOD
 
-T = 0.01
+T = CONTROL_PERIOD
 
 
 def _vehicle(n: int):

@@ -31,9 +31,11 @@ import time
 
 import numpy as np
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 from . import BENCH_METHOD
 
-T = 0.01
+T = CONTROL_PERIOD
 # (scenario class, case, speed [km/h], path seed): the closed loops the states come from,
 # one or more per class of the study (experiments.study.design)
 RUNS = (("case1", "curve", 15.0, 0), ("case1", "curve", 25.0, 0), ("case1", "curve", 35.0, 0),

@@ -24,8 +24,9 @@ import time
 import numpy as np
 
 from msagv.plant import Plant, default_vehicle, n_axle_vehicle
+from msagv.plant.signals import CONTROL_PERIOD
 
-T = 0.01  # s, control period (DESIGN.md)
+T = CONTROL_PERIOD  # s, control period (DESIGN.md)
 RTOL = 1e-8
 SPEED = 10.0  # m/s
 

@@ -26,7 +26,9 @@ import time
 
 import numpy as np
 
-T = 0.01
+from msagv.plant.signals import CONTROL_PERIOD
+
+T = CONTROL_PERIOD
 N_WHEELS = 4
 
 

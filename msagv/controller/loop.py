@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from msagv.plant.signals import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS, wheel_suffixes
+from msagv.plant.signals import (BODY_FIELDS, CONTROL_PERIOD, WEAR_FIELDS, WHEEL_WEAR_FIELDS,
+                                 wheel_suffixes)
 
 from .interface import Controller
 from .metrics import compute_metrics
@@ -182,7 +183,7 @@ class RunLog:
         np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt="%.10g")
 
 
-def closed_loop(plant, mpc: Controller, reference: Reference, duration: float, period: float = 0.01,
+def closed_loop(plant, mpc: Controller, reference: Reference, duration: float, period: float = CONTROL_PERIOD,
                 progress: bool | None = None, on_step=None, log: RunLog | None = None,
                 outputs: bool = True) -> RunLog:
     """Run the MPC on ``plant`` for ``duration`` seconds of vehicle time.

@@ -22,6 +22,7 @@ import numpy as np
 
 from msagv.plant import layout as lay
 from msagv.plant.interface import BODY_FIELDS
+from msagv.plant.signals import CONTROL_PERIOD
 from msagv.plant.vehicle import Vehicle
 
 from . import solvers
@@ -34,7 +35,7 @@ from .reference import Reference
 
 __all__ = ["MPC", "Command", "ControllerError", "T_CONTROL"]
 
-T_CONTROL = 0.01  # s, the paper's control period
+T_CONTROL = CONTROL_PERIOD  # s, the paper's control period (plant.signals)
 BUDGET_SOLVES = 20  # timed warm-up solves (MPC.warmup)
 BUDGET_SECONDS = 0.5  # ... for at most this long
 BUDGET_CHECK = 100  # during a run, check the solve p99 every this many solves

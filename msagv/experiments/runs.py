@@ -30,9 +30,11 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 _log = logging.getLogger("msagv.experiment")
 SCHEMA = 1  # bump when the meaning of a stored result changes
-PERIOD = 0.01  # s, the paper's control period T
+PERIOD = CONTROL_PERIOD  # s, the paper's control period T (plant.signals)
 
 @dataclass
 class RunSpec:

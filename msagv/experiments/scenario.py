@@ -24,11 +24,13 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 from .checks import ScenarioError, initial_checks, reference_checks
 
 CASES = ("curve", "line", "lane", "turn", "random")  # paper Cases 1, 2; the study's paths
 AFTER_END = ("continue", "stop")  # past the reference's end: go on straight, or end the run
-PERIOD = 0.01  # s, the paper's control period T
+PERIOD = CONTROL_PERIOD  # s, the paper's control period T (plant.signals)
 # top-level keys of a scenario file that are MPC settings (the rest go under [settings])
 SETTING_KEYS = ("method", "model", "seed")
 

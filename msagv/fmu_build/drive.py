@@ -22,10 +22,12 @@ from typing import Mapping
 
 import numpy as np
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 from .variables import CONFIG_FILE
 
 
-def varied_inputs(n_wheels: int, n_steps: int, h: float = 0.01, seed: int = 0) -> np.ndarray:
+def varied_inputs(n_wheels: int, n_steps: int, h: float = CONTROL_PERIOD, seed: int = 0) -> np.ndarray:
     """Deterministic, varied commands, shape (n_steps, 2 * n_wheels): wheel speeds then
     steering rates, in the wheel order 11, 12, 21, ...
 
@@ -76,7 +78,7 @@ def _names_to_fmu(cfg: dict, values: Mapping[str, float] | None) -> dict[str, fl
     return out
 
 
-def run_native(vehicle, U: np.ndarray, h: float | np.ndarray = 0.01,
+def run_native(vehicle, U: np.ndarray, h: float | np.ndarray = CONTROL_PERIOD,
                parameters: Mapping[str, float] | None = None) -> tuple[list[str], np.ndarray]:
     """The native ``plant.Plant`` under the runners' protocol. ``parameters`` by our
     names: initial values ``<state>_0``, ``rtol``/``atol``/``v_eps``, vehicle values.
@@ -109,7 +111,7 @@ def run_native(vehicle, U: np.ndarray, h: float | np.ndarray = 0.01,
     return p.signal_names, S
 
 
-def run_fmpy(fmu_path: str | Path, U: np.ndarray, h: float = 0.01,
+def run_fmpy(fmu_path: str | Path, U: np.ndarray, h: float = CONTROL_PERIOD,
              parameters: Mapping[str, float] | None = None,
              timing: list | None = None) -> tuple[list[str], np.ndarray]:
     """Our FMU stepped by fmpy's ``FMU2Slave`` (setReal inputs, doStep, getReal outputs).
@@ -156,7 +158,7 @@ def run_fmpy(fmu_path: str | Path, U: np.ndarray, h: float = 0.01,
     return keys, S
 
 
-def run_libcosim(fmu_path: str | Path, U: np.ndarray, h: float = 0.01,
+def run_libcosim(fmu_path: str | Path, U: np.ndarray, h: float = CONTROL_PERIOD,
                  parameters: Mapping[str, float] | None = None) -> tuple[list[str], np.ndarray]:
     """Our FMU simulated by libcosim (Open Simulation Platform) through libcosimpy:
     inputs by an override manipulator, outputs by a last-value observer, one
@@ -223,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {}
     for i, r in enumerate(job["runs"]):
         cfg = fmu_config(r["fmu"])
-        h = float(r.get("h", 0.01))
+        h = float(r.get("h", CONTROL_PERIOD))
         n = int(round(float(r.get("seconds", 2.0)) / h))
         U = varied_inputs(2 * cfg["n_axles"], n, h, int(r.get("seed", 0)))
         run = {"fmpy": run_fmpy, "libcosim": run_libcosim}[r["engine"]]

@@ -9,6 +9,10 @@ from __future__ import annotations
 
 from .vehicle import Vehicle
 
+# the control period T [s] (the paper's 100 Hz): the one place this number lives; every
+# default period of the plant, the controller, the bus, the FMU and the experiments is it
+CONTROL_PERIOD = 0.01
+
 # the body's pose and velocity (velocities in the global frame G, eq. 20): the state
 # message's fields, the first signals, and the prediction's state (plant.layout X0_*)
 BODY_FIELDS = ("x", "y", "phi", "vx", "vy", "r")
