@@ -118,9 +118,10 @@ def test_the_observer_skips_periods_that_are_not_one_period_apart():
     assert obs.updates == 0 and np.all(obs.d == 0)
 
 
-def _lateral_rms(scale: float, offset_free: bool, case="curve", speed=25.0, duration=8.0):
+def _lateral_rms(scale: float, offset_free: bool, case="curve", speed=25.0, duration=8.0,
+                 model="mf"):
     sc = Scenario(case=case, speed=speed, plant_tire_scale=scale,
-                  settings={"offset_free": offset_free, "method": "ntwo"})
+                  settings={"offset_free": offset_free, "method": "ntwo", "model": model})
     b = sc.build()
     try:
         log = closed_loop(b.plant, b.controller, b.reference, duration, period=0.01,
@@ -130,13 +131,14 @@ def _lateral_rms(scale: float, offset_free: bool, case="curve", speed=25.0, dura
     return log.metrics()["e_y_cm"], b.controller.disturbance()
 
 
-def test_offset_free_tracking_on_a_plant_with_other_tires():
+@pytest.mark.parametrize("model", ["mf", "tct"])
+def test_offset_free_tracking_on_a_plant_with_other_tires(model):
     """Plant tires x0.8 (B and mu), the model's as in the file: without the disturbance
     the MPC settles into a lateral bias (several times the true-model error); with it the
     error is back near the true-model's, and the estimate is a lateral acceleration."""
-    nominal, d0 = _lateral_rms(1.0, True)
-    wrong_off, _ = _lateral_rms(0.8, False)
-    wrong_on, d = _lateral_rms(0.8, True)
+    nominal, d0 = _lateral_rms(1.0, True, model=model)
+    wrong_off, _ = _lateral_rms(0.8, False, model=model)
+    wrong_on, d = _lateral_rms(0.8, True, model=model)
     assert wrong_off > 4 * nominal, (nominal, wrong_off)
     assert wrong_on < 1.5 * nominal, (nominal, wrong_on, d)
     assert abs(d["d_v"]) > 10 * abs(d0["d_v"]) and d["updates"] > 700

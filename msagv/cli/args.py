@@ -336,8 +336,8 @@ def add_mpc_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--offset-free", action=argparse.BooleanOptionalAction, default=None,
                     help="carry a disturbance estimated from the measured states in the "
                          "prediction, so that tires or a mass the model does not know leave no "
-                         "steady tracking error (default: on for the mf and dugoff models, off "
-                         "for kinematic and tct; docs/CONTROLLER.md)")
+                         "steady tracking error (default: on for the mf, dugoff and tct models, "
+                         "off for kinematic; docs/CONTROLLER.md)")
     ap.add_argument("--adapt", action="store_true", default=None,
                     help="re-estimate the prediction's tires (cornering and longitudinal "
                          "stiffness, friction) while driving: for a vehicle whose tires are "

@@ -65,6 +65,8 @@ class DisturbanceObserver:
         self.period = float(period)
         self.tau = float(tau)
         self.kinematic = model.model_id == _ro.MODEL_KINEMATIC
+        # TCT holds the forward speed at the reference's: no longitudinal disturbance
+        self.lateral_only = model.model_id == _ro.MODEL_TCT
         self.limit = np.array([limit[0], limit[0], limit[1]], dtype=float)
         nw = model.n_wheels
         self._S1 = model.S.copy()  # one raw-command step of length T
@@ -85,11 +87,15 @@ class DisturbanceObserver:
         self._last = None  # (t, x0, z_raw) of the last period
         self.updates = 0
 
-    def predict_velocity(self, x0: np.ndarray, om_w: np.ndarray, om_s: np.ndarray
-                         ) -> tuple[float, float, float, float]:
+    def predict_velocity(self, x0: np.ndarray, om_w: np.ndarray, om_s: np.ndarray,
+                         ref: np.ndarray | None = None) -> tuple[float, float, float, float]:
         """The model's prediction one control period after ``x0`` under the commands
-        ``(om_w, om_s)`` and the current ``d``: ``(phi, vx, vy, r)`` (global frame)."""
+        ``(om_w, om_s)`` and the current ``d``: ``(phi, vx, vy, r)`` (global frame).
+        ``ref``: the reference's first two rows of that solve (TCT holds the forward speed
+        at the reference's)."""
         self._S1[SLOTS] = self.d
+        if ref is not None:
+            self._ref[:] = ref[:2]
         z = np.ascontiguousarray(np.r_[om_w, om_s], dtype=float)[None, :]
         _ro.EXACT.rollout_batch(self.model.model_id, np.ascontiguousarray(x0), self._ref, z,
                                 self._block, self.model.P, self._S1, self.model.wx,
@@ -110,23 +116,28 @@ class DisturbanceObserver:
         last = self._last
         if (last is not None and last[2] is not None
                 and abs((t - last[0]) - self.period) <= 0.25 * self.period):
-            _, xp, omw, oms = last
-            _, vx, vy, r = self.predict_velocity(xp, omw, oms)
+            _, xp, omw, oms, ref = last
+            _, vx, vy, r = self.predict_velocity(xp, omw, oms, ref)
             c, s = math.cos(x0[lay.X0_PHI]), math.sin(x0[lay.X0_PHI])
             ex, ey = x0[lay.X0_VX] - vx, x0[lay.X0_VY] - vy
             e = np.array([c * ex + s * ey, -s * ex + c * ey, x0[lay.X0_R] - r])
+            if self.lateral_only:
+                e[0] = 0.0
             gain = (self.period / self.tau) if self.kinematic else (1.0 / self.tau)
             self.d = np.clip(self.d + gain * e, -self.limit, self.limit)
             self.updates += 1
         self.model.S[SLOTS] = self.d
-        self._last = (t, x0.copy(), None, None)
+        self._last = (t, x0.copy(), None, None, None)
         return self.d
 
-    def commanded(self, om_w: np.ndarray, om_s: np.ndarray) -> None:
-        """The command sent for the state of the last :meth:`update` (held over T)."""
+    def commanded(self, om_w: np.ndarray, om_s: np.ndarray, ref: np.ndarray | None = None
+                  ) -> None:
+        """The command sent for the state of the last :meth:`update` (held over T), and the
+        reference rows of that solve (``R[:2]``)."""
         if self._last is not None:
-            t, x0, _, _ = self._last
-            self._last = (t, x0, np.array(om_w, dtype=float), np.array(om_s, dtype=float))
+            t, x0 = self._last[:2]
+            self._last = (t, x0, np.array(om_w, dtype=float), np.array(om_s, dtype=float),
+                          None if ref is None else np.array(ref[:2], dtype=float))
 
     def as_dict(self) -> dict:
         """The estimate for reports: ``d_u``, ``d_v``, ``d_r`` and the number of updates."""

@@ -104,8 +104,8 @@ class MPCSettings:
     offset_free: carry a body-frame disturbance estimated from the measured states in the
       prediction (:mod:`controller.disturbance`), so that a constant model error (tires,
       mass, floor) leaves no steady tracking error. None (default): on for the prediction
-      models where it does not hurt the nominal case (:data:`OFFSET_FREE_DEFAULT`: mf and
-      dugoff; measured in docs/CONTROLLER.md), off for kinematic and tct.
+      models where it does not hurt the nominal case (:data:`OFFSET_FREE_DEFAULT`: mf,
+      dugoff and tct; measured in docs/CONTROLLER.md), off for kinematic.
       disturbance_tau [s]: its filter's time constant.
     adapt: re-estimate the prediction's tire factors (cornering and longitudinal stiffness,
       friction) online (:mod:`controller.adaptation`); the 'mf' model and the annealer or
@@ -422,9 +422,9 @@ class TCTModel(PredictionModel):
 
 # the offset-free disturbance by default (MPCSettings.offset_free = None): on where it does
 # not hurt the nominal case. Measured (docs/CONTROLLER.md): the kinematic model's prediction
-# error is its missing velocity dynamics, not a constant, and TCT's is its missing
-# longitudinal forces; a constant disturbance made both track worse with the right tires.
-OFFSET_FREE_DEFAULT = {"mf": True, "dugoff": True, "kinematic": False, "tct": False}
+# error is its missing velocity dynamics (the twist follows the command at once), not a
+# constant: the disturbance chases the lag and tracks worse with the right tires.
+OFFSET_FREE_DEFAULT = {"mf": True, "dugoff": True, "tct": True, "kinematic": False}
 
 MODELS = {"mf": MagicFormulaModel, "dugoff": DugoffModel, "kinematic": KinematicModel,
           "tct": TCTModel}

@@ -180,7 +180,7 @@ class MPC:
         self._last = (x0, R)
         om_w, om_s = self.horizon.commands(x0, R[0], self.z)
         if self.observer is not None:
-            self.observer.commanded(om_w, om_s)
+            self.observer.commanded(om_w, om_s, R)
         if self.adaptation is not None:
             self.adaptation.commanded(om_w, om_s)
         ms = (time.perf_counter() - t0) * 1000.0
