@@ -95,7 +95,7 @@ def test_the_observer_finds_a_constant_disturbance(model):
             obs.update(k * T, x)
             obs.commanded(om_w, om_s)
             phi, vx, vy, r = plant.predict_velocity(x, om_w, om_s)
-            x1, y1, phi1 = plant._poses[0, 0]
+            x1, y1, phi1 = plant.step.poses[0, 0]
             x = x.copy()
             x[lay.X0_X], x[lay.X0_Y], x[lay.X0_PHI] = x1, y1, phi1
             x[lay.X0_VX], x[lay.X0_VY], x[lay.X0_R] = vx, vy, r
@@ -118,17 +118,23 @@ def test_the_observer_skips_periods_that_are_not_one_period_apart():
     assert obs.updates == 0 and np.all(obs.d == 0)
 
 
-def _lateral_rms(scale: float, offset_free: bool, case="curve", speed=25.0, duration=8.0,
-                 model="mf"):
-    sc = Scenario(case=case, speed=speed, plant_tire_scale=scale,
-                  settings={"offset_free": offset_free, "method": "ntwo", "model": model})
+def _run(scale: float, duration=8.0, trajectory=None, case="curve", speed=25.0, **settings):
+    """A closed loop on a plant whose tires are the file's times ``scale``: the lateral
+    RMS error [cm] and the controller (its estimates)."""
+    where = {"trajectory": str(trajectory)} if trajectory else {"case": case, "speed": speed}
+    sc = Scenario(plant_tire_scale=scale, settings={"method": "ntwo", **settings}, **where)
     b = sc.build()
     try:
         log = closed_loop(b.plant, b.controller, b.reference, duration, period=0.01,
                           progress=False, outputs=False)
     finally:
         b.close()
-    return log.metrics()["e_y_cm"], b.controller.disturbance()
+    return log.metrics()["e_y_cm"], b.controller
+
+
+def _lateral_rms(scale: float, offset_free: bool, model="mf"):
+    e, mpc = _run(scale, offset_free=offset_free, model=model)
+    return e, mpc.disturbance()
 
 
 @pytest.mark.parametrize("model", ["mf", "tct"])
@@ -184,17 +190,9 @@ def test_a_plant_vehicle_of_its_own(tmp_path):
 
 
 # ---- online adaptation (controller/adaptation.py) -----------------------------------------
-def _adapted_run(scale: float, case="curve", speed=25.0, duration=8.0, adapt=True,
-                 trajectory=None):
-    where = {"trajectory": str(trajectory)} if trajectory else {"case": case, "speed": speed}
-    sc = Scenario(plant_tire_scale=scale, settings={"adapt": adapt, "method": "ntwo"}, **where)
-    b = sc.build()
-    try:
-        log = closed_loop(b.plant, b.controller, b.reference, duration, period=0.01,
-                          progress=False, outputs=False)
-    finally:
-        b.close()
-    return log.metrics()["e_y_cm"], b.controller.adapted_tires()
+def _adapted_run(scale: float, **kw):
+    e, mpc = _run(scale, adapt=True, **kw)
+    return e, mpc.adapted_tires()
 
 
 def test_the_adaptation_finds_the_plants_cornering_stiffness():

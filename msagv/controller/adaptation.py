@@ -30,7 +30,6 @@ disturbance then removes what the three factors cannot explain.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,8 +37,10 @@ import numpy as np
 from msagv.plant import layout as lay
 
 from . import rollout as _ro
+from .disturbance import OnePeriod, body_frame
 
 NAMES = ("c_lat", "c_lon", "f")
+_NO_DISTURBANCE = np.zeros(3)  # the adaptation explains the motion with the tires alone
 
 
 @dataclass(frozen=True)
@@ -82,17 +83,7 @@ class TireAdaptation:
         self.options = options or AdaptOptions()
         self.P0 = model.P.copy()  # the file's tires
         self.k_alpha0 = float(model.S[lay.S_K_ALPHA])  # the feed-forward's m / (n C_alpha)
-        nw = model.n_wheels
-        self._S1 = model.S.copy()
-        self._S1[lay.S_DT] = self.period
-        self._S1[lay.S_POLICY] = lay.POLICY_RAW
-        self._S1[lay.S_STRIDE] = 2 * nw
-        self._S1[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = 0.0
-        self._block = np.zeros(1, dtype=np.int64)
-        self._poses = np.empty((1, 1, lay.N_POSE))
-        self._wear = np.empty((1, 1, lay.N_WEAR))
-        self._cmds = np.empty((1, 2, nw))
-        self._ref = np.zeros((2, lay.N_REF))
+        self.step = OnePeriod(model, period)
         self._Pk = model.P.copy()
         self.reset()
 
@@ -118,16 +109,8 @@ class TireAdaptation:
         """The body-frame velocity (u, v, r) one period after ``x0`` under the raw command
         ``z`` with the factors ``theta`` (no disturbance)."""
         self._apply(theta, self._Pk)
-        _ro.EXACT.rollout_batch(self.model.model_id, x0, self._ref, z, self._block, self._Pk,
-                                self._S1, self.model.wx, self.model.wy, self._poses,
-                                self._wear, self._cmds)
-        T = self.period
-        x1, y1, phi1 = self._poses[0, 0]
-        vx = 2.0 * (x1 - x0[lay.X0_X]) / T - x0[lay.X0_VX]
-        vy = 2.0 * (y1 - x0[lay.X0_Y]) / T - x0[lay.X0_VY]
-        r = 2.0 * (phi1 - x0[lay.X0_PHI]) / T - x0[lay.X0_R]
-        c, s = math.cos(phi1), math.sin(phi1)
-        return np.array([c * vx + s * vy, -s * vx + c * vy, r])
+        phi1, vx, vy, r = self.step.predict(x0, z, self._Pk, _NO_DISTURBANCE)
+        return body_frame(phi1, vx, vy, r)
 
     def update(self, t: float, x0: np.ndarray) -> None:
         """Take the state measured at ``t`` (the MPC's state vector); update the factors from
@@ -147,10 +130,7 @@ class TireAdaptation:
             tp[i] += h
             tm[i] -= h
             J[:, i] = (self._velocity(tp, xp, z) - self._velocity(tm, xp, z)) / (2 * h)
-        c, s = math.cos(x0[lay.X0_PHI]), math.sin(x0[lay.X0_PHI])
-        vx, vy = x0[lay.X0_VX], x0[lay.X0_VY]
-        meas = np.array([c * vx + s * vy, -s * vx + c * vy, x0[lay.X0_R]])
-        e = meas - g
+        e = body_frame(x0[lay.X0_PHI], x0[lay.X0_VX], x0[lay.X0_VY], x0[lay.X0_R]) - g
         o = self.options
         Rn = o.sigma_v ** 2
         live = np.sum(J * J, axis=0) > Rn  # the parameters this period informs
@@ -176,7 +156,7 @@ class TireAdaptation:
         """The command sent for the state of the last :meth:`update`."""
         if self._last is not None:
             t, x0, _ = self._last
-            self._last = (t, x0, np.ascontiguousarray(np.r_[om_w, om_s], dtype=float)[None, :])
+            self._last = (t, x0, np.r_[om_w, om_s].astype(float))
 
     def as_dict(self) -> dict:
         """The estimate for reports: each factor with its standard deviation, the periods

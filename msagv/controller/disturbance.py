@@ -45,6 +45,56 @@ from . import rollout as _ro
 SLOTS = [lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]
 
 
+class OnePeriod:
+    """The prediction model's step over one control period ``T`` from a measured state under
+    the commands sent (the kernels' raw-command policy, one block of one step): what the
+    observer and the online adaptation compare the measurements with."""
+
+    def __init__(self, model, period: float):
+        nw = model.n_wheels
+        self.model = model
+        self.period = float(period)
+        self.kinematic = model.model_id == _ro.MODEL_KINEMATIC
+        self.S = model.S.copy()
+        self.S[lay.S_DT] = self.period
+        self.S[lay.S_POLICY] = lay.POLICY_RAW
+        self.S[lay.S_STRIDE] = 2 * nw
+        self._block = np.zeros(1, dtype=np.int64)
+        self.poses = np.empty((1, 1, lay.N_POSE))
+        self._wear = np.empty((1, 1, lay.N_WEAR))
+        self._cmds = np.empty((1, 2, nw))
+        self._ref = np.zeros((2, lay.N_REF))
+
+    def predict(self, x0: np.ndarray, z: np.ndarray, P: np.ndarray, d, ref=None
+                ) -> tuple[float, float, float, float]:
+        """``(phi, vx, vy, r)`` one period after ``x0`` under the raw commands ``z``
+        (omega_w, then omega_s) with the parameters ``P`` and the disturbance ``d``. The
+        velocity is read off the predicted pose exactly: the trapezoidal update ``x1 = x0 +
+        T (v0 + v1) / 2`` inverted (the kinematic model's forward Euler ``x1 = x0 + T v1``)."""
+        self.S[SLOTS] = d
+        if ref is not None:
+            self._ref[:] = ref[:2]
+        x0 = np.ascontiguousarray(x0, dtype=float)
+        zz = np.ascontiguousarray(z, dtype=float).reshape(1, -1)
+        _ro.EXACT.rollout_batch(self.model.model_id, x0, self._ref, zz, self._block, P, self.S,
+                                self.model.wx, self.model.wy, self.poses, self._wear,
+                                self._cmds)
+        T = self.period
+        x1, y1, phi1 = self.poses[0, 0]
+        if self.kinematic:
+            return (phi1, (x1 - x0[lay.X0_X]) / T, (y1 - x0[lay.X0_Y]) / T,
+                    (phi1 - x0[lay.X0_PHI]) / T)
+        return (phi1, 2.0 * (x1 - x0[lay.X0_X]) / T - x0[lay.X0_VX],
+                2.0 * (y1 - x0[lay.X0_Y]) / T - x0[lay.X0_VY],
+                2.0 * (phi1 - x0[lay.X0_PHI]) / T - x0[lay.X0_R])
+
+
+def body_frame(phi: float, vx: float, vy: float, r: float) -> np.ndarray:
+    """A global-frame velocity ``(vx, vy, r)`` in the body frame of heading ``phi``."""
+    c, s = math.cos(phi), math.sin(phi)
+    return np.array([c * vx + s * vy, -s * vx + c * vy, r])
+
+
 class DisturbanceObserver:
     """The offset-free disturbance of one prediction model (module docstring).
 
@@ -68,16 +118,7 @@ class DisturbanceObserver:
         # TCT holds the forward speed at the reference's: no longitudinal disturbance
         self.lateral_only = model.model_id == _ro.MODEL_TCT
         self.limit = np.array([limit[0], limit[0], limit[1]], dtype=float)
-        nw = model.n_wheels
-        self._S1 = model.S.copy()  # one raw-command step of length T
-        self._S1[lay.S_DT] = self.period
-        self._S1[lay.S_POLICY] = lay.POLICY_RAW
-        self._S1[lay.S_STRIDE] = 2 * nw
-        self._block = np.zeros(1, dtype=np.int64)
-        self._poses = np.empty((1, 1, lay.N_POSE))
-        self._wear = np.empty((1, 1, lay.N_WEAR))
-        self._cmds = np.empty((1, 2, nw))
-        self._ref = np.zeros((2, lay.N_REF))
+        self.step = OnePeriod(model, period)
         self.reset()
 
     def reset(self) -> None:
@@ -93,21 +134,7 @@ class DisturbanceObserver:
         ``(om_w, om_s)`` and the current ``d``: ``(phi, vx, vy, r)`` (global frame).
         ``ref``: the reference's first two rows of that solve (TCT holds the forward speed
         at the reference's)."""
-        self._S1[SLOTS] = self.d
-        if ref is not None:
-            self._ref[:] = ref[:2]
-        z = np.ascontiguousarray(np.r_[om_w, om_s], dtype=float)[None, :]
-        _ro.EXACT.rollout_batch(self.model.model_id, np.ascontiguousarray(x0), self._ref, z,
-                                self._block, self.model.P, self._S1, self.model.wx,
-                                self.model.wy, self._poses, self._wear, self._cmds)
-        T = self.period
-        x1, y1, phi1 = self._poses[0, 0]
-        if self.kinematic:  # forward Euler: the new twist moved the pose
-            return phi1, (x1 - x0[lay.X0_X]) / T, (y1 - x0[lay.X0_Y]) / T, (phi1 - x0[lay.X0_PHI]) / T
-        # the trapezoidal update x1 = x0 + T (v0 + v1) / 2, inverted
-        return (phi1, 2.0 * (x1 - x0[lay.X0_X]) / T - x0[lay.X0_VX],
-                2.0 * (y1 - x0[lay.X0_Y]) / T - x0[lay.X0_VY],
-                2.0 * (phi1 - x0[lay.X0_PHI]) / T - x0[lay.X0_R])
+        return self.step.predict(x0, np.r_[om_w, om_s], self.model.P, self.d, ref)
 
     def update(self, t: float, x0: np.ndarray) -> np.ndarray:
         """Take the state measured at ``t`` (the MPC's state vector): compare it with the
@@ -118,9 +145,8 @@ class DisturbanceObserver:
                 and abs((t - last[0]) - self.period) <= 0.25 * self.period):
             _, xp, omw, oms, ref = last
             _, vx, vy, r = self.predict_velocity(xp, omw, oms, ref)
-            c, s = math.cos(x0[lay.X0_PHI]), math.sin(x0[lay.X0_PHI])
-            ex, ey = x0[lay.X0_VX] - vx, x0[lay.X0_VY] - vy
-            e = np.array([c * ex + s * ey, -s * ex + c * ey, x0[lay.X0_R] - r])
+            e = body_frame(x0[lay.X0_PHI], x0[lay.X0_VX] - vx, x0[lay.X0_VY] - vy,
+                           x0[lay.X0_R] - r)
             if self.lateral_only:
                 e[0] = 0.0
             gain = (self.period / self.tau) if self.kinematic else (1.0 / self.tau)
