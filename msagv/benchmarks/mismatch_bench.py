@@ -11,7 +11,8 @@ Per path and plant tire factor (B and mu of both Magic Formula curves times the 
 - ``wrong``: the file's tires, no offset-free disturbance (the MPC before issue 28);
 - ``offset-free``: the file's tires, the disturbance on (the default of the mf model);
 - ``adapted``: the file's tires adapted online (``--adapt``) and the disturbance on;
-- ``true``: the plant's own tires (the model right), the default settings.
+- ``true``: the plant's own tires (the model right), the default settings, on the same path
+  (a random path is drawn for the file's vehicle in all four).
 
 Prints the lateral RMS error [cm] and the tire wear W_tw [J] of each, and the ratio of each
 lateral RMS to the true model's. docs/CONTROLLER.md quotes it.
@@ -34,16 +35,17 @@ def run_one(case: str, speed: float, scale: float, variant: str, method: str,
     from msagv.experiments.scenario import Scenario
 
     settings = {"method": method}
-    kw = {"plant_tire_scale": scale}
     if variant == "wrong":
         settings["offset_free"] = False
     elif variant == "adapted":
         settings["adapt"] = True
-    elif variant == "true":
-        base = Scenario(case=case, plant_tire_scale=scale)
-        kw = {"vehicle": base.actual_vehicle(base.resolve_vehicle())}
-    sc = Scenario(case=case, speed=speed, path_seed=path_seed, settings=settings, **kw)
+    sc = Scenario(case=case, speed=speed, path_seed=path_seed, settings=settings,
+                  plant_tire_scale=scale)
     b = sc.build()
+    if variant == "true":
+        # the controller given the plant's own tires, on the same path (a random path is
+        # drawn for the scenario's vehicle: its tires set its curvature limit)
+        b.controller = sc.make_controller(sc.actual_vehicle(b.vehicle), b.reference)
     try:
         log = closed_loop(b.plant, b.controller, b.reference, min(duration, b.duration),
                           period=sc.period, progress=False, outputs=False)
