@@ -110,6 +110,9 @@ class MPCSettings:
     adapt: re-estimate the prediction's tire factors (cornering and longitudinal stiffness,
       friction) online (:mod:`controller.adaptation`); the 'mf' model and the annealer or
       feed-forward solvers only (IPOPT and acados build the tires into their code).
+      adapt_sigma_v [m/s]: the standard deviation of a measured body velocity, the
+      adaptation's measurement noise (raise it for noisy odometry: the factors then move
+      more slowly and less on noise).
     """
 
     method: str = "two-energy"
@@ -149,6 +152,7 @@ class MPCSettings:
     offset_free: bool | None = None
     disturbance_tau: float = 0.05
     adapt: bool = False
+    adapt_sigma_v: float = 1e-3
 
     def __post_init__(self):
         bad = None
@@ -192,6 +196,8 @@ class MPCSettings:
             bad = f"ref_smoothing: must be a finite length >= 0 m, got {self.ref_smoothing}"
         elif self.offset_free not in (None, True, False):
             bad = f"offset_free: expected true or false, got {self.offset_free!r}"
+        elif not (math.isfinite(self.adapt_sigma_v) and self.adapt_sigma_v > 0):
+            bad = f"adapt_sigma_v: must be a finite speed > 0 m/s, got {self.adapt_sigma_v}"
         elif self.adapt and self.model != "mf":
             bad = f"adapt: the online tire adaptation needs the model 'mf', not {self.model!r}"
         elif not (math.isfinite(self.disturbance_tau) and self.disturbance_tau > 0):

@@ -26,7 +26,7 @@ from msagv.plant.signals import CONTROL_PERIOD
 from msagv.plant.vehicle import Vehicle
 
 from . import solvers
-from .adaptation import TireAdaptation
+from .adaptation import AdaptOptions, TireAdaptation
 from .disturbance import DisturbanceObserver
 from .horizon import Horizon
 from .interface import Command, ControllerError
@@ -99,7 +99,8 @@ class MPC:
                 (1.0, 0.5) if kin else (DIST_MAX_ACCEL, DIST_MAX_YAW_ACCEL))
         self.adaptation = None  # the online tire factors (settings.adapt)
         if self.settings.adapt:
-            self.adaptation = TireAdaptation(self.model, self.period)
+            self.adaptation = TireAdaptation(
+                self.model, self.period, AdaptOptions(sigma_v=self.settings.adapt_sigma_v))
         self.warmup_solve_ms: list[float] = []
         self._smooth: tuple[Reference, Reference] | None = None  # (given, smoothed)
         self.budget_warnings: list[str] = []
