@@ -577,6 +577,52 @@ def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_
     assert summary["safe_events"] == 0
 
 
+# ---- a simulator at its own pace on /clock ---------------------------------------------------
+@pytest.mark.parametrize("rate", [0.2, 5.0])
+def test_under_sim_time_a_simulator_at_its_own_pace_is_answered_state_by_state(
+        procs, ros_env, rate):
+    """Issue 32 item 1: ``use_sim_time:=true`` and a simulator written here with rclpy that
+    publishes /clock and steps at ``rate`` times real time in lockstep (it waits for each
+    state's commands, then for the wall clock): every state is answered and the node
+    never goes safe - its timer, staleness bound and safe-state decisions count the
+    simulator's periods, not the wall clock's (at 0.2x a state comes every 50 ms of wall
+    time, as long as the default staleness bound: on the wall clock that was safe)."""
+    _ros()
+    from rosgraph_msgs.msg import Clock
+
+    from msagv.experiments.scenario import Scenario
+
+    n = 120
+    procs.start("ctl", msagv("ros2", "controller", "--case", "curve", "--speed", "15",
+                             "--json", "--ros-args", "-p", "use_sim_time:=true"))
+    plant, vehicle, _, _ = Scenario(case="curve", speed=15).make_plant()
+    peer = Peer("sim")
+    car = TestVehicle(peer, vehicle, plant)
+    pub_clock = peer.node.create_publisher(Clock, "clock", 10)
+    wall_period = T / rate
+    try:
+        assert peer.spin(120, until=lambda: car.pub_odom.get_subscription_count() > 0), \
+            procs.err("ctl")[-2000:]
+        peer.spin(0.5)
+        t0 = time.monotonic()
+        for k in range(n):
+            c = Clock()
+            c.clock.sec, c.clock.nanosec = divmod(round(k * T * 1e9), 1_000_000_000)
+            pub_clock.publish(c)
+            car.step(lambda: procs.err("ctl"))  # waits for the state's commands
+            wait = t0 + (k + 1) * wall_period - time.monotonic()
+            if wait > 0:
+                peer.spin(wait)
+        peer.spin(0.2)
+    finally:
+        peer.close()
+    procs.stop_all()
+    s = procs.json("ctl")
+    assert s["answered"] == n and s["repeated"] == 0, s
+    assert s["safe_events"] == 0 and s["safe_periods"] == 0, s
+    assert s["rejected"] == 0
+
+
 # ---- the real-time plant and a controller that dies ----------------------------------------
 def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
     """``--run-mode realtime``: the plant steps on the wall clock with the newest commands;

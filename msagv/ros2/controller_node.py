@@ -15,7 +15,9 @@ state), or after half a period with the newest joint states. A repeated stamp (a
 sending its state again) gets the same commands again, unsolved.
 
 Safety, the same state machine as the plant's (:class:`bridge.loss.CommandWatch`), run on
-the node's wall-clock timer at 1/T over the inputs instead of the commands: more than
+the node's timer at 1/T over the inputs instead of the commands - on ROS time under
+``use_sim_time`` (a simulator's /clock, at whatever pace it runs), else on a steady wall
+clock: more than
 ``stale_ms`` without a fresh odometry + joint-states pair puts the node in its safe
 behaviour - steering targets held at the last measured angles, wheel speeds ramped down
 at ``safe_decel`` - until fresh inputs come for ``resume_periods`` periods. Nothing is
@@ -358,8 +360,15 @@ class RosController:
                       c.subscription(R.PLAN, self._on_plan)]
         from rclpy.clock import Clock, ClockType
 
-        self._timer = c.node.create_timer(cfg.period, self._on_tick,
-                                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # under use_sim_time the run's clock is the simulator's (/clock): the timer, the
+        # staleness bound and every safe-state decision count its periods, so a simulator
+        # slower or faster than real time is answered state by state, never stale for
+        # being slow; otherwise the wall clock (a steady one)
+        self.sim_time = bool(c.node.get_parameter("use_sim_time").value)
+        self._clock = c.node.get_clock() if self.sim_time else None
+        self._timer = c.node.create_timer(
+            cfg.period, self._on_tick,
+            clock=self._clock if self.sim_time else Clock(clock_type=ClockType.STEADY_TIME))
 
     def _warm_extras(self, reference) -> None:
         """Compile what runs after each command (the horizon's rollout, the tire model of
@@ -378,8 +387,14 @@ class RosController:
         self.wear.reset()
 
     # ---- inputs ------------------------------------------------------------------------
+    def _now(self) -> float:
+        """The node's time [s]: ROS time under use_sim_time, else a steady wall clock."""
+        if self._clock is not None:
+            return self._clock.now().nanoseconds * 1e-9
+        return time.perf_counter()
+
     def _on_odom(self, msg) -> None:
-        self._odom, self._odom_rx = msg, time.perf_counter()
+        self._odom, self._odom_rx = msg, self._now()
         self._try()
 
     def _on_joints(self, msg) -> None:
@@ -480,7 +495,7 @@ class RosController:
         cmd = self.mpc.step(st, self.reference)
         self.solve_ms.append(cmd.solve_ms)
         if self.cfg.max_age_ms is not None and \
-                (time.perf_counter() - rx_perf) * 1000 > self.cfg.max_age_ms:
+                (self._now() - rx_perf) * 1000 > self.cfg.max_age_ms:
             self.stats["dropped_stale"] += 1
             return
         tgt = R.steering_targets(st["delta"], cmd.omega_s, self.cfg.period, self.vehicle.limits)
@@ -566,7 +581,7 @@ class RosController:
     # ---- the timer: stale inputs -------------------------------------------------------
     def _on_tick(self) -> None:
         self._tick += 1
-        if self._odom is not None and time.perf_counter() - self._odom_rx > self.cfg.period / 2:
+        if self._odom is not None and self._now() - self._odom_rx > self.cfg.period / 2:
             self._try(force=True)  # joint states stamped differently: the newest ones
         if self._last_t is None:
             return  # nothing received yet: nothing to hold
