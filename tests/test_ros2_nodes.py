@@ -555,13 +555,13 @@ def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_
     summary = procs.json("ctl")
     assert len(held) >= 250, f"not held at the goal; last state {states[-1]}"
     # no crabbing: moving, the body heads along its velocity (the path's tangent; a tire
-    # vehicle slips a few degrees in the turn), but in the goal's last GOAL_TURN metres
+    # vehicle slips a little in the turn), but in the goal's last GOAL_TURN metres
     # where it turns to the goal's orientation (NavFn's plan asked for wheels at 90 deg)
     crab = np.array([abs((math.atan2(s["vy"], s["vx"]) - s["phi"] + math.pi) % (2 * math.pi)
                          - math.pi) for s in states if math.hypot(s["vx"], s["vy"]) > 0.3
                      and math.hypot(s["x"] - gx, s["y"] - gy) > GOAL_TURN])
     assert len(crab) > 500
-    assert crab.max() < math.radians(10) and crab.mean() < math.radians(3), \
+    assert crab.max() < math.radians(5) and crab.mean() < math.radians(1.5), \
         (math.degrees(crab.max()), math.degrees(crab.mean()))
     px, py = np.array([f(v) for v in np.linspace(0, length, 1500)]).T
     lat = np.array([_lateral(s["x"], s["y"], px, py) for s in states])
@@ -573,7 +573,7 @@ def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_
     assert math.hypot(end["vx"], end["vy"]) < 0.05
     assert np.allclose([h["delta"] for h in held], held[0]["delta"], atol=1e-9)
     assert summary["goals_reached"] == 1 and summary["plans_at_goal"] >= 2
-    assert summary["plans_same_route"] >= 10  # the replans along the way: the same route
+    assert summary["plans_same_route"] >= 5  # the replans along the way: the same route
     assert summary["safe_events"] == 0
 
 

@@ -70,7 +70,34 @@ class SpeedProfile:
 
 TANGENT_SPAN = 0.5  # m: a heading is the chord from this far behind a pose to this far ahead
 GOAL_TURN = 3.0  # m: the goal's orientation is blended in over the path's last 3 m
-PLAN_STEP = 0.1  # m: an unstamped plan is sampled at least this densely
+PLAN_STEP = 0.05  # m: an unstamped plan is resampled this densely along its arc length ...
+SMOOTH = 1.0  # m: ... and averaged over this far behind and ahead (ends kept), in
+SMOOTH_PASSES = 3  # this many box filters of a third of it each
+
+
+def smooth_path(x, y):
+    """An unstamped plan as the reference drives it: resampled every :data:`PLAN_STEP`
+    along its arc length, then :data:`SMOOTH_PASSES` times each point the mean of the
+    points within ``SMOOTH / SMOOTH_PASSES`` behind and ahead (a window that shrinks to
+    keep the first and the last point where they are).
+    A grid planner's one-cell steps (NavFn's) would otherwise be steps of heading and of
+    curvature: a steering that chatters at its rate limit (scrub wear) and a lateral
+    speed limit on curvature that is not the path's. Returns ``(x, y, s)``."""
+    s = np.r_[0.0, np.cumsum(np.hypot(np.diff(x), np.diff(y)))]
+    n = max(3, int(math.ceil(s[-1] / PLAN_STEP)) + 1)
+    su = np.linspace(0.0, s[-1], n)
+    xu, yu = _along(x, y, s, su)
+    h = np.minimum(int(round(SMOOTH / SMOOTH_PASSES / (su[1] - su[0]))),
+                   np.minimum(np.arange(n), np.arange(n)[::-1]))
+    i = np.arange(n)
+    xs, ys = xu, yu
+    for _ in range(SMOOTH_PASSES):  # box filters in a row: heading and curvature smooth
+        cx, cy = np.r_[0.0, np.cumsum(xs)], np.r_[0.0, np.cumsum(ys)]
+        xs = (cx[i + h + 1] - cx[i - h]) / (2 * h + 1)
+        ys = (cy[i + h + 1] - cy[i - h]) / (2 * h + 1)
+    keep = np.r_[True, np.hypot(np.diff(xs), np.diff(ys)) > 1e-9]
+    xs, ys = xs[keep], ys[keep]
+    return xs, ys, np.r_[0.0, np.cumsum(np.hypot(np.diff(xs), np.diff(ys)))]
 
 
 def _along(x, y, s, at):
@@ -136,7 +163,8 @@ def plan_reference(t, x, y, phi, t_now: float, profile: SpeedProfile) -> tuple[R
     ``t_now`` (Nav2's planners leave the stamps zero). Headings from the poses'
     orientations; where the orientations are the identity - all of them, or all but the
     last (Nav2's NavFn gives only the goal an orientation) - from the path's tangent
-    (:func:`path_headings`), the last pose's orientation turned to over the last
+    (:func:`path_headings`; of the smoothed path, :func:`smooth_path`, when unstamped),
+    the last pose's orientation turned to over the last
     :data:`GOAL_TURN` metres. Past the last pose the reference holds it. Returns
     ``(reference, how it was timed)``."""
     t, x, y, phi = (np.asarray(a, dtype=float) for a in (t, x, y, phi))
@@ -153,18 +181,17 @@ def plan_reference(t, x, y, phi, t_now: float, profile: SpeedProfile) -> tuple[R
         if x.size < 2:
             raise ValueError("a plan without stamps or orientations needs two distinct points")
     s = np.r_[0.0, np.cumsum(np.hypot(np.diff(x), np.diff(y)))]
-    if not stamped:  # samples at most PLAN_STEP apart: the profile's speed is 0 at one end
+    tangent = None
+    if not stamped:  # resampled and smoothed (the profile's speed is 0 at the end)
         goal = phi[-1]
-        n = np.maximum(2 if s.size == 2 else 1, np.ceil(np.diff(s) / PLAN_STEP)).astype(int)
-        s2 = np.r_[np.concatenate([np.linspace(a, b, k, endpoint=False)
-                                   for a, b, k in zip(s[:-1], s[1:], n)]), s[-1]]
-        x, y = _along(x, y, s, s2)
-        phi = np.interp(s2, s, np.unwrap(phi))
+        x2, y2, s2 = smooth_path(x, y)
+        phi = np.interp(s2 * (s[-1] / s2[-1]), s, np.unwrap(phi))
         phi[-1] = goal
-        s = s2
+        x, y, s = x2, y2, s2
+        tangent = np.unwrap(np.arctan2(np.gradient(y, s), np.gradient(x, s)))
     if identity and s[-1] > 0:
         goal = phi[-1]
-        head = path_headings(x, y, s)
+        head = tangent if tangent is not None else path_headings(x, y, s)
         if goal != 0.0:  # NavFn: the goal's orientation, turned to near the goal only
             turn = (goal - head[-1] + math.pi) % (2 * math.pi) - math.pi
             # by the distance left to the goal: a plan again from where the vehicle is
@@ -176,8 +203,7 @@ def plan_reference(t, x, y, phi, t_now: float, profile: SpeedProfile) -> tuple[R
         how = "its stamps"
     else:
         profile.check()
-        head = path_headings(x, y, s)
-        kappa = np.gradient(head, s) if s.size > 2 else np.zeros_like(s)
+        kappa = np.gradient(tangent, s)
         v = speed_profile(s, kappa, profile)
         dt = 2.0 * np.diff(s) / (v[:-1] + v[1:])
         t = t_now + np.r_[0.0, np.cumsum(dt)]
