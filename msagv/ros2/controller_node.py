@@ -6,8 +6,9 @@ In: ``odom`` (nav_msgs/Odometry: pose in odom, twist in base_link as REP-105 say
 forward-command topics ``steering_controller/commands`` (steering angle targets [rad]: the
 angle the commanded rate reaches in one period, :func:`bridge.ros_msgs.steering_targets`)
 and ``wheel_controller/commands`` (wheel speeds [rad/s]), ``predicted_path`` (the MPC's
-horizon) and ``wear`` (each wheel's wear power under the command at the observed state, by
-the plant's tire model, and its integral).
+horizon) and ``wear_estimate`` (each wheel's wear power under the command at the observed
+state, by the plant's tire model reset there - pose, steering, measured wheel speeds -, and
+its integral; the plant publishes its own, measured, on ``wear``).
 
 One solve per odometry message: when the joint states stamped no earlier than it have
 arrived (a plant that stamps both alike, as ``msagv ros2 plant``, is answered state by
@@ -277,8 +278,13 @@ class WearEstimate:
 
     def update(self, st: dict, omega_w, omega_s) -> tuple[np.ndarray, np.ndarray]:
         init = {k: st[k] for k in ("x", "y", "phi", "vx", "vy", "r")}
-        for n, d in zip(self.names, st["delta"]):
+        # the wheels as measured (with a wheel lag the plant's wheel speeds are a state: left
+        # at 0 they slipped at the vehicle's whole speed, an estimate 1000x the plant's),
+        # the steering at the commanded rate
+        for n, d, w, ws in zip(self.names, st["delta"], st["omega_w"], omega_s):
             init[f"delta_{n}"] = d
+            init[f"omega_w_{n}"] = max(float(w), 0.0)
+            init[f"omega_s_{n}"] = float(ws)
         self.plant.reset(init)
         self.plant.set_inputs(omega_w, omega_s)
         out = self.plant.outputs()
@@ -380,7 +386,7 @@ class RosController:
         self.pub_steer = c.publisher(R.STEERING_COMMANDS)
         self.pub_wheel = c.publisher(R.WHEEL_COMMANDS)
         self.pub_pred = c.publisher(R.PREDICTED_PATH)
-        self.pub_wear = c.publisher(R.WEAR)
+        self.pub_wear = c.publisher(R.WEAR_ESTIMATE, R.TYPES[R.WEAR])  # not the plant's wear
         self._subs = [c.subscription(R.ODOM, self._on_odom),
                       c.subscription(R.JOINT_STATES, self._on_joints),
                       c.subscription(R.PLAN, self._on_plan)]
