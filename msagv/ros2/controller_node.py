@@ -22,9 +22,14 @@ clock: more than
 ``stale_ms`` without a fresh odometry + joint-states pair puts the node in its safe
 behaviour - steering targets held at the last measured angles, wheel speeds ramped down
 at ``safe_decel`` - until fresh inputs come for ``resume_periods`` periods. Nothing is
-published before the first state (nothing to hold). A plan's end: past its last pose the
-reference holds that pose (the vehicle stops there); an empty plan stops the vehicle as the
-safe behaviour does.
+published before the first state (nothing to hold). A plan (:func:`plan_reference`):
+timed by its stamps, or, unstamped as Nav2 sends it, smoothed and timed by a speed profile
+(:class:`SpeedProfile`); headings from the path's tangent where the orientations are the
+identity (NavFn's), the goal's orientation turned to near the goal; a replan of the route
+being driven leaves the reference as it is. A plan's end: past its last pose the reference
+holds that pose, and once its time is up with the vehicle at or past the goal the node
+holds it there without the MPC (:meth:`RosController._at_goal`) until a plan to another
+goal; an empty plan stops the vehicle as the safe behaviour does.
 """
 
 from __future__ import annotations
