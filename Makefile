@@ -33,15 +33,27 @@ demo: $(STAMP)
 # installed here when missing and possible (root with apt-get), else that test skips
 CHROMIUM_CHECK = command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && { apt-get install -y -q chromium >/dev/null 2>&1 || { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q chromium >/dev/null 2>&1; }; }; } || echo "chromium not installed: the web-viewer screenshot test will skip"
 
-test: $(STAMP) $(ACADOS_STAMP)
+# the official Foxglove client (npm @foxglove/ws-protocol) that tests/test_foxglove.py runs in
+# Node: Debian's nodejs and npm installed when missing and possible (root with apt-get), then
+# the client's packages as tests/node/package-lock.json pins them (npm ci into
+# tests/node/node_modules, which git ignores). Without npm that test skips; a failed npm ci
+# fails here.
+NODE_CHECK = command -v npm >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && { apt-get install -y -q nodejs npm >/dev/null 2>&1 || { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q nodejs npm >/dev/null 2>&1; }; }; } || echo "npm not installed: the Foxglove npm-client test will skip"
+NPM_STAMP := tests/node/node_modules/.package-lock.json
+
+$(NPM_STAMP): tests/node/package.json tests/node/package-lock.json
+	@$(NODE_CHECK)
+	@if command -v npm >/dev/null 2>&1; then cd tests/node && npm ci --no-audit --no-fund --loglevel=error; fi
+
+test: $(STAMP) $(ACADOS_STAMP) $(NPM_STAMP)
 	@$(CHROMIUM_CHECK)
 	$(BIN)/python -m pytest -q -n 2 --dist loadscope --durations=30
 
-test-all: $(STAMP) $(ACADOS_STAMP)
+test-all: $(STAMP) $(ACADOS_STAMP) $(NPM_STAMP)
 	$(BIN)/python -m pytest -q -m ''
 
 bench: $(STAMP) $(ACADOS_STAMP)
 	$(BIN)/msagv bench
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info tests/node/node_modules

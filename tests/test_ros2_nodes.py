@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers import msagv
+from helpers import ROOT, msagv
 
 T = 0.01
 
@@ -216,8 +216,10 @@ def test_the_controller_node_tracks_an_unstamped_plan_and_stops_safely(procs, ro
                                   lambda m: got.__setitem__("wheel", list(m.data)), 10)
     preds = []
     peer.node.create_subscription(Path, "predicted_path", lambda m: preds.append(m), 10)
-    wear = []
-    peer.node.create_subscription(Float64MultiArray, "wear", lambda m: wear.append(m), 10)
+    wear, plant_wear = [], []
+    peer.node.create_subscription(Float64MultiArray, "wear_estimate",
+                                  lambda m: wear.append(m), 10)
+    peer.node.create_subscription(Float64MultiArray, "wear", lambda m: plant_wear.append(m), 10)
 
     x, y = _s_curve()
     plant = Plant(vehicle, initial={"vx": v})  # on the path's start, along it, at speed
@@ -304,6 +306,7 @@ def test_the_controller_node_tracks_an_unstamped_plan_and_stops_safely(procs, ro
     # the horizon and the wear on their topics
     assert preds and len(preds[-1].poses) == 11 and preds[-1].header.frame_id == "odom"
     last = wear[-1]
+    assert not plant_wear  # "wear" is the plant's alone: the estimate has its own topic
     assert [d.label for d in last.layout.dim] == ["P_tw|W_tw", "|".join(names)]
     assert len(last.data) == 2 * nw and all(p >= 0 for p in last.data)
 
@@ -319,30 +322,337 @@ def test_a_malformed_plan_and_parameter_are_refused(procs, ros_env):
         procs.err("ctl")
 
 
-# ---- the plan's timing (no ROS needed) ------------------------------------------------------
-def test_an_unstamped_plan_is_timed_along_its_arc_length():
-    from msagv.ros2.controller_node import plan_reference
+# ---- the plan's timing and headings (no ROS needed) ------------------------------------------
+def test_an_unstamped_plan_is_timed_by_its_speed_profile():
+    from msagv.ros2.controller_node import SpeedProfile, plan_reference, speed_profile
 
-    x = np.array([0.0, 3.0, 3.0, 3.0, 7.0])  # a repeated point, then a turn
-    y = np.array([0.0, 0.0, 0.0, 4.0, 4.0])
-    t = np.zeros(5)
-    ref, how = plan_reference(t, x, y, np.zeros(5), t_now=2.0, speed_ms=2.0)
-    assert how == "its arc length at 7.2 km/h"
-    # lengths 3, 4, 4 m at 2 m/s from t = 2 s: 2, 3.5, 5.5, 7.5 s
-    np.testing.assert_allclose(ref.t, [2.0, 3.5, 5.5, 7.5])
-    # the orientations were all left unset: the headings follow the path
-    np.testing.assert_allclose(ref.phi, [0.0, math.pi / 2, 0.0, 0.0], atol=1e-12)
-    # past the end the reference holds the last pose (the vehicle stops at the goal)
-    end = ref.sample([100.0])[0]
-    assert (end[0], end[1], end[3], end[4]) == (7.0, 4.0, 0.0, 0.0)
-    # stamps that increase strictly give the time
-    ref2, how2 = plan_reference([10, 11, 13], [0, 1, 2], [0, 0, 0], [0, 0.1, 0.2], 0.0, 1.0)
-    assert how2 == "its stamps" and list(ref2.t) == [10, 11, 13]
-    np.testing.assert_allclose(ref2.phi, [0, 0.1, 0.2])
+    # a straight 20 m plan, from rest: 1 m/s^2 up to 3 m/s (4.5 m), 2 m/s^2 down to stand at
+    # the goal (2.25 m); in between 13.25 m at 3 m/s. By hand: 3 + 13.25/3 + 1.5 s
+    x = np.array([0.0, 5.0, 5.0, 20.0])  # a repeated point carries no time
+    y = np.zeros(4)
+    prof = SpeedProfile(speed=3.0, accel=1.0, decel=2.0, lat_accel=1.5, v0=0.0)
+    ref, how = plan_reference(np.zeros(4), x, y, np.zeros(4), t_now=2.0, profile=prof)
+    assert how.startswith("its arc length at up to 10.8 km/h (from 0.00 m/s")
+    assert ref.t[0] == 2.0
+    assert ref.t[-1] - 2.0 == pytest.approx(3.0 + 13.25 / 3.0 + 1.5, abs=0.01)
+    # the samples' speeds (each segment's length over its time is its mean speed): up to
+    # 3 m/s, never backwards
+    u = np.diff(ref.x) / np.diff(ref.t)
+    assert u.max() == pytest.approx(3.0, abs=1e-9) and u.min() > 0
+    # the profile itself: v^2 changes by at most 2 a ds from sample to sample
+    s = np.r_[0.0, np.cumsum(np.diff(ref.x))]
+    v = speed_profile(s, np.zeros(s.size), prof)
+    dv2 = np.diff(v ** 2) / (2 * np.diff(s))
+    assert v[0] == 0.0 and v[-1] == 0.0 and v.max() == pytest.approx(3.0)
+    assert dv2.max() <= 1.0 + 1e-9 and dv2.min() >= -2.0 - 1e-9
+    # past the end the reference holds the last pose (the vehicle stands at the goal)
+    end = ref.sample([ref.t[-1] + 100.0])[0]
+    assert (end[0], end[1], end[3], end[4]) == (20.0, 0.0, 0.0, 0.0)
+    # from the measured speed: a plan given at 2 m/s starts there
+    ref2, _ = plan_reference(np.zeros(4), x, y, np.zeros(4), 0.0,
+                             SpeedProfile(3.0, 1.0, 2.0, 1.5, v0=2.0))
+    assert ref2.sample([0.0])[0][3] == pytest.approx(2.0, abs=0.05)
+    # stamps that increase strictly give the time, orientations the headings
+    ref3, how3 = plan_reference([10, 11, 13], [0, 1, 2], [0, 0, 0], [0.1, 0.1, 0.2], 0.0, prof)
+    assert how3 == "its stamps" and list(ref3.t) == [10, 11, 13]
+    np.testing.assert_allclose(ref3.phi, [0.1, 0.1, 0.2])
     with pytest.raises(ValueError, match="two distinct points"):
-        plan_reference([0, 0], [1, 1], [2, 2], [0, 0], 0.0, 1.0)
+        plan_reference([0, 0], [1, 1], [2, 2], [0, 0], 0.0, prof)
     with pytest.raises(ValueError, match="at least 2 poses"):
-        plan_reference([0], [1], [2], [0], 0.0, 1.0)
+        plan_reference([0], [1], [2], [0], 0.0, prof)
+    with pytest.raises(ValueError, match="the plan's decel must be > 0"):
+        plan_reference(np.zeros(4), x, y, np.zeros(4), 0.0, SpeedProfile(3.0, 1.0, 0.0))
+
+
+def test_the_lateral_limit_slows_a_curve():
+    from msagv.ros2.controller_node import SpeedProfile, plan_reference
+
+    # a circle of radius 4 m at up to 5 m/s with 1 m/s^2 across: sqrt(1 * 4) = 2 m/s in it
+    a = np.linspace(0, 1.5 * math.pi, 400)
+    x, y = 4 * np.sin(a), 4 * (1 - np.cos(a))
+    ref, _ = plan_reference(np.zeros(a.size), x, y, np.zeros(a.size), 0.0,
+                            SpeedProfile(5.0, 2.0, 2.0, lat_accel=1.0))
+    speed = np.hypot(ref.vx, ref.vy)
+    assert speed.max() == pytest.approx(2.0, rel=0.03)
+    lat = speed * np.abs(ref.r)  # v * yaw rate: the heading follows the tangent
+    assert lat.max() <= 1.0 * 1.05
+
+
+def _navfn_plan(x0: float, y0: float, path, goal_yaw: float, cell: float = 0.05):
+    """A plan as NavFn (nav2 navfn_planner) gives it: points one costmap cell apart from
+    (x0, y0) along ``path`` (callable: arc length -> point; its length), snapped to the
+    cells' centres, every orientation the identity but the goal's, stamps zero."""
+    f, length = path
+    s = np.arange(0.0, length, cell)
+    pts = np.round(np.array([f(v) for v in s] + [f(length)]) / cell) * cell
+    pts[0] = (x0, y0)  # from the robot's pose ...
+    pts[-1] = f(length)  # ... to the goal's
+    keep = np.r_[True, np.any(np.diff(pts, axis=0) != 0, axis=1)]
+    pts = pts[keep]
+    yaw = np.zeros(len(pts))
+    yaw[-1] = goal_yaw
+    return pts[:, 0], pts[:, 1], yaw
+
+
+def _turn(leg: float = 6.0, radius: float = 10.0):
+    """A 90-degree left turn: ``leg`` m along x, a quarter circle, ``leg`` m along y."""
+    arc = math.pi / 2 * radius
+
+    def f(s):
+        if s <= leg:
+            return (s, 0.0)
+        if s <= leg + arc:
+            a = (s - leg) / radius
+            return (leg + radius * math.sin(a), radius * (1 - math.cos(a)))
+        return (leg + radius, radius + s - leg - arc)
+
+    return f, 2 * leg + arc
+
+
+def test_navfn_headings_follow_the_path_and_the_goal_turns_in_at_the_goal():
+    from msagv.ros2.controller_node import GOAL_TURN, SpeedProfile, plan_reference
+
+    f, length = _turn()
+    x, y, yaw = _navfn_plan(0.0, 0.0, (f, length), goal_yaw=math.pi / 2 + 0.5)
+    ref, _ = plan_reference(np.zeros(x.size), x, y, yaw, 0.0, SpeedProfile(3.0))
+    # the path's own tangent, by hand from the turn's geometry (centre (6, 10), radius 10)
+    tangent = np.clip(np.arctan2(ref.x - 6.0, 10.0 - ref.y), 0.0, math.pi / 2)
+    away = np.hypot(ref.x - x[-1], ref.y - y[-1]) > GOAL_TURN
+    # within a cell's staircase and the tangent's 1 m chord where the turn begins and ends
+    err = np.abs(ref.phi[away] - tangent[away])
+    assert err.max() < math.radians(4) and np.sqrt(np.mean(err ** 2)) < math.radians(1)
+    assert ref.phi[-1] == pytest.approx(math.pi / 2 + 0.5, abs=1e-12)  # the goal's, at the goal
+    # every orientation the identity, the goal's too: the tangent to the end
+    yaw0 = np.zeros(x.size)
+    ref0, _ = plan_reference(np.zeros(x.size), x, y, yaw0, 0.0, SpeedProfile(3.0))
+    assert ref0.phi[-1] == pytest.approx(math.pi / 2, abs=math.radians(2))
+
+
+class SimVehicle:
+    """This test as the vehicle of ``msagv ros2 controller``: a stepping plant whose state
+    it publishes as odometry and joint states (docs/ROS2.md), stepping it with the commands
+    that come back (steering targets turned into rates by docs/ROS2.md's inverse)."""
+
+    def __init__(self, peer, vehicle, plant):
+        from nav_msgs.msg import Odometry, Path
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray
+
+        self.peer, self.vehicle, self.plant = peer, vehicle, plant
+        n = peer.node
+        self.pub_odom = n.create_publisher(Odometry, "odom", 10)
+        self.pub_js = n.create_publisher(JointState, "joint_states", 10)
+        self.pub_plan = n.create_publisher(Path, "plan", 1)
+        self.got: dict = {}
+        n.create_subscription(Float64MultiArray, "steering_controller/commands",
+                              lambda m: self.got.__setitem__("steer", list(m.data)), 10)
+        n.create_subscription(Float64MultiArray, "wheel_controller/commands",
+                              lambda m: self.got.__setitem__("wheel", list(m.data)), 10)
+        self.k = 0
+
+    def matched(self, timeout: float = 120.0) -> bool:
+        return self.peer.spin(timeout, until=lambda: self.pub_odom.get_subscription_count() > 0
+                              and self.pub_plan.get_subscription_count() > 0)
+
+    def plan(self, x, y, yaw) -> None:
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Path
+
+        m = Path()
+        m.header.frame_id = "odom"  # stamps left zero, as Nav2's planners leave them
+        for xi, yi, a in zip(x, y, yaw):
+            ps = PoseStamped()
+            ps.header.frame_id = "odom"
+            ps.pose.position.x, ps.pose.position.y = float(xi), float(yi)
+            ps.pose.orientation.z, ps.pose.orientation.w = math.sin(a / 2), math.cos(a / 2)
+            m.poses.append(ps)
+        self.pub_plan.publish(m)
+
+    def step(self, err) -> tuple[dict, list, list]:
+        """Publish the state, wait for its commands, step the plant: (state, targets, wheels)."""
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import JointState
+
+        st = self.plant.state_message()
+        names, nw = self.vehicle.wheel_names, self.vehicle.n_wheels
+        sec, ns = divmod(round(self.k * T * 1e9), 1_000_000_000)
+        js = JointState()
+        js.header.stamp.sec, js.header.stamp.nanosec = sec, ns
+        js.name = [f"steer_{w}" for w in names] + [f"wheel_{w}" for w in names]
+        js.position = [float(d) for d in st["delta"]] + [0.0] * nw
+        js.velocity = [0.0] * nw + [float(w) for w in st["omega_w"]]
+        o = Odometry()
+        o.header.stamp.sec, o.header.stamp.nanosec = sec, ns
+        o.header.frame_id, o.child_frame_id = "odom", "base_link"
+        o.pose.pose.position.x, o.pose.pose.position.y = st["x"], st["y"]
+        o.pose.pose.orientation.z = math.sin(st["phi"] / 2)
+        o.pose.pose.orientation.w = math.cos(st["phi"] / 2)
+        c, s = math.cos(st["phi"]), math.sin(st["phi"])
+        o.twist.twist.linear.x = c * st["vx"] + s * st["vy"]
+        o.twist.twist.linear.y = -s * st["vx"] + c * st["vy"]
+        o.twist.twist.angular.z = st["r"]
+        self.got.clear()
+        self.pub_js.publish(js)
+        self.pub_odom.publish(o)
+        assert self.peer.spin(30, until=lambda: "steer" in self.got and "wheel" in self.got), \
+            f"no commands for state {self.k}: {err()[-2000:]}"
+        tgt, wheels = self.got["steer"], self.got["wheel"]
+        rates = (np.asarray(tgt) - np.asarray(st["delta"])) / T
+        self.plant.set_inputs(wheels, rates)
+        self.plant.do_step(self.plant.t, T)
+        self.k += 1
+        return st, tgt, wheels
+
+
+def _remaining(f, length, px, py):
+    """Nav2 replanning: the rest of the path from the point of it nearest (px, py)."""
+    s = np.linspace(0.0, length, int(length / 0.01) + 1)
+    pts = np.array([f(v) for v in s])
+    i = int(np.argmin(np.hypot(pts[:, 0] - px, pts[:, 1] - py)))
+    s0 = s[i]
+    return (lambda v: f(min(length, s0 + v))), max(length - s0, 0.0)
+
+
+def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_file):
+    """Issue 32 item 2: a plan as NavFn gives it (one costmap cell apart, every orientation
+    the identity but the goal's, stamps zero) through a 90-degree turn, replanned at 1 Hz
+    from where the vehicle is, as Nav2 does: the vehicle heads along the path (no crabbing),
+    stands at the goal within 5 cm and 2 deg, and, the goal reached, stays: wheels stopped,
+    steering held at its angles while the plans to the same goal keep coming."""
+    _ros()
+    from msagv.plant import Plant
+    from msagv.plant.vehicle import load_vehicle
+    from msagv.ros2.controller_node import GOAL_TURN
+
+    vehicle = load_vehicle(three_axle_file)
+    f, length = _turn()
+    goal_yaw = math.pi / 2 + math.radians(20)  # the goal asks for a turn of its own
+    gx, gy = f(length)
+    procs.start("ctl", msagv("ros2", "controller", "--vehicle", three_axle_file, "--speed",
+                             "12", "--stale-ms", "1000", "--json"))
+    peer = Peer("navfn_vehicle")
+    car = SimVehicle(peer, vehicle, Plant(vehicle))  # at rest at the path's start
+    states, held = [], []
+    try:
+        assert car.matched(), procs.err("ctl")[-2000:]
+        peer.spin(0.5)
+        car.plan(*_navfn_plan(0.0, 0.0, (f, length), goal_yaw))
+        peer.spin(0.3)
+        for k in range(3000):  # 30 s of the vehicle's time at most (the plan: about 18 s)
+            if k and k % 100 == 0:  # 1 Hz: from the vehicle's position to the same goal
+                st = car.plant.state_message()
+                car.plan(*_navfn_plan(st["x"], st["y"], _remaining(f, length, st["x"], st["y"]),
+                                      goal_yaw))
+                peer.spin(0.05)
+            st, tgt, wheels = car.step(lambda: procs.err("ctl"))
+            states.append(st)
+            if np.all(np.asarray(wheels) == 0.0) and np.allclose(tgt, st["delta"], atol=0):
+                held.append(st)
+                if len(held) >= 250:  # 2.5 s at the goal, two more plans to it
+                    break
+            else:
+                held.clear()
+    finally:
+        peer.close()
+    procs.stop_all()
+    summary = procs.json("ctl")
+    assert len(held) >= 250, f"not held at the goal; last state {states[-1]}"
+    # no crabbing: moving, the body heads along its velocity (the path's tangent; a tire
+    # vehicle slips a little in the turn), but in the goal's last GOAL_TURN metres
+    # where it turns to the goal's orientation (NavFn's plan asked for wheels at 90 deg)
+    crab = np.array([abs((math.atan2(s["vy"], s["vx"]) - s["phi"] + math.pi) % (2 * math.pi)
+                         - math.pi) for s in states if math.hypot(s["vx"], s["vy"]) > 0.3
+                     and math.hypot(s["x"] - gx, s["y"] - gy) > GOAL_TURN])
+    assert len(crab) > 500
+    assert crab.max() < math.radians(5) and crab.mean() < math.radians(1.5), \
+        (math.degrees(crab.max()), math.degrees(crab.mean()))
+    px, py = np.array([f(v) for v in np.linspace(0, length, 1500)]).T
+    lat = np.array([_lateral(s["x"], s["y"], px, py) for s in states])
+    assert np.sqrt(np.mean(lat ** 2)) < 0.05, np.sqrt(np.mean(lat ** 2))
+    # standing at the goal, in its orientation, and staying: no steering at standstill
+    end = held[-1]
+    assert math.hypot(end["x"] - gx, end["y"] - gy) < 0.05
+    assert abs((end["phi"] - goal_yaw + math.pi) % (2 * math.pi) - math.pi) < math.radians(2)
+    assert math.hypot(end["vx"], end["vy"]) < 0.05
+    assert np.allclose([h["delta"] for h in held], held[0]["delta"], atol=1e-9)
+    assert summary["goals_reached"] == 1 and summary["plans_at_goal"] >= 2
+    assert summary["plans_same_route"] >= 5  # the replans along the way: the same route
+    assert summary["safe_events"] == 0
+
+
+# ---- the controller's wear estimate ------------------------------------------------------------
+def test_the_wear_estimate_follows_the_plant_with_a_wheel_lag():
+    """Issue 32 item 4: the controller's estimate (the plant's tire model reset at each
+    observed state, the command applied) summed over a run of the 4-axle transporter whose
+    wheel motors lag (50 ms) is the plant's own wear work within 5 % (reset without the
+    measured wheel speeds it was ~1000x: the model's wheels stood while the vehicle moved)."""
+    from msagv.experiments.scenario import Scenario
+    from msagv.ros2.controller_node import WearEstimate
+
+    b = Scenario.from_file(ROOT / "scenarios" / "s-curve-4axle.toml").build()
+    try:
+        assert b.vehicle.plant.wheel_lag > 0
+        est = WearEstimate(b.vehicle)
+        for _ in range(400):
+            st = b.plant.state_message()
+            cmd = b.controller.step(st, b.reference)
+            est.update(st, cmd.omega_w, cmd.omega_s)
+            b.plant.set_inputs(cmd.omega_w, cmd.omega_s)
+            b.plant.do_step(b.plant.t, T)
+        # the estimate's work runs to the last state it saw; the plant's to the state after
+        st = b.plant.state_message()
+        est.update(st, cmd.omega_w, cmd.omega_s)
+        measured = b.plant.outputs()["W_tw"]
+    finally:
+        b.close()
+    assert measured > 0
+    assert est.work.sum() == pytest.approx(measured, rel=0.05)
+
+
+# ---- a simulator at its own pace on /clock ---------------------------------------------------
+@pytest.mark.parametrize("rate", [0.2, 5.0])
+def test_under_sim_time_a_simulator_at_its_own_pace_is_answered_state_by_state(
+        procs, ros_env, rate):
+    """Issue 32 item 1: ``use_sim_time:=true`` and a simulator written here with rclpy that
+    publishes /clock and steps at ``rate`` times real time in lockstep (it waits for each
+    state's commands, then for the wall clock): every state is answered and the node
+    never goes safe - its timer, staleness bound and safe-state decisions count the
+    simulator's periods, not the wall clock's (at 0.2x a state comes every 50 ms of wall
+    time, as long as the default staleness bound: on the wall clock that was safe)."""
+    _ros()
+    from rosgraph_msgs.msg import Clock
+
+    from msagv.experiments.scenario import Scenario
+
+    n = 120
+    procs.start("ctl", msagv("ros2", "controller", "--case", "curve", "--speed", "15",
+                             "--json", "--ros-args", "-p", "use_sim_time:=true"))
+    plant, vehicle, _, _ = Scenario(case="curve", speed=15).make_plant()
+    peer = Peer("sim")
+    car = SimVehicle(peer, vehicle, plant)
+    pub_clock = peer.node.create_publisher(Clock, "clock", 10)
+    wall_period = T / rate
+    try:
+        assert peer.spin(120, until=lambda: car.pub_odom.get_subscription_count() > 0), \
+            procs.err("ctl")[-2000:]
+        peer.spin(0.5)
+        t0 = time.monotonic()
+        for k in range(n):
+            c = Clock()
+            c.clock.sec, c.clock.nanosec = divmod(round(k * T * 1e9), 1_000_000_000)
+            pub_clock.publish(c)
+            car.step(lambda: procs.err("ctl"))  # waits for the state's commands
+            wait = t0 + (k + 1) * wall_period - time.monotonic()
+            if wait > 0:
+                peer.spin(wait)
+        peer.spin(0.2)
+    finally:
+        peer.close()
+    procs.stop_all()
+    s = procs.json("ctl")
+    assert s["answered"] == n and s["repeated"] == 0, s
+    assert s["safe_events"] == 0 and s["safe_periods"] == 0, s
+    assert s["rejected"] == 0
 
 
 # ---- the real-time plant and a controller that dies ----------------------------------------

@@ -35,6 +35,10 @@ ODOM = "odom"
 JOINT_STATES = "joint_states"
 TF = "tf"
 WEAR = "wear"
+# the controller's wear estimate (the plant's tire model at the observed state under the
+# command sent): same type and layout as WEAR, its own topic so the two are never mixed;
+# published by `msagv ros2 controller` only, not a recording's channel
+WEAR_ESTIMATE = "wear_estimate"
 MARKERS = "markers"
 PLAN = "plan"
 PREDICTED_PATH = "predicted_path"

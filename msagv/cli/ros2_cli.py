@@ -82,6 +82,19 @@ def controller_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-age-ms", type=float, metavar="MS",
                     help="never send a command for a state received longer ago (default: none)")
     ap.add_argument("--node-name", default="msagv_controller", help="the ROS node's name")
+    g = ap.add_argument_group("an unstamped plan (Nav2's): its speed profile and its goal")
+    g.add_argument("--plan-accel", type=float, default=1.0, metavar="M/S2",
+                   help="speeding up along the plan at most at this (default 1)")
+    g.add_argument("--plan-decel", type=float, default=1.0, metavar="M/S2",
+                   help="slowing down along the plan, to stand at its goal, at most at this "
+                        "(default 1)")
+    g.add_argument("--plan-lat-accel", type=float, default=1.5, metavar="M/S2",
+                   help="at most this across the path in its curves (default 1.5)")
+    g.add_argument("--goal-tolerance", type=float, default=0.05, metavar="M",
+                   help="standing this close to the plan's goal (and within "
+                        "--goal-yaw-tolerance) is reached: held, no MPC (default 0.05)")
+    g.add_argument("--goal-yaw-tolerance", type=float, default=2.0, metavar="DEG",
+                   help="the goal's heading tolerance (default 2)")
     add_record_args(ap)
     ap.add_argument("--json", action="store_true", help="print the summary as JSON at exit")
     add_common_args(ap)
@@ -114,6 +127,9 @@ def controller_main(argv: list[str]) -> int:
                     "iterations": settings.iterations, "chains": settings.chains,
                     "deadline_ms": settings.deadline_ms, "Q": settings.Q, "L": settings.L,
                     "E": settings.E, "R": settings.R, "plan_speed_kmh": speed,
+                    "plan_accel": a.plan_accel, "plan_decel": a.plan_decel,
+                    "plan_lat_accel": a.plan_lat_accel, "goal_tolerance": a.goal_tolerance,
+                    "goal_yaw_tolerance_deg": a.goal_yaw_tolerance,
                     "stale_ms": a.stale_ms, "resume_periods": a.resume_periods,
                     "safe_decel": a.safe_decel, "max_age_ms": a.max_age_ms}
     except USAGE_ERRORS as e:

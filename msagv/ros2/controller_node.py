@@ -6,8 +6,9 @@ In: ``odom`` (nav_msgs/Odometry: pose in odom, twist in base_link as REP-105 say
 forward-command topics ``steering_controller/commands`` (steering angle targets [rad]: the
 angle the commanded rate reaches in one period, :func:`bridge.ros_msgs.steering_targets`)
 and ``wheel_controller/commands`` (wheel speeds [rad/s]), ``predicted_path`` (the MPC's
-horizon) and ``wear`` (each wheel's wear power under the command at the observed state, by
-the plant's tire model, and its integral).
+horizon) and ``wear_estimate`` (each wheel's wear power under the command at the observed
+state, by the plant's tire model reset there - pose, steering, measured wheel speeds -, and
+its integral; the plant publishes its own, measured, on ``wear``).
 
 One solve per odometry message: when the joint states stamped no earlier than it have
 arrived (a plant that stamps both alike, as ``msagv ros2 plant``, is answered state by
@@ -15,13 +16,20 @@ state), or after half a period with the newest joint states. A repeated stamp (a
 sending its state again) gets the same commands again, unsolved.
 
 Safety, the same state machine as the plant's (:class:`bridge.loss.CommandWatch`), run on
-the node's wall-clock timer at 1/T over the inputs instead of the commands: more than
+the node's timer at 1/T over the inputs instead of the commands - on ROS time under
+``use_sim_time`` (a simulator's /clock, at whatever pace it runs), else on a steady wall
+clock: more than
 ``stale_ms`` without a fresh odometry + joint-states pair puts the node in its safe
 behaviour - steering targets held at the last measured angles, wheel speeds ramped down
 at ``safe_decel`` - until fresh inputs come for ``resume_periods`` periods. Nothing is
-published before the first state (nothing to hold). A plan's end: past its last pose the
-reference holds that pose (the vehicle stops there); an empty plan stops the vehicle as the
-safe behaviour does.
+published before the first state (nothing to hold). A plan (:func:`plan_reference`):
+timed by its stamps, or, unstamped as Nav2 sends it, smoothed and timed by a speed profile
+(:class:`SpeedProfile`); headings from the path's tangent where the orientations are the
+identity (NavFn's), the goal's orientation turned to near the goal; a replan of the route
+being driven leaves the reference as it is. A plan's end: past its last pose the reference
+holds that pose, and once its time is up with the vehicle at or past the goal the node
+holds it there without the MPC (:meth:`RosController._at_goal`) until a plan to another
+goal; an empty plan stops the vehicle as the safe behaviour does.
 """
 
 from __future__ import annotations
@@ -47,34 +55,171 @@ log = logging.getLogger("msagv.ros2.controller")
 
 
 # ---- the plan -> the reference ---------------------------------------------------------------
-def plan_reference(t, x, y, phi, t_now: float, speed_ms: float) -> tuple[Reference, str]:
+@dataclasses.dataclass(frozen=True)
+class SpeedProfile:
+    """How an unstamped plan is timed along its arc length: up to ``speed`` [m/s], speeding
+    up at most at ``accel`` and slowing down at most at ``decel`` [m/s^2] (along the path),
+    at most ``lat_accel`` [m/s^2] across it (v^2 kappa on the path's curvature), from the
+    measured speed ``v0`` [m/s] at the first pose to standing still at the last."""
+    speed: float
+    accel: float = 1.0
+    decel: float = 1.0
+    lat_accel: float = 1.5
+    v0: float = 0.0
+
+    def check(self) -> None:
+        for k in ("speed", "accel", "decel", "lat_accel"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"the plan's {k} must be > 0, got {v:g}")
+
+
+TANGENT_SPAN = 0.5  # m: a heading is the chord from this far behind a pose to this far ahead
+GOAL_TURN = 3.0  # m: the goal's orientation is blended in over the path's last 3 m
+PLAN_STEP = 0.05  # m: an unstamped plan is resampled this densely along its arc length ...
+SMOOTH = 1.0  # m: ... and averaged over this far behind and ahead (ends kept), in
+SMOOTH_PASSES = 3  # this many box filters of a third of it each
+
+
+def smooth_path(x, y):
+    """An unstamped plan as the reference drives it: resampled every :data:`PLAN_STEP`
+    along its arc length, then :data:`SMOOTH_PASSES` times each point the mean of the
+    points within ``SMOOTH / SMOOTH_PASSES`` behind and ahead (a window that shrinks to
+    keep the first and the last point where they are).
+    A grid planner's one-cell steps (NavFn's) would otherwise be steps of heading and of
+    curvature: a steering that chatters at its rate limit (scrub wear) and a lateral
+    speed limit on curvature that is not the path's. Returns ``(x, y, s)``."""
+    s = np.r_[0.0, np.cumsum(np.hypot(np.diff(x), np.diff(y)))]
+    n = max(3, int(math.ceil(s[-1] / PLAN_STEP)) + 1)
+    su = np.linspace(0.0, s[-1], n)
+    xu, yu = _along(x, y, s, su)
+    h = np.minimum(int(round(SMOOTH / SMOOTH_PASSES / (su[1] - su[0]))),
+                   np.minimum(np.arange(n), np.arange(n)[::-1]))
+    i = np.arange(n)
+    xs, ys = xu, yu
+    for _ in range(SMOOTH_PASSES):  # box filters in a row: heading and curvature smooth
+        cx, cy = np.r_[0.0, np.cumsum(xs)], np.r_[0.0, np.cumsum(ys)]
+        xs = (cx[i + h + 1] - cx[i - h]) / (2 * h + 1)
+        ys = (cy[i + h + 1] - cy[i - h]) / (2 * h + 1)
+    keep = np.r_[True, np.hypot(np.diff(xs), np.diff(ys)) > 1e-9]
+    xs, ys = xs[keep], ys[keep]
+    return xs, ys, np.r_[0.0, np.cumsum(np.hypot(np.diff(xs), np.diff(ys)))]
+
+
+def _along(x, y, s, at):
+    """Points of the polyline (x, y) with arc lengths ``s`` at the arc lengths ``at``."""
+    return np.interp(at, s, x), np.interp(at, s, y)
+
+
+def path_headings(x, y, s) -> np.ndarray:
+    """The path's tangent heading at each pose (unwrapped): the chord from
+    :data:`TANGENT_SPAN` behind to as far ahead along the path, so a planner's grid steps
+    (NavFn's are one costmap cell) do not zigzag it."""
+    h = min(TANGENT_SPAN, s[-1] / 4)
+    xa, ya = _along(x, y, s, np.clip(s - h, 0.0, s[-1]))
+    xb, yb = _along(x, y, s, np.clip(s + h, 0.0, s[-1]))
+    return np.unwrap(np.arctan2(yb - ya, xb - xa))
+
+
+def speed_profile(s, kappa, prof: SpeedProfile) -> np.ndarray:
+    """The speed at arc lengths ``s`` of curvature ``kappa``: the largest under
+    ``prof.speed`` and the lateral limit that a start at ``prof.v0`` reaches at ``accel`` and
+    that stops at the end at ``decel`` (a forward and a backward pass)."""
+    with np.errstate(divide="ignore"):
+        cap = np.minimum(prof.speed, np.sqrt(prof.lat_accel / np.abs(kappa)))
+    v = cap.copy()
+    v[0] = min(max(prof.v0, 0.0), cap[0])
+    ds = np.diff(s)
+    for i in range(len(s) - 1):
+        v[i + 1] = min(v[i + 1], math.sqrt(v[i] ** 2 + 2 * prof.accel * ds[i]))
+    v[-1] = 0.0
+    for i in range(len(s) - 2, -1, -1):
+        v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + 2 * prof.decel * ds[i]))
+    return v
+
+
+REPLAN_SAME = 0.10  # m: a plan to the same goal whose poses all lie this close to the
+# path being driven is that path again (Nav2 replanning): the reference goes on unchanged
+
+
+def off_path(px, py, x, y) -> float:
+    """The largest distance of the points (px, py) from the polyline (x, y)."""
+    px, py = np.asarray(px, float)[:, None], np.asarray(py, float)[:, None]
+    ax, ay, dx, dy = x[:-1], y[:-1], np.diff(x), np.diff(y)
+    n2 = np.maximum(dx * dx + dy * dy, 1e-18)
+    u = np.clip(((px - ax) * dx + (py - ay) * dy) / n2, 0.0, 1.0)
+    return float(np.max(np.min(np.hypot(ax + u * dx - px, ay + u * dy - py), axis=1)))
+
+
+def plan_start_speed(st: dict, current: Reference | None) -> float:
+    """The speed a new plan starts from: the measured one, but no faster than the reference
+    being tracked asks for now (a plan again along the same route - Nav2 replanning at 1-20
+    Hz - goes on at the speed the last one had reached, not at a speed the vehicle overshot
+    to while tracking it)."""
+    v = math.hypot(st["vx"], st["vy"])
+    if current is not None and current.t[0] <= st["t"] <= current.t[-1]:
+        r = current.sample([st["t"]])[0]
+        v = min(v, math.hypot(r[3], r[4]))
+    return v
+
+
+def plan_reference(t, x, y, phi, t_now: float, profile: SpeedProfile) -> tuple[Reference, str]:
     """The reference of a path's poses: timed by their stamps where those increase
-    strictly; else along the arc length at ``speed_ms`` from ``t_now`` (Nav2's planners
-    leave the stamps zero). Headings from the poses' orientations, or the path's tangent
-    where every orientation is the identity (a planner that leaves them unset). Past the
-    last pose the reference holds it. Returns ``(reference, how it was timed)``."""
+    strictly; else along the arc length by ``profile`` (:class:`SpeedProfile`) from
+    ``t_now`` (Nav2's planners leave the stamps zero). Headings from the poses'
+    orientations; where the orientations are the identity - all of them, or all but the
+    last (Nav2's NavFn gives only the goal an orientation) - from the path's tangent
+    (:func:`path_headings`; of the smoothed path, :func:`smooth_path`, when unstamped),
+    the last pose's orientation turned to over the last
+    :data:`GOAL_TURN` metres. Past the last pose the reference holds it. Returns
+    ``(reference, how it was timed)``."""
     t, x, y, phi = (np.asarray(a, dtype=float) for a in (t, x, y, phi))
     if x.size < 2:
         raise ValueError(f"a plan needs at least 2 poses, got {x.size}")
-    seg = np.hypot(np.diff(x), np.diff(y))
     stamped = bool(np.all(np.diff(t) > 0))
-    if not stamped:
-        keep = np.r_[True, seg > 1e-9]  # repeated points carry no time along the arc
-        x, y, phi = x[keep], y[keep], phi[keep]
-        seg = np.hypot(np.diff(x), np.diff(y))
+    identity = bool(np.all(phi[:-1] == 0.0))
+    if not stamped or identity:
+        keep = np.r_[True, np.hypot(np.diff(x), np.diff(y)) > 1e-9]
+        keep[-1] = True  # the goal (its orientation) stays, a repeat before it goes
+        if x.size > 1 and not np.hypot(x[-1] - x[-2], y[-1] - y[-2]) > 1e-9:
+            keep[-2] = False
+        t, x, y, phi = t[keep], x[keep], y[keep], phi[keep]
         if x.size < 2:
-            raise ValueError("a plan without stamps needs two distinct points")
-        if not (math.isfinite(speed_ms) and speed_ms > 0):
-            raise ValueError(f"the plan speed must be > 0, got {speed_ms * 3.6:g} km/h")
-        t = t_now + np.r_[0.0, np.cumsum(seg)] / speed_ms
-    if np.all(phi == 0.0) and seg.sum() > 0:
-        head = np.arctan2(np.diff(y), np.diff(x))
-        phi = np.r_[head, head[-1]]
+            raise ValueError("a plan without stamps or orientations needs two distinct points")
+    s = np.r_[0.0, np.cumsum(np.hypot(np.diff(x), np.diff(y)))]
+    tangent = None
+    if not stamped:  # resampled and smoothed (the profile's speed is 0 at the end)
+        goal = phi[-1]
+        x2, y2, s2 = smooth_path(x, y)
+        phi = np.interp(s2 * (s[-1] / s2[-1]), s, np.unwrap(phi))
+        phi[-1] = goal
+        x, y, s = x2, y2, s2
+        tangent = np.unwrap(np.arctan2(np.gradient(y, s), np.gradient(x, s)))
+    if identity and s[-1] > 0:
+        goal = phi[-1]
+        head = tangent if tangent is not None else path_headings(x, y, s)
+        if goal != 0.0:  # NavFn: the goal's orientation, turned to near the goal only
+            turn = (goal - head[-1] + math.pi) % (2 * math.pi) - math.pi
+            # by the distance left to the goal: a plan again from where the vehicle is
+            # (Nav2 replanning) asks for the heading the last one asked for there
+            u = np.clip(1.0 - (s[-1] - s) / GOAL_TURN, 0.0, 1.0)
+            head = head + turn * u * u * (3 - 2 * u)  # smoothstep: no yaw-rate jump
+        phi = head
+    if stamped:
+        how = "its stamps"
+    else:
+        profile.check()
+        kappa = np.gradient(tangent, s)
+        v = speed_profile(s, kappa, profile)
+        dt = 2.0 * np.diff(s) / (v[:-1] + v[1:])
+        t = t_now + np.r_[0.0, np.cumsum(dt)]
+        how = (f"its arc length at up to {profile.speed * 3.6:g} km/h (from "
+               f"{v[0]:.2f} m/s, {profile.accel:g}/{profile.decel:g} m/s^2 along, "
+               f"{profile.lat_accel:g} m/s^2 across, standing at the goal)")
     if x.size == 2:  # from_samples needs three samples: the midpoint
         t, x, y, phi = (np.r_[a[0], 0.5 * (a[0] + a[1]), a[1]] for a in (t, x, y, phi))
     ref = from_samples(t, x, y, phi, name="plan")
     ref.after_end = "hold"
-    how = "its stamps" if stamped else f"its arc length at {speed_ms * 3.6:g} km/h"
     return ref, how
 
 
@@ -90,8 +235,9 @@ def shifted(ref: Reference, dt: float) -> Reference:
 PARAMETERS = {
     "method": str, "model": str, "policy": str, "solver": str, "seed": int,
     "iterations": int, "chains": int, "deadline_ms": float, "Q": list, "L": list, "E": list,
-    "R": list, "plan_speed_kmh": float, "stale_ms": float, "resume_periods": int,
-    "safe_decel": float, "max_age_ms": float,
+    "R": list, "plan_speed_kmh": float, "plan_accel": float, "plan_decel": float,
+    "plan_lat_accel": float, "goal_tolerance": float, "goal_yaw_tolerance_deg": float,
+    "stale_ms": float, "resume_periods": int, "safe_decel": float, "max_age_ms": float,
 }
 
 
@@ -137,8 +283,13 @@ class WearEstimate:
 
     def update(self, st: dict, omega_w, omega_s) -> tuple[np.ndarray, np.ndarray]:
         init = {k: st[k] for k in ("x", "y", "phi", "vx", "vy", "r")}
-        for n, d in zip(self.names, st["delta"]):
+        # the wheels as measured (with a wheel lag the plant's wheel speeds are a state: left
+        # at 0 they slipped at the vehicle's whole speed, an estimate 1000x the plant's),
+        # the steering at the commanded rate
+        for n, d, w, ws in zip(self.names, st["delta"], st["omega_w"], omega_s):
             init[f"delta_{n}"] = d
+            init[f"omega_w_{n}"] = max(float(w), 0.0)
+            init[f"omega_s_{n}"] = float(ws)
         self.plant.reset(init)
         self.plant.set_inputs(omega_w, omega_s)
         out = self.plant.outputs()
@@ -159,6 +310,11 @@ class RosControllerConfig:
     resume_periods: int = 3
     safe_decel: float = 2.0
     plan_speed_kmh: float = 15.0
+    plan_accel: float = 1.0
+    plan_decel: float = 1.0
+    plan_lat_accel: float = 1.5
+    goal_tolerance: float = 0.05
+    goal_yaw_tolerance_deg: float = 2.0
     max_age_ms: float | None = None
     node_name: str = "msagv_controller"
     vehicle_id: str = "agv0"
@@ -178,11 +334,18 @@ class RosController:
         p = self.params
         cfg = dataclasses.replace(cfg, stale_ms=p["stale_ms"], resume_periods=p["resume_periods"],
                                   safe_decel=p["safe_decel"], plan_speed_kmh=p["plan_speed_kmh"],
+                                  plan_accel=p["plan_accel"], plan_decel=p["plan_decel"],
+                                  plan_lat_accel=p["plan_lat_accel"],
+                                  goal_tolerance=p["goal_tolerance"],
+                                  goal_yaw_tolerance_deg=p["goal_yaw_tolerance_deg"],
                                   max_age_ms=p["max_age_ms"] or None)
-        if not (cfg.stale_ms > 0 and cfg.safe_decel > 0 and cfg.plan_speed_kmh > 0
-                and cfg.resume_periods >= 1):
-            raise ValueError("stale_ms, safe_decel and plan_speed_kmh must be > 0 and "
-                             "resume_periods >= 1")
+        positive = ("stale_ms", "safe_decel", "plan_speed_kmh", "plan_accel", "plan_decel",
+                    "plan_lat_accel", "goal_tolerance", "goal_yaw_tolerance_deg")
+        bad = [f"{k}={getattr(cfg, k):g}" for k in positive
+               if not (math.isfinite(getattr(cfg, k)) and getattr(cfg, k) > 0)]
+        if bad or cfg.resume_periods < 1:
+            raise ValueError(f"{', '.join(positive)} must be > 0 and resume_periods >= 1, got "
+                             f"{', '.join(bad) or f'resume_periods={cfg.resume_periods}'}")
         self.cfg = cfg
         self.vehicle = vehicle
         self.nw = vehicle.n_wheels
@@ -215,23 +378,34 @@ class RosController:
         self._seq = 0
         self._cmd_seq = 0
         self._told_arc = False
+        self._goal_held: tuple | None = None  # the goal (x, y, phi) reached and held
+        self._hold: tuple | None = None  # (steering held, wheel speeds ramping down)
+        self.goal_errors: list = []  # (distance [m], heading [deg]) at each goal reached
         self.stats = {"answered": 0, "repeated": 0, "safe_events": 0, "safe_periods": 0,
                       "resumes": 0, "plans": 0, "rejected": 0, "new_runs": 0,
-                      "dropped_stale": 0, "no_reference": 0}
+                      "dropped_stale": 0, "no_reference": 0, "goals_reached": 0,
+                      "held_at_goal": 0, "plans_at_goal": 0, "plans_same_route": 0}
         self.solve_ms: list = []
         self.rej = M.Rejections("ros2 controller", log)
         c = self.ctx
         self.pub_steer = c.publisher(R.STEERING_COMMANDS)
         self.pub_wheel = c.publisher(R.WHEEL_COMMANDS)
         self.pub_pred = c.publisher(R.PREDICTED_PATH)
-        self.pub_wear = c.publisher(R.WEAR)
+        self.pub_wear = c.publisher(R.WEAR_ESTIMATE, R.TYPES[R.WEAR])  # not the plant's wear
         self._subs = [c.subscription(R.ODOM, self._on_odom),
                       c.subscription(R.JOINT_STATES, self._on_joints),
                       c.subscription(R.PLAN, self._on_plan)]
         from rclpy.clock import Clock, ClockType
 
-        self._timer = c.node.create_timer(cfg.period, self._on_tick,
-                                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # under use_sim_time the run's clock is the simulator's (/clock): the timer, the
+        # staleness bound and every safe-state decision count its periods, so a simulator
+        # slower or faster than real time is answered state by state, never stale for
+        # being slow; otherwise the wall clock (a steady one)
+        self.sim_time = bool(c.node.get_parameter("use_sim_time").value)
+        self._clock = c.node.get_clock() if self.sim_time else None
+        self._timer = c.node.create_timer(
+            cfg.period, self._on_tick,
+            clock=self._clock if self.sim_time else Clock(clock_type=ClockType.STEADY_TIME))
 
     def _warm_extras(self, reference) -> None:
         """Compile what runs after each command (the horizon's rollout, the tire model of
@@ -250,8 +424,14 @@ class RosController:
         self.wear.reset()
 
     # ---- inputs ------------------------------------------------------------------------
+    def _now(self) -> float:
+        """The node's time [s]: ROS time under use_sim_time, else a steady wall clock."""
+        if self._clock is not None:
+            return self._clock.now().nanoseconds * 1e-9
+        return time.perf_counter()
+
     def _on_odom(self, msg) -> None:
-        self._odom, self._odom_rx = msg, time.perf_counter()
+        self._odom, self._odom_rx = msg, self._now()
         self._try()
 
     def _on_joints(self, msg) -> None:
@@ -282,17 +462,36 @@ class RosController:
             return
         self._solve(st, self._odom_rx)
 
-    def _take_plan(self, t_now: float) -> None:
+    def _take_plan(self, st: dict) -> None:
         msg, self._plan_msg = self._plan_msg, None
         if len(msg.poses) == 0:
             log.warning("an empty plan: stopping (the safe behaviour) until a plan comes")
             self.reference = None
+            self._goal_held = None
             return
+        c = self.cfg
+        arrays = R.path_arrays(msg)
+        if self._goal_held is not None and self._same_goal(
+                (arrays[1][-1], arrays[2][-1], arrays[3][-1]), self._goal_held):
+            self.stats["plans_at_goal"] += 1  # replanning to the goal it stands at: it stays
+            return
+        cur = self.reference
+        if (cur is not None and cur.name == "plan" and self._goal_held is None
+                and self._same_goal((arrays[1][-1], arrays[2][-1], arrays[3][-1]),
+                                    (cur.x[-1], cur.y[-1], cur.phi[-1]))
+                and off_path(arrays[1], arrays[2], cur.x, cur.y) <= REPLAN_SAME):
+            # Nav2 replanning (1-20 Hz) the route being driven: the reference goes on as it
+            # is timed, no restart of the profile, no jump
+            self.stats["plans_same_route"] += 1
+            return
+        prof = SpeedProfile(c.plan_speed_kmh / 3.6, c.plan_accel, c.plan_decel,
+                            c.plan_lat_accel, v0=plan_start_speed(st, self.reference))
         try:
-            ref, how = plan_reference(*R.path_arrays(msg), t_now, self.cfg.plan_speed_kmh / 3.6)
+            ref, how = plan_reference(*arrays, st["t"], prof)
         except ValueError as e:
             self.rej.add(M.MessageError(M.BAD_VALUE, f"plan: {e}"), R.PLAN)
             return
+        self._goal_held = None
         if how.startswith("its arc") and not self._told_arc:
             log.warning("plan: the pose stamps do not increase (Nav2's planners leave them "
                         "zero): timing the path along %s", how)
@@ -309,6 +508,7 @@ class RosController:
             self.mpc.reset()
             self.wear.reset()
             self.stats["new_runs"] += 1
+            self._goal_held = None
             self._seq = 0
             if self.base_reference is not None:
                 self.reference = shifted(self.base_reference, t)
@@ -317,7 +517,7 @@ class RosController:
         self._delta = np.asarray(st["delta"], dtype=float)
         self._fresh_tick = self._tick
         if self._plan_msg is not None:
-            self._take_plan(t)
+            self._take_plan(st)
         seq = self._seq
         self._seq += 1
         if self.rec is not None:
@@ -327,10 +527,12 @@ class RosController:
             return
         if self._safe:
             return  # the timer decides when the inputs are fresh again
+        if self._at_goal(st):
+            return
         cmd = self.mpc.step(st, self.reference)
         self.solve_ms.append(cmd.solve_ms)
         if self.cfg.max_age_ms is not None and \
-                (time.perf_counter() - rx_perf) * 1000 > self.cfg.max_age_ms:
+                (self._now() - rx_perf) * 1000 > self.cfg.max_age_ms:
             self.stats["dropped_stale"] += 1
             return
         tgt = R.steering_targets(st["delta"], cmd.omega_s, self.cfg.period, self.vehicle.limits)
@@ -353,6 +555,53 @@ class RosController:
         p, work = self.wear.update(st, cmd.omega_w, cmd.omega_s)
         self.pub_wear.publish(R.encode(self._wear_msg(p, work), R.TYPES[R.WEAR]))
 
+    def _same_goal(self, a, b) -> bool:
+        """Two goals (x, y, phi) within the goal tolerances of each other."""
+        yaw = abs((a[2] - b[2] + math.pi) % (2 * math.pi) - math.pi)
+        return (math.hypot(a[0] - b[0], a[1] - b[1]) <= self.cfg.goal_tolerance
+                and math.degrees(yaw) <= self.cfg.goal_yaw_tolerance_deg)
+
+    def _at_goal(self, st: dict) -> bool:
+        """A goal reached stays reached. When the plan has ended (its time is up, its
+        reference holds the goal) and the vehicle is at the goal or past it along the
+        path's last direction (within ``goal_tolerance``), the node stops commanding the
+        MPC - whose answers at a standstill reference are a random walk of steering and a
+        creep forward - and brings the vehicle to rest: the wheels ramped down at
+        ``plan_decel`` at the rim, the steering held at the angles it had. It stays so
+        until a plan to another goal comes. A vehicle still short of the goal is left to
+        the MPC. True when holding."""
+        ref = self.reference
+        if self._goal_held is None:
+            if ref.after_end != "hold" or st["t"] < ref.t[-1]:
+                return False
+            gx, gy, gphi = float(ref.x[-1]), float(ref.y[-1]), float(ref.phi[-1])
+            ux, uy = gx - float(ref.x[-2]), gy - float(ref.y[-2])
+            n = math.hypot(ux, uy)
+            short = ((gx - st["x"]) * ux + (gy - st["y"]) * uy) / n if n > 0 else 0.0
+            if short > self.cfg.goal_tolerance:
+                return False
+            self._goal_held = (gx, gy, gphi)
+            self._hold = (np.asarray(st["delta"], dtype=float),
+                          np.asarray(self._last_cmd[2] if self._last_cmd is not None
+                                     else st["omega_w"], dtype=float))
+            self.stats["goals_reached"] += 1
+            dist = math.hypot(st["x"] - gx, st["y"] - gy)
+            yaw = math.degrees(abs((st["phi"] - gphi + math.pi) % (2 * math.pi) - math.pi))
+            self.goal_errors.append((dist, yaw))
+            log.info("goal reached: %.3f m and %.2f deg from it; stopping and holding until "
+                     "a plan to another goal", dist, yaw)
+            if self.rec is not None:
+                self.rec.event("goal_reached", x=gx, y=gy, phi=gphi, distance=dist,
+                               yaw_deg=yaw)
+        tgt, w = self._hold
+        w = np.maximum(w - self.cfg.plan_decel / self.vehicle.wheel_radius * self.cfg.period,
+                       0.0)
+        self._hold = (tgt, w)
+        self._publish_cmd(tgt, w)
+        self._last_cmd = (st["t"], tgt, w)
+        self.stats["held_at_goal"] += 1
+        return True
+
     def _wear_msg(self, p, work):
         m = R.float_array(np.r_[p, work])
         m.layout.dim = [R.new("std_msgs/msg/MultiArrayDimension", label="|".join(R.WEAR_ROWS),
@@ -369,7 +618,7 @@ class RosController:
     # ---- the timer: stale inputs -------------------------------------------------------
     def _on_tick(self) -> None:
         self._tick += 1
-        if self._odom is not None and time.perf_counter() - self._odom_rx > self.cfg.period / 2:
+        if self._odom is not None and self._now() - self._odom_rx > self.cfg.period / 2:
             self._try(force=True)  # joint states stamped differently: the newest ones
         if self._last_t is None:
             return  # nothing received yet: nothing to hold
@@ -416,4 +665,5 @@ class RosController:
         return {"role": "ros2 controller", **self.stats,
                 "solve_ms": percentiles_ms(np.asarray(self.solve_ms) / 1000.0),
                 "rejected_by_reason": self.rej.summary(),
+                "goal_errors": [{"distance_m": d, "yaw_deg": y} for d, y in self.goal_errors],
                 "parameters": self.params, "safe": self._safe}

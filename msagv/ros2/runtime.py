@@ -89,8 +89,11 @@ class Context:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
-    def publisher(self, topic: str):
-        return self.node.create_publisher(msg_class(R.TYPES[topic]), topic, qos(topic))
+    def publisher(self, topic: str, typename: str | None = None):
+        """A publisher of ``topic`` (its type from :data:`bridge.ros_msgs.TYPES`, or
+        ``typename`` for a topic outside it)."""
+        return self.node.create_publisher(msg_class(typename or R.TYPES[topic]), topic,
+                                          qos(topic))
 
     def subscription(self, topic: str, callback):
         return self.node.create_subscription(msg_class(R.TYPES[topic]), topic, callback,
