@@ -311,15 +311,40 @@ def test_the_controller_node_tracks_an_unstamped_plan_and_stops_safely(procs, ro
     assert len(last.data) == 2 * nw and all(p >= 0 for p in last.data)
 
 
-def test_a_malformed_plan_and_parameter_are_refused(procs, ros_env):
+@pytest.mark.parametrize("params,says", [
+    # an integer for a double is taken (plan_speed_kmh is read before stale_ms: the error
+    # is stale_ms's own), a bad value is refused naming it
+    (["plan_speed_kmh:=8", "stale_ms:=-5.0"], "stale_ms"),
+    (["plann_speed_kmh:=8"], "ROS parameter plann_speed_kmh: unknown"),  # a misspelt name
+    (["seed:=1.5"], "ROS parameter seed: expected an integer"),
+])
+def test_a_malformed_plan_and_parameter_are_refused(procs, ros_env, params, says):
     _ros()
-    procs.start("ctl", msagv("ros2", "controller", "--json", "--ros-args", "-p",
-                             "stale_ms:=-5.0"))
+    args = [a for p in params for a in ("-p", p)]
+    procs.start("ctl", msagv("ros2", "controller", "--json", "--ros-args", *args))
     rc = procs.wait("ctl", 120)
     assert rc == 2
     err = procs.err("ctl").strip().splitlines()
     assert err[-1].startswith("msagv ros2 controller: error: ") and "Traceback" not in \
         procs.err("ctl")
+    assert says in err[-1], err[-1]
+
+
+def test_the_params_file_example_loads(procs, ros_env, tmp_path):
+    """scenarios/ros2/controller.params.yaml is read as a params file: with it alone plus a
+    bad value the error is that value's (the file's own values were all taken); a copy
+    with a misspelt name is refused naming it (so the file really is read)."""
+    _ros()
+    example = ROOT / "scenarios" / "ros2" / "controller.params.yaml"
+    procs.start("ok", msagv("ros2", "controller", "--json", "--ros-args", "--params-file",
+                            example, "-p", "resume_periods:=0"))
+    assert procs.wait("ok", 120) == 2
+    assert "resume_periods" in procs.err("ok").strip().splitlines()[-1], procs.err("ok")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(example.read_text().replace("plan_accel:", "plan_acel:"))
+    procs.start("bad", msagv("ros2", "controller", "--json", "--ros-args", "--params-file", bad))
+    assert procs.wait("bad", 120) == 2
+    assert "ROS parameter plan_acel: unknown" in procs.err("bad"), procs.err("bad")
 
 
 # ---- the plan's timing and headings (no ROS needed) ------------------------------------------

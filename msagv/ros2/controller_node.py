@@ -241,9 +241,43 @@ PARAMETERS = {
 }
 
 
+ROS_OWN = ("use_sim_time", "start_type_description_service")  # rclpy's own parameters
+
+
+def _parameter_value(name: str, kind, v):
+    """A parameter's value as its kind, or ValueError naming it: an integer is a double
+    (``-p plan_speed_kmh:=8``), a number list a list of doubles; nothing else converts."""
+    num = (int, float)
+    if kind is float and isinstance(v, num) and not isinstance(v, bool):
+        return float(v)
+    if kind is int and isinstance(v, int) and not isinstance(v, bool):
+        return int(v)
+    if kind is str and isinstance(v, str):
+        return v
+    if kind is list and not isinstance(v, (str, bytes)):
+        try:
+            vals = list(v)
+        except TypeError:
+            vals = None
+        if vals is not None and all(isinstance(x, num) and not isinstance(x, bool) for x in vals):
+            return [float(x) for x in vals]
+    what = {float: "a number", int: "an integer", str: "a string",
+            list: "a list of numbers"}[kind]
+    raise ValueError(f"ROS parameter {name}: expected {what}, got {v!r}")
+
+
 def declare_parameters(node, defaults: dict) -> dict:
     """Declare every parameter with the command line's value as its default; returns the
-    values in force (a ``-p`` override wins). 0 for ``deadline_ms``/``max_age_ms``: none."""
+    values in force (a ``-p`` override or a params file wins; an integer is taken for a
+    double). 0 for ``deadline_ms``/``max_age_ms``: none. A parameter the node does not have
+    (a misspelt name) is refused, naming it, before anything runs (the node is created with
+    ``automatically_declare_parameters_from_overrides``, so every override is visible)."""
+    given = node.list_parameters([], 10).names
+    unknown = sorted(n for n in given if n not in PARAMETERS and n not in ROS_OWN
+                     and not n.startswith("qos_overrides."))
+    if unknown:
+        raise ValueError(f"ROS parameter {unknown[0]}: unknown (known: "
+                         f"{', '.join(PARAMETERS)})")
     out = {}
     for name, kind in PARAMETERS.items():
         d = defaults[name]
@@ -255,12 +289,14 @@ def declare_parameters(node, defaults: dict) -> dict:
             d = int(d)
         else:
             d = str(d)
+        if node.has_parameter(name):  # given: -p NAME:=VALUE or --params-file
+            out[name] = _parameter_value(name, kind, node.get_parameter(name).value)
+            continue
         try:
-            p = node.declare_parameter(name, d)
-            v = p.value
-        except Exception as e:  # a -p value of the wrong type
+            v = node.declare_parameter(name, d).value
+        except Exception as e:  # noqa: BLE001 - rclpy's type errors, named
             raise ValueError(f"ROS parameter {name}: {e}") from None
-        out[name] = [float(x) for x in v] if kind is list else kind(v)
+        out[name] = _parameter_value(name, kind, v)
     return out
 
 

@@ -85,7 +85,10 @@ class Context:
         finally:
             signal.signal(signal.SIGINT, handlers[0])
             signal.signal(signal.SIGTERM, handlers[1])
-        self.node = rclpy.create_node(node_name, context=self.context)
+        # every -p / params-file value becomes a parameter, so that a node can refuse the
+        # names it does not have (controller_node.declare_parameters) instead of ignoring them
+        self.node = rclpy.create_node(node_name, context=self.context,
+                                      automatically_declare_parameters_from_overrides=True)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
