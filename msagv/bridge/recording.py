@@ -188,6 +188,33 @@ class RecorderStats:
 _STOP = object()
 
 
+class NullRecorder:
+    """A recorder that records nothing: the nodes' default, so that they call their
+    recorder unconditionally (:class:`Recorder`'s producer interface: ``message``,
+    ``predicted_path``, ``event``, ``maybe_flush``, ``flush``, ``close``)."""
+
+    stats = None
+
+    def message(self, direction: str, key: str, payload, ts: float | None = None,
+                why: str | None = None) -> None:
+        pass
+
+    def predicted_path(self, t0: float, dt: float, poses) -> None:
+        pass
+
+    def event(self, name: str, **fields) -> None:
+        pass
+
+    def maybe_flush(self) -> None:
+        pass
+
+    def flush(self, timeout: float = 10.0) -> bool:
+        return True
+
+    def close(self, summary: dict | None = None, timeout: float = 10.0) -> dict:
+        return {}
+
+
 class Recorder:
     """Thread-safe, non-blocking MCAP recorder (see the module docstring).
 

@@ -47,6 +47,7 @@ from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
 from msagv.bridge.loss import SAFE, STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
+from msagv.bridge.recording import NullRecorder
 from msagv.controller.reference import Reference, from_samples
 
 from .runtime import Context
@@ -389,7 +390,7 @@ class RosController:
         t0 = time.perf_counter()
         self.mpc.warmup()  # compiled before any topic is declared: a plant that sees this
         log.info("MPC warm (%.2f s)", time.perf_counter() - t0)  # node is answered at once
-        self.rec = recorder
+        self.rec = recorder if recorder is not None else NullRecorder()
         self.stop = stop or threading.Event()
         self.base_reference = reference
         self.reference: Reference | None = None
@@ -556,8 +557,7 @@ class RosController:
             self._take_plan(st)
         seq = self._seq
         self._seq += 1
-        if self.rec is not None:
-            self.rec.message("rx", self.key_state, M.encode_state(seq, st))
+        self.rec.message("rx", self.key_state, M.encode_state(seq, st))
         if self.reference is None:
             self.stats["no_reference"] += 1
             return
@@ -576,18 +576,16 @@ class RosController:
         self._publish_cmd(tgt, w)
         self._last_cmd = (t, tgt, w)
         self.stats["answered"] += 1
-        if self.rec is not None:
-            self.rec.message("tx", self.key_cmd, M.encode_cmd(
-                self._cmd_seq, t, seq, cmd.omega_w, cmd.omega_s, solve_ms=cmd.solve_ms,
-                cost=cmd.cost))
+        self.rec.message("tx", self.key_cmd, M.encode_cmd(
+            self._cmd_seq, t, seq, cmd.omega_w, cmd.omega_s, solve_ms=cmd.solve_ms,
+            cost=cmd.cost))
         self._cmd_seq += 1
         # after the commands: the horizon and the wear (not on the command's path)
         poses = R.predicted_poses(self.mpc)
         if poses is not None:
             self.pub_pred.publish(R.encode(R.predicted_path(t, self.mpc.settings.dt, poses),
                                            R.TYPES[R.PREDICTED_PATH]))
-            if self.rec is not None and hasattr(self.rec, "predicted_path"):
-                self.rec.predicted_path(t, self.mpc.settings.dt, poses)
+            self.rec.predicted_path(t, self.mpc.settings.dt, poses)
         p, work = self.wear.update(st, cmd.omega_w, cmd.omega_s)
         self.pub_wear.publish(R.encode(self._wear_msg(p, work), R.TYPES[R.WEAR]))
 
@@ -626,9 +624,8 @@ class RosController:
             self.goal_errors.append((dist, yaw))
             log.info("goal reached: %.3f m and %.2f deg from it; stopping and holding until "
                      "a plan to another goal", dist, yaw)
-            if self.rec is not None:
-                self.rec.event("goal_reached", x=gx, y=gy, phi=gphi, distance=dist,
-                               yaw_deg=yaw)
+            self.rec.event("goal_reached", x=gx, y=gy, phi=gphi, distance=dist,
+                           yaw_deg=yaw)
         tgt, w = self._hold
         w = np.maximum(w - self.cfg.plan_decel / self.vehicle.wheel_radius * self.cfg.period,
                        0.0)
@@ -664,8 +661,7 @@ class RosController:
             self._safe = False
             self.stats["resumes"] += 1
             log.warning("inputs fresh again: commanding")
-            if self.rec is not None:
-                self.rec.event("safe", on=False)
+            self.rec.event("safe", on=False)
         if d.state != SAFE:
             return
         if d.entered_safe is not None:
@@ -677,8 +673,7 @@ class RosController:
                    f"({age * self.cfg.period * 1000:.0f} ms; bound {self.watch.max_missed})")
             log.warning("SAFE: %s; holding the steering, ramping the wheels down at %g m/s^2",
                         why, self.cfg.safe_decel)
-            if self.rec is not None:
-                self.rec.event("safe", on=True, why=why)
+            self.rec.event("safe", on=True, why=why)
         self.stats["safe_periods"] += 1
         held = self._last_cmd[2] if self._last_cmd is not None else np.zeros(self.nw)
         w = np.maximum(held - self.ramp * self.cfg.period, 0.0)

@@ -37,6 +37,7 @@ from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
 from msagv.bridge.loss import STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
+from msagv.bridge.recording import NullRecorder
 
 from .runtime import Context, Ros2Unavailable
 
@@ -94,7 +95,7 @@ class RosPlant:
         self.vehicle = plant.vehicle
         self.nw = self.vehicle.n_wheels
         self.cfg = cfg
-        self.rec = recorder
+        self.rec = recorder if recorder is not None else NullRecorder()
         self.stop = stop or threading.Event()
         self.msgs = R.RunMessages(self.vehicle, cfg.period)
         self.rej = M.Rejections("ros2 plant", log)
@@ -202,15 +203,14 @@ class RosPlant:
         self._pub_perf[k] = time.perf_counter()
         if len(self._pub_perf) > 256:
             self._pub_perf.pop(min(self._pub_perf))
-        if self.rec is not None:
-            self.rec.message("tx", self.key_state, M.encode_state(k, st, end=True if end else None))
+        self.rec.message("tx", self.key_state, M.encode_state(k, st, end=True if end else None))
         if end:
             self.final_state = st
 
     def _apply(self, k: int, omega_w, omega_s, record: bool = True) -> None:
         from msagv.plant.interface import PlantError
 
-        if self.rec is not None and record:
+        if record:
             self.rec.message("rx", self.key_cmd,
                              M.encode_cmd(k, k * self.cfg.period, k, omega_w, omega_s))
         try:
@@ -307,8 +307,7 @@ class RosPlant:
             if d.resumed:
                 self.resumes += 1
                 log.warning("resumed at t = %.2f s", k * T)
-                if self.rec is not None:
-                    self.rec.event("safe", on=False, t=k * T)
+                self.rec.event("safe", on=False, t=k * T)
             if d.use_command:
                 u_w, u_s = om_w, om_s
             else:
@@ -316,8 +315,7 @@ class RosPlant:
                     self.safe_events += 1
                     log.warning("SAFE at t = %.2f s: %s; holding steering, ramping the wheels "
                                 "down at %g m/s^2", k * T, d.entered_safe, cfg.safe_decel)
-                    if self.rec is not None:
-                        self.rec.event("safe", on=True, t=k * T, why=d.entered_safe)
+                    self.rec.event("safe", on=True, t=k * T, why=d.entered_safe)
                 self.safe_periods += 1
                 held_w, _ = self.plant.inputs
                 u_w = np.maximum(np.asarray(held_w) - self.ramp * T, 0.0)
