@@ -582,3 +582,70 @@ def test_realtime_soak_60s_targets(procs, bus, tmp_path):
 @pytest.mark.timeout(1200)
 def test_malformed_floods_10000(procs, held_bus, tmp_path):
     _flood_run(procs, held_bus, tmp_path, n=10_000, duration=3.0)
+
+
+# ---- a liveliness flood (issue 30, item 1) ------------------------------------------------
+def _stock_session(port: int):
+    """A stock zenoh-python peer (none of this project's code) connected to ``port``."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("connect/endpoints", json.dumps([ep(port)]))
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return zenoh.open(conf)
+
+
+def _token_flood(procs, bus, n_tokens: int, hold_periods: int):
+    """A realtime plant and its controller; a stock session declares ``n_tokens`` liveliness
+    tokens under the vehicle's controller prefix (as any process on the plain bus may). The
+    plant's states keep coming while they are held and after they are gone, the plant
+    counts what it did not track, and SIGTERM ends it with its summary."""
+    P = free_port()
+    procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 600,
+                               "--listen", ep(P), "--connect", ep(bus.port), "--json"))
+    procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
+                             "-q"))
+    bus.wait_for(lambda st: st and st[-1][1]["seq"] >= 100, 180, "1 s of realtime steps")
+    z = _stock_session(P)
+    tokens = []
+    try:
+        lv = z.liveliness()
+        for i in range(n_tokens):
+            tokens.append(lv.declare_token(f"msagv/agv0/alive/controller/flood{i:05d}"))
+        k0 = bus.states[-1][1]["seq"]
+        # the plant keeps stepping (event-driven: no bound on how fast, only that it does)
+        bus.wait_for(lambda st: st[-1][1]["seq"] >= k0 + hold_periods, 120,
+                     f"{hold_periods} more states during the flood of {n_tokens} tokens")
+        for tok in tokens:
+            tok.undeclare()
+        tokens = []
+        k1 = bus.states[-1][1]["seq"]
+        bus.wait_for(lambda st: st[-1][1]["seq"] >= k1 + 100, 120, "states after the flood")
+    finally:
+        for tok in tokens:
+            tok.undeclare()
+        z.close()
+    assert procs.p["plant"].poll() is None, procs.err("plant")[-3000:]
+    t0 = time.monotonic()
+    procs.p["plant"].send_signal(signal.SIGTERM)
+    assert procs.wait("plant", 10) == 0, procs.err("plant")[-3000:]
+    stop_s = time.monotonic() - t0
+    s = procs.json("plant")
+    assert s["stopped_by"] == "SIGTERM"
+    # the live owner was never taken for lost: no latch, no loss
+    assert s["ownership"]["latches"] == 0 and s["controller_losses"] == 0, s["ownership"]
+    return s, stop_s
+
+
+@pytest.mark.timeout(400)
+def test_liveliness_token_flood_does_not_freeze_a_realtime_plant(procs, bus):
+    s, stop_s = _token_flood(procs, bus, n_tokens=3000, hold_periods=300)
+    pr = s["presence"]
+    # the plant tracks at most its bound of tokens; the rest were counted, not kept
+    assert pr["tracked_max"] <= pr["bound"] < 3000
+    assert pr["untracked"] >= 3000 - pr["bound"]
+    print(f"\n3000 tokens: presence {pr}; the plant stopped {stop_s:.2f} s after SIGTERM "
+          f"(including the process's exit)")
