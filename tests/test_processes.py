@@ -649,3 +649,46 @@ def test_liveliness_token_flood_does_not_freeze_a_realtime_plant(procs, bus):
     assert pr["untracked"] >= 3000 - pr["bound"]
     print(f"\n3000 tokens: presence {pr}; the plant stopped {stop_s:.2f} s after SIGTERM "
           f"(including the process's exit)")
+
+
+# ---- the router setup holds its live owner (issue 30, item 4) -----------------------------
+def _router_runs(procs, runs: int, duration: float):
+    """``msagv router`` with a realtime plant and its controller as Zenoh clients, as
+    docs/PROTOCOL.md sets it up, with the default 1 s lease: the plant never latches its
+    live owner (Zenoh's token query through a router now and then misses a live token)."""
+    R = free_port()
+    procs.start("router", msagv("router", "--listen", ep(R)))
+    out = []
+    for i in range(runs):
+        procs.start(f"plant{i}", msagv("plant", "--mode", "client", "--connect", ep(R),
+                                       "--run-mode", "realtime", "--duration", duration,
+                                       "--json", "-v"))
+        procs.start(f"ctl{i}", msagv("controller", "--mode", "client", "--connect", ep(R),
+                                     "--exit-at-end", "-q"))
+        assert procs.wait(f"plant{i}", 240 + 2 * duration) == 0, procs.err(f"plant{i}")[-3000:]
+        assert procs.wait(f"ctl{i}", 60) == 0, procs.err(f"ctl{i}")[-3000:]
+        s = procs.json(f"plant{i}")
+        err = procs.err(f"plant{i}")
+        o = s["ownership"]
+        assert s["completed"] and s["steps"] == int(round(duration / T))
+        assert o["latches"] == 0 and o["losses"] == 0 and s["controller_losses"] == 0, (
+            o, err[-3000:])
+        assert o["grants"] == 1 and o["releases"] == 1  # the owner released it at the end
+        out.append((s["presence"], err.count("missing from query"),
+                    s["safe"], os.getloadavg()[0]))
+    procs.p["router"].send_signal(signal.SIGTERM)
+    assert procs.wait("router", 10) == 0
+    for i, (pr, missing, safe, load) in enumerate(out):
+        print(f"\nrouter run {i}: {duration:g} s, presence {pr}, 'missing from query' "
+              f"logged {missing} times, safe {safe}, load {load:.1f}")
+
+
+@pytest.mark.timeout(400)
+def test_router_setup_never_latches_a_live_owner(procs):
+    _router_runs(procs, runs=1, duration=15.0)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(3000)
+def test_router_setup_never_latches_a_live_owner_in_repeated_minutes(procs):
+    _router_runs(procs, runs=5, duration=60.0)
