@@ -168,6 +168,8 @@ def plant_main(argv: list[str]) -> int:
                   "scenario": dict(scenario_info(scenario, vehicle, ref, None, duration),
                                    period_s=cfg.period)}
         rec = open_recording(a, header)
+        if rec is not None:
+            rec.hurry = sig.event  # stopped by a signal: the ROS 2 bag finishes on its own
         rec = open_foxglove(a, "msagv plant", header, rec)
         if want_view:  # beside the recorder: it only queues, a thread logs
             from msagv.experiments.viewer import RunView, Tee, ViewSink
