@@ -621,18 +621,18 @@ def fetch_params(transport: Transport, keys: Keys, wait_s: float, stop: threadin
                              zid)
                 return m, zid
             if len(good) > 1:
-                last_err = (f"{len(good)} plant sessions answer {keys.params} "
+                last_err = (f"{len(good)} plant sessions answer {keys.params}/*/{transport.id} "
                             f"({', '.join(sorted(good))}): binding to none")
                 log.warning("%s", last_err)
         except Exception as e:
             last_err = str(e)
         if wait_s and time.monotonic() - t0 > wait_s:
             raise ControllerRunError(
-                f"no plant answered on {keys.params} within {wait_s:g} s"
+                f"no plant answered on {keys.params}/*/{transport.id} within {wait_s:g} s"
                 f"{' (' + last_err + ')' if last_err else ''}; start msagv plant --id {keys.id} "
                 f"with matching --connect/--listen, or give --vehicle FILE")
         if not told:
-            log.info("waiting for the plant's params on %s", keys.params)
+            log.info("waiting for the plant's params on %s/*/%s", keys.params, transport.id)
             told = True
         stop.wait(0.1)
     raise ControllerRunError("stopped while waiting for the plant's params")
@@ -684,7 +684,7 @@ def _rebinder(transport: Transport, keys: Keys, p: dict, stop: threading.Event
             return None  # stopped
         if q != p:
             raise ControllerRunError(
-                f"the plant now answering {keys.params} (session {zid}) has other params "
+                f"the plant now answering {keys.params}/{zid}/{transport.id} has other params "
                 f"than the one this controller was built for; restart the controller")
         return zid
 
@@ -744,7 +744,8 @@ def serve(opts: SessionOptions, make_mpc: Callable[[PlantParams | None], object]
             node.stop = stop
             freeze_heap()
             node.open(t)
-            log.info("controller ready on %s", keys.state)
+            log.info("controller ready: states on %s/*, commands on %s/%s", keys.state,
+                     keys.cmd, t.id)
             try:
                 node.run()
             finally:

@@ -567,13 +567,15 @@ class PlantNode:
             if self.controller_present and self._pub.matching:
                 return
             if not waited_msg and time.monotonic() - t0 > 1.0:
-                log.info("waiting for a controller on %s (up to %s)", self.keys.cmd,
+                log.info("waiting for a controller: its token on %s/* and its claim on "
+                         "%s/%s/* (up to %s)", self.keys.alive_controller, self.keys.claim,
+                         self.transport.id if self.transport is not None else "*",
                          f"{self.cfg.wait_s:g} s" if self.cfg.wait_s else "forever")
                 waited_msg = True
             if self.cfg.wait_s and time.monotonic() - t0 > self.cfg.wait_s:
                 raise PlantRunError(f"no controller for vehicle '{self.keys.id}' within "
                                     f"{self.cfg.wait_s:g} s (no liveliness token on "
-                                    f"{self.keys.alive_controller}); start msagv controller "
+                                    f"{self.keys.alive_controller}/*); start msagv controller "
                                     f"--id {self.keys.id} with matching --connect/--listen")
             self._ctl_event.wait(0.02)
             self._ctl_event.clear()

@@ -12,8 +12,9 @@ the wire (protocol version 2):
   only its own name there (:mod:`bridge.security`), so the identity is authenticated. On a
   plain bus the name in the key must be the session that Zenoh says sent the message (the
   ``source_info`` of a put or query, the ``replier_id`` of a reply), else the message has
-  no identity: a stock zenoh-python client cannot attach another session's id, so copying
-  the owner's id into a key buys nothing (a modified client can: docs/SECURITY.md);
+  no identity. That refuses a key naming another session, but the source info itself is
+  not authenticated: a session that received another's message can attach that session's
+  id to its own put (``zenoh.SourceInfo`` is public; issue 30, item 2, docs/SECURITY.md);
 * the first protocol version's keys (``K`` itself, no identity): a subscriber and a
   queryable listen there too and report the message with no sender (None), so a node can
   tell an old client why it is refused;
