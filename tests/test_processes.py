@@ -651,6 +651,17 @@ def test_liveliness_token_flood_does_not_freeze_a_realtime_plant(procs, bus):
           f"(including the process's exit)")
 
 
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_liveliness_token_flood_10000(procs, bus):
+    """Issue 30's goal at full size: 10,000 tokens from one stock session."""
+    s, stop_s = _token_flood(procs, bus, n_tokens=10_000, hold_periods=1000)
+    pr = s["presence"]
+    assert pr["tracked_max"] <= pr["bound"] and pr["untracked"] >= 10_000 - pr["bound"]
+    print(f"\n10000 tokens: presence {pr}, safe {s['safe']}; the plant stopped {stop_s:.2f} s "
+          f"after SIGTERM (including the process's exit)")
+
 # ---- the router setup holds its live owner (issue 30, item 4) -----------------------------
 def _router_runs(procs, runs: int, duration: float):
     """``msagv router`` with a realtime plant and its controller as Zenoh clients, as
