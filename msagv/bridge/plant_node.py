@@ -715,7 +715,9 @@ class PlantNode:
             last_pub = done
             if done - target > T:
                 st.missed_periods += 1
-            self._rt_due = w0 + (k + 3) * T  # the next period's target, plus one period
+            # the next period is due one period after its target (a loop that is behind, and
+            # catches up or re-anchors its clock next, gets two periods from now)
+            self._rt_due = max(w0 + (k + 3) * T, done + 2 * T)
             self._wd_active = False
             if self.rec is not None:
                 self.rec.maybe_flush()
