@@ -547,12 +547,14 @@ def test_the_realtime_watchdog_goes_safe_while_the_loop_is_stuck(vehicle, bus):
         node.close()
     w0, s0, n0 = stuck.seen["before"]
     w1, s1, n1 = stuck.seen["after"]
-    assert n0 == 0 and n1 >= 20
-    assert np.allclose(w0, 10.0) and np.allclose(s0, 0.05)  # the owner's command, held
-    # the watchdog's ramp, hand-computed: n1 periods of safe_decel / r * T, steering held
+    if n0 == 0:  # (a loaded machine may have tripped the watchdog before state 30 too)
+        assert np.allclose(w0, 10.0) and np.allclose(s0, 0.05)  # the owner's command, held
+    # while the loop is stuck only the watchdog touches the inputs: its ramp, hand-computed,
+    # n1 - n0 periods of safe_decel / r * T from where they were, steering held
     ramp = cfg.safe_decel / vehicle.wheel_radius * T
-    assert np.allclose(w1, np.maximum(10.0 - n1 * ramp, 0.0)) and np.all(s1 == 0.0)
-    assert s["safe"]["watchdog_trips"] == 1 and s["safe"]["watchdog_periods"] >= n1
+    assert n1 - n0 >= 20
+    assert np.allclose(w1, np.maximum(w0 - (n1 - n0) * ramp, 0.0)) and np.all(s1 == 0.0)
+    assert s["safe"]["watchdog_trips"] >= 1 and s["safe"]["watchdog_periods"] >= n1
     assert s["safe"]["events"] >= 1
     after = [m for m in states if m["seq"] > 30]
     assert after and after[0]["safe"] is True  # the first state after the stall is safe
