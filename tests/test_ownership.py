@@ -253,6 +253,33 @@ def test_plant_rejects_commands_not_from_its_owner_before_decoding_them(plant_no
         "latched", None, 1, 2, 1, 1)
 
 
+@pytest.mark.parametrize("name,why", [
+    ("", "an empty name"), ("*", "'*' is not one key chunk"),
+    ("a/b", "'a/b' is not one key chunk"), ("c" * 900, "900 characters"),
+    ("c" * 65, "65 characters")])
+def test_an_arm_naming_no_identity_is_refused_and_changes_nothing(plant_node, bus, name, why):
+    """Issue 30, item 5: an arm for "", "*" or a 900-character name held the vehicle for
+    nobody (every real claimer then got armed_for_another). It is refused as bad_arm,
+    counted by its reason, and the vehicle stays as it was; a real identity still arms."""
+    from msagv.bridge.ownership import arm, claim, encode_arm, identity_error
+    from msagv.bridge.session import Keys
+
+    n, k = plant_node, Keys("t0")
+    assert why in identity_error(name)
+    ctl = bus.endpoint("ctl")
+    assert claim(ctl, k, 0)[0][1]["granted"]
+    claim(ctl, k, 1, RELEASE)  # released during the run: latched
+    before = n.ownership.summary()
+    op = bus.endpoint("op")
+    assert arm(op, k, name) == [("p1", {"v": 2, "armed": False, "reason": "bad_arm"})]
+    assert n.ownership.summary() == before and before["state"] == "latched"
+    assert n.rej.summary()["by_reason"] == {M.BAD_VALUE: 1}
+    c2 = "c" * 64  # the longest identity
+    assert identity_error(c2) is None and identity_error("msagv-controller-agv0") is None
+    assert arm(op, k, c2) == [("p1", {"v": 2, "armed": True, "reason": "armed"})]
+    assert len(encode_arm(c2)) < 1024
+
+
 class Events:
     """What a node records, events only (the recorder's ``event``/``message`` calls)."""
 
@@ -442,6 +469,59 @@ def test_the_plant_counts_only_its_owners_token_as_the_controllers_presence(plan
     wait_until(lambda: not n.controller_present, 5.0, "the owner's loss")
     assert n.ownership.owner is None and n.ownership.losses == 1
     assert n.stats.controller_losses == 1
+
+
+def test_token_set_tracks_a_bounded_number_and_always_its_focus(bus):
+    """A flood of tokens (issue 30): at most ``bound`` holders are kept, the rest counted;
+    the focus (the owner) is tracked even when it comes after the set is full."""
+    from msagv.bridge.presence import TokenSet
+
+    prefix = "msagv/t0/alive/controller"
+    changes: list = []
+    ts = TokenSet(bus.endpoint("plant"), prefix, lambda z, p: changes.append((z, p)), bound=8)
+    rogue = bus.endpoint("rogue")
+    try:
+        flood = [rogue.declare_token(f"{prefix}/r{i}") for i in range(50)]
+        s = ts.summary()
+        assert s["tracked"] == s["tracked_max"] == 8 and s["untracked"] == 42
+        owner = bus.endpoint("own")
+        tok = owner.declare_token(f"{prefix}/own")  # after the set is full: not kept
+        assert not ts.present("own") and ts.summary()["untracked"] == 43
+        ts.focus("own")  # granted: queried at once and kept, within the bound
+        wait_until(lambda: ts.present("own"), 10.0, "the focus found by its query")
+        assert ts.summary()["tracked"] == 8 and changes == [("own", True)]
+        for t in flood:
+            t.close()
+        assert ts.holders() == {"own"} and changes == [("own", True)]  # the focus only
+        tok.close()
+    finally:
+        ts.close()
+
+
+def test_token_set_keeps_a_focus_that_still_sends_when_its_token_goes_missing(bus):
+    """Issue 30, item 4: the focus's token missing (here removed as by a router's query
+    that misses it) while the focus still sends is not a loss; missing *and* quiet is."""
+    from msagv.bridge.presence import TokenSet
+
+    prefix = "msagv/t0/alive/controller"
+    quiet = threading.Event()
+    changes: list = []
+    ts = TokenSet(bus.endpoint("plant"), prefix, lambda z, p: changes.append((z, p)),
+                  quiet=lambda z: quiet.is_set())
+    try:
+        tok = bus.endpoint("own").declare_token(f"{prefix}/own")
+        ts.focus("own")  # already present: no change to report
+        assert ts.present("own") and changes == []
+        assert bus.vanish(f"{prefix}/own") == 1
+        wait_until(lambda: ts.summary()["kept_while_sending"] >= 3, 10.0,
+                   "the missing token checked while the focus sends")
+        assert ts.present("own") and changes == []
+        quiet.set()  # nothing from it for the staleness bound: now it is lost
+        wait_until(lambda: not ts.present("own"), 10.0, "the loss")
+        assert changes == [("own", False)] and ts.summary()["suspicions"] == 1
+        tok.close()
+    finally:
+        ts.close()
 
 
 def test_controller_rejects_states_not_from_its_plant(bus):
@@ -727,5 +807,5 @@ def test_a_controller_refuses_to_bind_when_two_plants_answer_its_params(procs):
                              "--wait", 3))
     assert procs.wait("ctl", 60) == 3
     err = procs.err("ctl")
-    assert "2 plant sessions answer msagv/agv0/params" in err and "binding to none" in err
+    assert "2 plant sessions answer msagv/agv0/params/*/" in err and "binding to none" in err
     assert "MPC warm" not in err  # nothing was built for either vehicle

@@ -359,3 +359,13 @@ def test_protocol_md_tables_match_the_code():
     assert f"claims every {O.CLAIM_RETRY_S:g} s until granted, then every {O.CLAIM_REFRESH_S:g} s" \
         in doc.replace("\n", " ").replace("   ", " ")
     assert f"appeared {O.GRANT_TOKEN_S:g} s later" in doc.replace("\n", " ")
+    # section 3.6 and 4.2 (issue 30): the bounds of the plant's token watch, the quiet
+    # bound of an owner's loss, the replies a query keeps, the close after a signal
+    from msagv.bridge import presence, zenoh_transport
+
+    flat = " ".join(doc.split())
+    assert f"at most **{presence.MAX_TOKENS}** holders per vehicle" in flat
+    assert f"(`--stale-ms`, at least {plant_node.QUIET_MIN_S:g} s)" in flat
+    assert f"into a list (at most {zenoh_transport.MAX_REPLIES})" in flat
+    assert f"given {plant_node.CLOSE_S:g} s to close" in flat
+    assert f"every {presence.POLL_S:g} s, at once on a grant" in flat

@@ -159,6 +159,45 @@ def test_acl_lets_each_certificate_send_only_under_its_own_name_for_its_vehicle(
     assert _may(acl, C0, "put", f"msagv/agv0/state/{P0}", flow="egress")
 
 
+def test_acl_of_every_certificate_msagv_certs_makes(certs):
+    """Issue 30, item 3: every identity of the directory against every name and vehicle:
+    what it may send is exactly its role's, under its own name, for its vehicles; the
+    router's certificate forwards only where the process reaches it as a client, and may
+    do nothing on a peer's links (there it would be a master key)."""
+    m = read_manifest(certs)
+    ids = m["identities"]
+    names = sorted(v["cn"] for v in ids.values()) + ["x"]
+    for routed in (True, False):
+        acl = acl_config(m, routed=routed)
+        for ident, v in ids.items():
+            cn, role, vids = v["cn"], v["role"], v["vehicles"]
+            for vid in ("agv0", "agv1"):
+                mine = "*" in vids or vid in vids
+                for n in names:
+                    own = n == cn and mine
+                    want = {
+                        ("put", f"msagv/{vid}/state/{n}"): role == "plant" and own,
+                        ("put", f"msagv/{vid}/cmd/{n}"): role == "controller" and own,
+                        ("liveliness_token", f"msagv/{vid}/alive/controller/{n}"):
+                            role == "controller" and own,
+                        ("liveliness_token", f"msagv/{vid}/alive/plant/{n}"): role == "plant" and own,
+                        ("query", f"msagv/{vid}/claim/*/{n}"): role == "controller" and own,
+                        ("query", f"msagv/{vid}/arm/*/{n}"): role == "operator" and own,
+                        ("reply", f"msagv/{vid}/claim/{n}/x"): role == "plant" and own,
+                        ("reply", f"msagv/{vid}/arm/{n}/x"): role == "plant" and own,
+                    }
+                    for (msg, key), allowed in want.items():
+                        if role == "router":
+                            allowed = routed
+                        got = _may(acl, cn, msg, key)
+                        assert got == allowed, (ident, routed, msg, key, got)
+                # reading: every identity of the vehicle, the router only where it routes
+                reads = _may(acl, cn, "declare_subscriber", f"msagv/{vid}/state/*")
+                assert reads == (routed if role == "router" else mine), (ident, routed, vid)
+                egress = _may(acl, cn, "put", f"msagv/{vid}/state/x", flow="egress")
+                assert egress == (routed if role == "router" else mine), (ident, routed, vid)
+
+
 # ---- session configuration ------------------------------------------------------------------
 def test_secure_config_needs_tls_endpoints_and_a_complete_directory(certs, tmp_path):
     c = make_config(SessionOptions(secure_dir=str(certs)), "plant")
@@ -323,9 +362,18 @@ def test_secure_run_refuses_peers_without_a_certificate_or_of_the_wrong_role(pro
         # seconds; a peer that dialled before it never linked and saw no state)
         wait_until(lambda: _listening(P), 120, "the plant's listener")
         for name, ident in (("nocert", None), ("observer", "monitor"),
-                            ("plant_cert", "plant-agv0"), ("other_vehicle", "controller-agv1")):
+                            ("plant_cert", "plant-agv0"), ("other_vehicle", "controller-agv1"),
+                            ("router_cert", "router")):
             peers[name] = Peer(certs, ident, P)
         time.sleep(1.0)
+        # issue 30, item 3: the router's certificate on a direct link arms nothing (it
+        # forwards only for its clients): its arm reaches no plant, no reply comes back
+        from msagv.bridge.ownership import encode_arm
+
+        rs = peers["router_cert"].session
+        armed = [r for r in rs.get(f"msagv/agv0/arm/*/msagv-router", payload=encode_arm(OWNER),
+                                   timeout=2.0) if r.ok is not None]
+        assert armed == []
         procs.start("ctl", msagv("controller", "--secure", certs, "--connect", tls(P),
                                  "--exit-at-end", "--json", "-q"))
         assert procs.wait("plant", 240) == 0, procs.err("plant")
@@ -348,8 +396,9 @@ def test_secure_run_refuses_peers_without_a_certificate_or_of_the_wrong_role(pro
         ob = peers["observer"]
         assert ob.states > 0 and ob.sent > 0 and ob.answers > 0
         assert ob.wheel_wear_states == 301  # taken with the grant: from state 0 on
-        # another vehicle's controller gets nothing of agv0 (the plant's egress rules)
-        assert peers["other_vehicle"].states == 0
+        # another vehicle's controller gets nothing of agv0 (the plant's egress rules), nor
+        # does the router's certificate on a peer's direct link
+        assert peers["other_vehicle"].states == 0 and peers["router_cert"].states == 0
         print(f"\nsecure run: {cm['accepted']} commands accepted; "
               + ", ".join(f"{n} sent {p.sent}" for n, p in peers.items())
               + f"; none reached the plant; observer's params answered {ob.answers} times")

@@ -90,6 +90,15 @@ class CommandWatch:
         self.safe += 1
         return Decision(SAFE, False)
 
+    def force_safe(self, why: str) -> Decision:
+        """The safe behaviour this period whatever the commands say (the plant's own loop
+        missed its deadline: its watchdog already went safe); resuming as in :meth:`step`."""
+        if self.state != SAFE:
+            return self._to_safe(why)
+        self.streak = 0
+        self.safe += 1
+        return Decision(SAFE, False)
+
     def _running(self, age: int) -> Decision:
         if age == 0:
             self.state = RUN

@@ -25,6 +25,7 @@ liveliness token is the last chunk of its key (``alive/controller/{identity}``).
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -42,6 +43,9 @@ ARM_REQUIRED = {"v": "int"}
 ARM_OPTIONAL = {"controller": "str"}
 ARMED_REQUIRED = {"v": "int", "armed": "bool", "reason": "str"}
 MAX_CLAIM_BYTES = 1024
+MAX_IDENTITY = 64  # an identity: a Zenoh session id (32 hex digits) or a certificate's
+# common name (at most 64 characters, X.509's upper bound)
+_IDENTITY = re.compile(r"^[A-Za-z0-9_.\-]+$")
 MAX_BANNED = 1024
 GRANT_TOKEN_S = 3.0  # a grant whose owner never shows its token is void after this long
 CLAIM_RETRY_S = 0.25  # the controller's claim period while not granted
@@ -105,8 +109,31 @@ def encode_arm(controller: str | None = None) -> bytes:
     return M.pack(m)
 
 
+def identity_error(name) -> str | None:
+    """Why ``name`` cannot be an identity (None: it can): one key chunk of
+    ``A-Z a-z 0-9 _ . -``, 1 to MAX_IDENTITY characters, as a session id or a
+    certificate's common name is."""
+    if not isinstance(name, str):
+        return f"{type(name).__name__} is not a name"
+    if not name:
+        return "an empty name"
+    if len(name) > MAX_IDENTITY:
+        return f"{len(name)} characters (an identity has at most {MAX_IDENTITY})"
+    if not _IDENTITY.match(name):
+        return (f"'{name}' is not one key chunk of A-Z a-z 0-9 _ . - (no wildcard, no "
+                f"'/')")
+    return None
+
+
 def decode_arm(payload) -> dict:
-    return _versioned(payload, ARM_REQUIRED, ARM_OPTIONAL)
+    """An ``arm`` map; a ``controller`` it names must be an identity (:func:`identity_error`):
+    an arm for "", "*" or a 900-character name would hold the vehicle for nobody."""
+    m = _versioned(payload, ARM_REQUIRED, ARM_OPTIONAL)
+    if "controller" in m:
+        why = identity_error(m["controller"])
+        if why is not None:
+            raise M.MessageError(M.BAD_VALUE, f"arm: controller: {why}")
+    return m
 
 
 def encode_armed(armed: bool, reason: str) -> bytes:
@@ -166,6 +193,7 @@ class Ownership:
         self.latched_at = 0.0
         self.why: str | None = None  # latched: why
         self.started = False  # the run has started: a loss now latches the vehicle
+        self.ended = False  # the end state is out: a release is the normal end, no latch
         self.owner_seen = False  # the owner's token has been seen since the grant
         self.wheel_wear = False  # the owner's newest granted claim asks for per-wheel wear
         self.granted_at = 0.0
@@ -188,9 +216,21 @@ class Ownership:
         with self._lock:
             self.started = True
 
-    def _end_ownership(self, why: str, now: float) -> tuple:
-        """(locked) The owner is gone: latched once the run has started, else free."""
+    def end(self) -> None:
+        """The run's end state is published: the owner's release from now on is the normal
+        end of the run (the vehicle grants nothing more, but it is not a latch)."""
+        with self._lock:
+            self.ended = True
+
+    def _end_ownership(self, why: str, now: float, released: bool = False) -> tuple:
+        """(locked) The owner is gone: latched once the run has started, else free; a
+        release after the end of the run ends it normally (no claim granted, no latch)."""
         prev, self.owner = self.owner, None
+        if self.ended and released:
+            self.state, self.lost, self.why, self.armed_for = LATCHED_STATE, None, why, None
+            self.latched_at = now
+            return (None, f"the run ended normally and controller {prev} released the "
+                          f"vehicle", ("released", {"why": why, "previous": prev}))
         if self.started:
             self.state, self.lost, self.latched_at, self.why = LATCHED_STATE, prev, now, why
             self.armed_for = None
@@ -224,7 +264,7 @@ class Ownership:
                 if who != self.owner:
                     return Grant(False, NOT_YOURS)
                 self.releases += 1
-                changed = self._end_ownership(f"released by {who}", now)
+                changed = self._end_ownership(f"released by {who}", now, released=True)
                 grant = Grant(False, RELEASED)
             elif self.owner == who:
                 self.owner_seen = self.owner_seen or token_present

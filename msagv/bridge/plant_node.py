@@ -38,7 +38,6 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -63,6 +62,8 @@ WHEEL_WEAR_MODES = ("auto", "on", "off")
 RESEND_S = 1.0  # lockstep: an unanswered state is published again after this long
 STALL_S = 0.5  # a gap this long in the plant's own heartbeat: the plant itself was stopped
 STALL_GRACE_S = 3.0  # after its own stall, the owner's token gets this long to come back
+QUIET_MIN_S = 0.5  # the owner is lost only with its token missing and nothing from it for
+# the staleness bound (--stale-ms), and at least this long (a loaded controller's solve)
 OLD_CLIENT = ("msagv protocol 2 (docs/PROTOCOL.md): this query carried no identity, as a "
               "client of the first version asks; ask {key}/*/{{your identity}} instead")
 
@@ -164,6 +165,8 @@ class PlantStats:
     missed_periods: int = 0
     clock_resyncs: int = 0
     controller_losses: int = 0
+    watchdog_trips: int = 0  # the loop missed its deadline by more than stale_ms
+    watchdog_periods: int = 0  # periods of safe behaviour run by the watchdog
     resent: int = 0  # states published again because their answer did not come
     old_clients: int = 0  # queries without an identity (clients of the first version)
     latency_s: list = field(default_factory=list)  # state published -> command received, - solve
@@ -213,8 +216,13 @@ class PlantNode:
         self.watch = CommandWatch(cfg.max_missed, cfg.resume_periods, cfg.period)
         self._tokens: TokenSet | None = None
         self._closed = threading.Event()
+        self._plant_lock = threading.Lock()  # the plant's inputs and step (loop, watchdog)
+        self._rt_due: float | None = None  # realtime: perf time the next period is due by
+        self._wd_trip: str | None = None  # set by the watchdog, taken by the loop
+        self._wd_active = False
         self._beat, self._last_stall = time.monotonic(), -1e9
         self._refused_logged = 0
+        self._heard: tuple[str | None, float] = (None, 0.0)  # the owner's newest message
         # the per-wheel wear fields go out when on, or (auto) when the owner's claim asks
         # for them: a peer of the first protocol version rejects unknown fields
         self._wheel_wear_told = False  # the per-wheel wear last logged and recorded
@@ -235,7 +243,8 @@ class PlantNode:
             self._decls.append(t.subscribe(k.reference, self._on_reference_sample))
         self._beat, self._last_stall = time.monotonic(), -1e9
         threading.Thread(target=self._heartbeat, daemon=True, name="plant heartbeat").start()
-        self._tokens = TokenSet(t, k.alive_controller, self._on_token)
+        self._tokens = TokenSet(t, k.alive_controller, self._on_token, quiet=self._quiet)
+        self._tokens.focus(self.ownership.owner)
         self._decls.append(self._tokens)
         self._token = t.declare_token(k.plant_token(t.id))
 
@@ -286,6 +295,8 @@ class PlantNode:
         else:
             # the owner's wheel_wear is taken with the grant, under the ownership's lock: the
             # run may start the moment the grant is made, its first state must have it
+            if who == self.ownership.owner:
+                self._heard = (who, time.monotonic())
             grant = self.ownership.claim(
                 who, c["action"], token_present=self._tokens is not None and self._tokens.present(who),
                 wheel_wear=bool(c.get("wheel_wear", False)))
@@ -355,8 +366,16 @@ class PlantNode:
         if self.rec is not None:
             self.rec.event(name, t=max(self.seq, 0) * self.cfg.period, **fields)
 
+    def _quiet(self, who: str) -> bool:
+        """Nothing (a command or a claim) from ``who`` for the staleness bound."""
+        zid, at = self._heard
+        bound = max(self.cfg.stale_ms / 1000.0, QUIET_MIN_S)
+        return zid != who or time.monotonic() - at > bound
+
     def _on_owner_change(self, owner: str | None, why: str) -> None:
         log.info("vehicle %s: %s", self.keys.id, why)
+        if self._tokens is not None:
+            self._tokens.focus(owner)
         if self.rec is not None:
             self.rec.event("owner", owner=owner, why=why)
         self._update_presence()
@@ -436,6 +455,7 @@ class PlantNode:
                 self.rec.message("rx", self.keys.cmd, sample.payload, time.time(),
                                  why=M.NOT_OWNER)
             return
+        self._heard = (sender, time.monotonic())
         self.handle_cmd(sample.payload, time.perf_counter(), time.time(), sender)
 
     # ---- commands ----------------------------------------------------------------------
@@ -520,6 +540,8 @@ class PlantNode:
                 self._pub_perf.popitem(last=False)
         if seq == 0:
             self.ownership.start()  # from now on a lost owner latches the vehicle
+        if end:
+            self.ownership.end()  # from now on the owner's release is the normal end
         self._pub.put(payload, seq)
         if self.rec is not None:
             self.rec.message("tx", self.keys.state, payload)
@@ -530,8 +552,9 @@ class PlantNode:
         from msagv.plant.stepping import PlantError
 
         try:
-            self.plant.set_inputs(omega_w, omega_s)
-            self.plant.do_step(self.plant.t, self.cfg.period)
+            with self._plant_lock:
+                self.plant.set_inputs(omega_w, omega_s)
+                self.plant.do_step(self.plant.t, self.cfg.period)
         except PlantError as e:
             raise PlantRunError(f"step at t = {self.plant.t:.2f} s failed: {e}") from None
 
@@ -544,13 +567,15 @@ class PlantNode:
             if self.controller_present and self._pub.matching:
                 return
             if not waited_msg and time.monotonic() - t0 > 1.0:
-                log.info("waiting for a controller on %s (up to %s)", self.keys.cmd,
+                log.info("waiting for a controller: its token on %s/* and its claim on "
+                         "%s/%s/* (up to %s)", self.keys.alive_controller, self.keys.claim,
+                         self.transport.id if self.transport is not None else "*",
                          f"{self.cfg.wait_s:g} s" if self.cfg.wait_s else "forever")
                 waited_msg = True
             if self.cfg.wait_s and time.monotonic() - t0 > self.cfg.wait_s:
                 raise PlantRunError(f"no controller for vehicle '{self.keys.id}' within "
                                     f"{self.cfg.wait_s:g} s (no liveliness token on "
-                                    f"{self.keys.alive_controller}); start msagv controller "
+                                    f"{self.keys.alive_controller}/*); start msagv controller "
                                     f"--id {self.keys.id} with matching --connect/--listen")
             self._ctl_event.wait(0.02)
             self._ctl_event.clear()
@@ -637,6 +662,9 @@ class PlantNode:
             return
         w0 = time.perf_counter()
         last_pub = w0
+        self._rt_due = w0 + 2 * T
+        watchdog = threading.Thread(target=self._watchdog, daemon=True, name="plant watchdog")
+        watchdog.start()
         for k in range(cfg.steps):
             target = w0 + (k + 1) * T
             now = time.perf_counter()
@@ -652,7 +680,11 @@ class PlantNode:
                 n = self._newest
                 present = self.controller_present
                 self._stepped = k
-            d = self.watch.step(k, n.state_seq if n is not None else None, present)
+            trip, self._wd_trip = self._wd_trip, None
+            if trip is not None:
+                d = self.watch.force_safe(trip)
+            else:
+                d = self.watch.step(k, n.state_seq if n is not None else None, present)
             if d.resumed:
                 self.safe = False
                 st.resumes += 1
@@ -683,9 +715,50 @@ class PlantNode:
             last_pub = done
             if done - target > T:
                 st.missed_periods += 1
+            # the next period is due one period after its target (a loop that is behind, and
+            # catches up or re-anchors its clock next, gets two periods from now)
+            self._rt_due = max(w0 + (k + 3) * T, done + 2 * T)
+            self._wd_active = False
             if self.rec is not None:
                 self.rec.maybe_flush()
+        self._rt_due = None
         self._linger()
+
+    def _watchdog(self) -> None:
+        """Realtime: while the loop is more than ``stale_ms`` past a period's deadline, run
+        the safe behaviour here (steering held, wheels ramped down at ``--safe-decel``),
+        one period at a time. It touches the plant (under the plant's own lock) and the
+        log, nothing of Zenoh: a loop stuck in the bus does not stop it."""
+        T, bound = self.cfg.period, self.cfg.stale_ms / 1000.0
+        st = self.stats
+        while not (self.stop.wait(T) or self._closed.is_set()):
+            due = self._rt_due
+            if due is None:
+                if self.final_state is not None:
+                    return
+                continue
+            late = time.perf_counter() - due
+            if late <= bound:
+                continue
+            if not self._wd_active:
+                self._wd_active = True
+                why = (f"the plant's own loop is {late * 1000:.0f} ms past its deadline "
+                       f"(bound {self.cfg.stale_ms:g} ms): the watchdog runs the safe "
+                       f"behaviour")
+                self._wd_trip = why
+                self.safe = True
+                st.watchdog_trips += 1
+                log.warning("SAFE (watchdog) at t = %.2f s: %s", max(self.seq, 0) * T, why)
+            if self._plant_lock.acquire(timeout=T):
+                try:
+                    held_w, _ = self.plant.inputs
+                    self.plant.set_inputs(np.maximum(np.asarray(held_w) - self.ramp * T, 0.0),
+                                          np.zeros(self.nw))
+                    st.watchdog_periods += 1
+                except Exception as e:  # the plant refused: said once per trip, loop decides
+                    log.error("watchdog: the safe behaviour failed: %s", e)
+                finally:
+                    self._plant_lock.release()
 
     def _linger(self) -> None:
         self.stop.wait(self.cfg.linger_s)
@@ -712,11 +785,14 @@ class PlantNode:
             "commands": {"accepted": st.accepted, "stale": st.stale, "duplicate": st.duplicate,
                          "late": st.late, "lost": lost, "seq_gaps": st.cmd_seq_gaps,
                          "after_end": st.after_end},
-            "safe": {"events": st.safe_events, "periods": st.safe_periods, "resumes": st.resumes},
+            "safe": {"events": st.safe_events, "periods": st.safe_periods, "resumes": st.resumes,
+                     "watchdog_trips": st.watchdog_trips,
+                     "watchdog_periods": st.watchdog_periods},
             "controller_losses": st.controller_losses, "resent_states": st.resent,
             "old_clients": st.old_clients,
             "periods": (self.watch.summary() if self.cfg.run_mode == "realtime" else None),
             "ownership": self.ownership.summary(),
+            "presence": self._tokens.summary() if self._tokens is not None else None,
             "rejected": self.rej.summary(),
             "final_state": {k: fs[k] for k in ("t",) + BODY_FIELDS + WEAR_FIELDS
                             + WHEEL_WEAR_FIELDS if k in fs},
@@ -741,22 +817,20 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
     if signals is not None:
         node.stop = signals.event
     rc = EXIT_OK
+    t = None
     try:
-        with (nullcontext(transport) if transport is not None
-              else ZenohTransport.open(opts, "plant")) as t:
-            if hasattr(plant, "warmup"):
-                plant.warmup()  # the integrator compiled before the real-time clock starts
-            freeze_heap()
-            node.open(t)
-            log.info("%s plant ready: %s, %d steps of %g s", cfg.run_mode, plant.vehicle.name,
-                     cfg.steps, cfg.period)
-            try:
-                node.run()
-            except PlantRunError as e:
-                log.error("%s", e)
-                rc = EXIT_RUNTIME
-            finally:
-                node.close()
+        t = transport if transport is not None else ZenohTransport.open(opts, "plant")
+        if hasattr(plant, "warmup"):
+            plant.warmup()  # the integrator compiled before the real-time clock starts
+        freeze_heap()
+        node.open(t)
+        log.info("%s plant ready: %s, %d steps of %g s", cfg.run_mode, plant.vehicle.name,
+                 cfg.steps, cfg.period)
+        try:
+            node.run()
+        except PlantRunError as e:
+            log.error("%s", e)
+            rc = EXIT_RUNTIME
     except SessionError as e:
         log.error("%s", e)
         node.error = str(e)
@@ -764,10 +838,42 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
     except KeyboardInterrupt:
         node.error = "interrupted"
     finally:
+        closed = _close_within(node, t if transport is None else None,
+                               CLOSE_S if node.stop.is_set() else None)
         summary = node.summary()
+        if not closed:
+            summary["close_abandoned"] = True
         if signals is not None and signals.name is not None:
             summary["stopped_by"] = signals.name
             log.info("stopped by %s", signals.name)
         if recorder is not None:  # the recorder's counters (errors, drops) in the summary too
             summary["recording"] = recorder.close(summary)
     return summary, rc
+
+
+CLOSE_S = 0.5  # a stopped plant waits this long for its declarations and session to close
+
+
+def _close_within(node: PlantNode, transport, timeout: float | None) -> bool:
+    """Close ``node`` (its declarations) and ``transport`` (None: the caller's), within
+    ``timeout`` s (None: however long it takes). A run stopped by a signal must end within
+    a second, with its summary, even if the bus holds a close: then the closing is left to
+    a daemon thread (False; the process leaves without waiting for it, msagv.cli.nodes)."""
+
+    def close() -> None:
+        try:
+            node.close()
+        finally:
+            if transport is not None:
+                transport.close()
+
+    if timeout is None:
+        close()
+        return True
+    th = threading.Thread(target=close, daemon=True, name="plant close")
+    th.start()
+    th.join(timeout)
+    if th.is_alive():
+        log.warning("closing the Zenoh session took over %g s: leaving without it", timeout)
+        return False
+    return True

@@ -2,7 +2,8 @@
 :class:`bridge.transport.Transport`: ``watch_tokens`` and ``tokens``).
 
 A liveliness subscriber reports a token's appearance (PUT) and disappearance (DELETE; for
-a killed process after the transport lease). A process restarted quickly declares a new
+a killed process after the transport lease); its callback only records the event, one
+helper thread per watch does every query (a flood of tokens starts no thread). A process restarted quickly declares a new
 token under the same key before the old one has expired, so a DELETE is checked with a
 liveliness query before the peer is declared gone. Another node of the bus can still hold
 a dead peer's token for up to its lease after the DELETE and answer that query, so the
@@ -49,7 +50,9 @@ class Presence:
         self._lock = threading.Lock()
         self._closed = False
         self._verifying = 0
+        self._pending: int | None = None  # a DELETE's epoch, for the helper to verify
         self._stop = threading.Event()
+        self._wake = threading.Event()
         self._sub = transport.watch_tokens(key, self._on_token)
         self._poller = threading.Thread(target=self._poll, daemon=True,
                                         name=f"presence {key}")
@@ -63,8 +66,10 @@ class Presence:
                   key, epoch)
         if present:
             self._set(True, epoch)
-        else:
-            threading.Thread(target=self._verify, args=(epoch,), daemon=True).start()
+        else:  # verified by the helper thread (a flood of DELETEs starts no thread)
+            with self._lock:
+                self._pending = epoch
+            self._wake.set()
 
     def _query(self) -> bool:
         try:
@@ -73,7 +78,16 @@ class Presence:
             return False
 
     def _poll(self) -> None:
-        while not self._stop.wait(POLL_S):
+        while True:
+            self._wake.wait(POLL_S)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            with self._lock:
+                pending, self._pending = self._pending, None
+            if pending is not None:
+                self._verify(pending)
+                continue
             alive = self._query()
             with self._lock:
                 if self._closed:
@@ -132,10 +146,14 @@ class Presence:
         with self._lock:
             self._closed = True
         self._stop.set()
+        self._wake.set()
         try:
             self._sub.close()
         except Exception:
             pass
+
+
+MAX_TOKENS = 64  # controller tokens a plant tracks per vehicle (the owner's always among them)
 
 
 class TokenSet:
@@ -143,23 +161,42 @@ class TokenSet:
     the holder's identity (``msagv/{id}/alive/controller/{zid}``), so a node can tell its
     peer's token from anyone else's (docs/PROTOCOL.md, "Ownership").
 
-    One token watch on ``prefix/*`` (with history) and a reconciling query every
-    ``POLL_S``, as :class:`Presence`; a DELETE (or a token missing from the query) is
-    confirmed by querying that token for up to ``VERIFY_S``. ``on_change(zid, present)`` is
-    called from the transport's or a helper thread.
+    Built for a bus that anyone may flood with tokens (issue 30): the token watch's
+    callback does a set operation and nothing else (no thread, no query); at most ``bound``
+    holders are kept (the ``focus``, the one identity whose presence matters, always is;
+    the others beyond the bound are counted in ``untracked`` and logged); and one helper
+    thread queries only the focus's own token (``prefix/{focus}``: one reply), every
+    ``POLL_S`` and at once when the focus changes or its DELETE arrives.
+
+    The focus is lost only when its token is missing (a DELETE or a query nobody answers)
+    *and* ``quiet(focus)`` says it has sent nothing for the staleness bound: through a
+    router, Zenoh's token query now and then misses a live token (issue 30, item 4), and
+    one missing answer must not end a live owner. A focus whose token answers throughout
+    ``VERIFY_S`` after a DELETE (a restarted peer) is kept. ``on_change(zid, present)`` is
+    called for the focus only, from the transport's or the helper thread.
     """
 
     def __init__(self, transport, prefix: str,
-                 on_change: Callable[[str, bool], None] | None = None):
+                 on_change: Callable[[str, bool], None] | None = None,
+                 bound: int = MAX_TOKENS, quiet: Callable[[str], bool] | None = None):
+        if bound < 1:
+            raise ValueError(f"bound must be >= 1, got {bound}")
         self.transport = transport
         self.prefix = prefix
         self.on_change = on_change
+        self.bound = bound
+        self.quiet = quiet if quiet is not None else (lambda zid: True)
         self._present: set[str] = set()
-        self._epoch: dict[str, int] = {}
-        self._verifying: dict[str, int] = {}  # zid -> verifications running
+        self._focus: str | None = None
+        self._suspect_since: float | None = None  # the focus's token missing since
         self._lock = threading.Lock()
         self._closed = False
         self._stop = threading.Event()
+        self._wake = threading.Event()
+        self.untracked = 0  # PUTs of holders not kept (the set was full)
+        self.tracked_max = 0
+        self.suspicions = 0  # the focus's token found missing
+        self.kept = 0  # ... while the focus still sent: not taken for lost
         self._sub = transport.watch_tokens(f"{prefix}/*", self._on_token)
         self._poller = threading.Thread(target=self._poll, daemon=True,
                                         name=f"tokens {prefix}")
@@ -173,6 +210,15 @@ class TokenSet:
         with self._lock:
             return set(self._present)
 
+    def focus(self, zid: str | None) -> None:
+        """The identity whose presence matters (the owner; None: nobody): always tracked,
+        and queried at once."""
+        with self._lock:
+            if zid == self._focus:
+                return
+            self._focus, self._suspect_since = zid, None
+        self._wake.set()
+
     def _zid(self, key) -> str | None:
         key = str(key)
         if not key.startswith(self.prefix + "/"):
@@ -180,86 +226,129 @@ class TokenSet:
         z = key[len(self.prefix) + 1:]
         return z if z and "/" not in z else None
 
-    def _bump(self, zid: str) -> int:
-        with self._lock:
-            e = self._epoch.get(zid, 0) + 1
-            self._epoch[zid] = e
-            return e
+    def _add(self, zid: str) -> bool:
+        """(locked) Keep ``zid``; False if the set is full (counted)."""
+        if zid in self._present:
+            return True
+        if len(self._present) >= self.bound:
+            if zid != self._focus:
+                self.untracked += 1
+                n = self.untracked
+                if n == 1 or n % 1000 == 0:
+                    log.warning("more than %d tokens under %s: %d not tracked (only the "
+                                "owner's counts)", self.bound, self.prefix, n)
+                return False
+            self._present.discard(next(z for z in self._present if z != zid))
+        self._present.add(zid)
+        self.tracked_max = max(self.tracked_max, len(self._present))
+        return True
 
     def _on_token(self, key: str, present: bool) -> None:
         zid = self._zid(key)
         if zid is None:
             return
-        epoch = self._bump(zid)
-        if present:
-            self._set(zid, True, epoch)
-        else:
-            threading.Thread(target=self._verify, args=(zid, epoch), daemon=True).start()
-
-    def _query(self, key: str) -> set[str] | None:
-        """The holders found by a token query on ``key`` (None: the transport closed)."""
-        try:
-            keys = self.transport.tokens(key, timeout=0.3)
-        except Exception:
-            return None
-        return {z for z in map(self._zid, keys) if z is not None}
-
-    def _poll(self) -> None:
-        while not self._stop.wait(POLL_S):
-            found = self._query(f"{self.prefix}/*")
-            if found is None:
-                return
-            with self._lock:
-                if self._closed:
-                    return
-                new = found - self._present
-                gone = self._present - found - set(self._verifying)
-            for zid in new:
-                log.debug("tokens %s: %s found by query (no PUT seen)", self.prefix, zid)
-                self._set(zid, True, self._bump(zid))
-            for zid in gone:
-                log.debug("tokens %s: %s missing from query (no DELETE seen)", self.prefix, zid)
-                self._verify(zid, self._bump(zid))
-
-    def _verify(self, zid: str, epoch: int) -> None:
+        changed = None
         with self._lock:
-            self._verifying[zid] = self._verifying.get(zid, 0) + 1
-        try:
-            end = time.monotonic() + VERIFY_S
-            while True:
-                found = self._query(f"{self.prefix}/{zid}")
-                if not found:
-                    self._set(zid, False, epoch)
-                    return
-                with self._lock:
-                    if self._epoch.get(zid) != epoch or self._closed:
-                        return
-                if time.monotonic() >= end:
-                    self._set(zid, True, epoch)
-                    return
-                time.sleep(VERIFY_EVERY_S)
-        finally:
-            with self._lock:
-                n = self._verifying.pop(zid) - 1
-                if n:
-                    self._verifying[zid] = n
-
-    def _set(self, zid: str, present: bool, epoch: int) -> None:
-        with self._lock:
-            if self._epoch.get(zid) != epoch or self._closed:
+            if self._closed:
                 return
-            was = zid in self._present
+            focus = zid == self._focus
             if present:
-                self._present.add(zid)
+                if focus:
+                    self._suspect_since = None
+                was = zid in self._present
+                if self._add(zid) and focus and not was:
+                    changed = True
+            elif focus:
+                if zid in self._present and self._suspect_since is None:
+                    self._suspect_since = time.monotonic()
+                    self.suspicions += 1
+                self._wake.set()  # the helper thread decides
             else:
                 self._present.discard(zid)
-        if present != was and self.on_change is not None:
-            self.on_change(zid, present)
+        log.debug("tokens %s: %s %s", self.prefix, "PUT" if present else "DELETE", zid)
+        if changed is not None and self.on_change is not None:
+            self.on_change(zid, changed)
+
+    def _query(self, zid: str) -> bool | None:
+        """Whether a token query finds ``prefix/{zid}`` (None: the transport closed)."""
+        try:
+            keys = self.transport.tokens(f"{self.prefix}/{zid}", timeout=0.3)
+        except Exception:
+            return None
+        return any(self._zid(k) == zid for k in keys)
+
+    def _poll(self) -> None:
+        while True:
+            with self._lock:
+                suspect = self._suspect_since is not None
+            self._wake.wait(VERIFY_EVERY_S if suspect else POLL_S)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            with self._lock:
+                zid = self._focus
+            if zid is None:
+                continue
+            found = self._query(zid)
+            if found is None:
+                return
+            self._decide(zid, found)
+
+    def _decide(self, zid: str, found: bool) -> None:
+        now = time.monotonic()
+        changed = None
+        with self._lock:
+            if self._closed or zid != self._focus:
+                return
+            had = zid in self._present
+            since = self._suspect_since
+            if found:
+                if since is None or now - since >= VERIFY_S:
+                    # present, or answered throughout VERIFY_S after a DELETE: kept
+                    self._suspect_since = None
+                    if not had:
+                        self._add(zid)
+                        changed = True
+                        log.debug("tokens %s: %s found by query (no PUT seen)", self.prefix,
+                                  zid)
+            elif had:
+                if since is None:
+                    self._suspect_since = since = now
+                    self.suspicions += 1
+                    log.debug("tokens %s: %s missing from query (no DELETE seen)",
+                              self.prefix, zid)
+        if found or not had:
+            if changed is not None and self.on_change is not None:
+                self.on_change(zid, True)
+            return
+        if not self.quiet(zid):  # (outside the lock: the caller's own state)
+            with self._lock:
+                self.kept += 1
+                n = self.kept
+            if n == 1 or n % 100 == 0:
+                log.info("%s's token is missing from the query but it still sends: kept "
+                         "(%d times)", zid, n)
+            return
+        with self._lock:
+            if self._closed or zid != self._focus or self._suspect_since is None:
+                return
+            self._present.discard(zid)
+            self._suspect_since = None
+        log.debug("tokens %s: %s gone (no token, nothing sent)", self.prefix, zid)
+        if self.on_change is not None:
+            self.on_change(zid, False)
+
+    def summary(self) -> dict:
+        with self._lock:
+            return {"bound": self.bound, "tracked": len(self._present),
+                    "tracked_max": self.tracked_max, "untracked": self.untracked,
+                    "suspicions": self.suspicions, "kept_while_sending": self.kept}
 
     def close(self) -> None:
         with self._lock:
             self._closed = True
         self._stop.set()
+        self._wake.set()
         try:
             self._sub.close()
         except Exception:

@@ -295,6 +295,7 @@ class BagProcess:
 
         self.path = Path(bag)
         self.messages = 0
+        self.sent = 0  # records fed to the child
         self._pack = msgpack.Packer(use_bin_type=True)
         self._p = subprocess.Popen([sys.executable, "-m", "msagv.bridge.ros_bag"],
                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE,
@@ -307,6 +308,7 @@ class BagProcess:
 
     def record(self, key: str, data: bytes, ts: float) -> None:
         self._send(["rec", key, bytes(data), float(ts)])
+        self.sent += 1
 
     def predicted(self, t0: float, dt: float, poses, ts: float) -> None:
         self._send(["pred", t0, dt, poses, ts])
@@ -333,6 +335,14 @@ class BagProcess:
         if res.get("error"):
             raise RuntimeError(res["error"])
         return res
+
+    def detach(self) -> dict:
+        """End the input without waiting: the child, in a session of its own, finishes the
+        bag after this process has gone (a run stopped by a signal ends within a second,
+        docs/PROTOCOL.md "Stopping"). :attr:`messages` is then the count fed to it."""
+        self.abandon()
+        self.messages = self.sent
+        return {"messages": self.sent, "finishing": True}
 
     def abandon(self) -> None:
         """Stop feeding it (it finishes what it got)."""

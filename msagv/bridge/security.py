@@ -17,7 +17,8 @@ process:
   controller of ``agv0`` may publish ``msagv/agv0/cmd/{its name}`` (and references), ask
   ``params`` and ``claim`` and declare ``alive/controller/{its name}``; an operator may
   ``arm`` a vehicle and ask ``params``; an observer may only read and ask ``params``; a
-  router forwards everything (it enforces the same rules on its own links).
+  router forwards everything to a process that reaches it as a client (it enforces the
+  same rules on its own links), and may do nothing on a peer's direct links.
 
 The directory (``msagv certs DIR``) holds ``ca.pem``, ``roles.json`` (identity -> common
 name, role and vehicles) and ``NAME.pem``/``NAME.key`` per identity; ``ca.key`` is needed
@@ -240,8 +241,15 @@ ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declar
                 "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"]
 
 
-def acl_config(manifest: dict) -> dict:
+def acl_config(manifest: dict, routed: bool = True) -> dict:
     """Zenoh's ``access_control`` section for the identities of ``manifest``.
+
+    ``routed``: this process reaches the others through a router (a client, or the router
+    itself), so a router's certificate forwards everything on its link. Otherwise (a
+    peer: the plant listening, the controller connecting to it) a router's certificate
+    may do nothing at all here: on a direct link it is not forwarding for anyone, and it
+    would otherwise be a master key, able to command as any controller, hold the owner's
+    token and arm the vehicle (issue 30, item 3).
 
     Every process applies the rules on its own links, by the common name of the remote
     end's certificate: ``ingress`` is what that identity may send to us, ``egress`` what we
@@ -263,6 +271,8 @@ def acl_config(manifest: dict) -> dict:
         base = [f"msagv/{vid}" for vid in vids]
         mine = []
         if role == "router":
+            if not routed:
+                continue  # no rule: default deny, both ways
             mine.append(rule(f"{i}_forwards", ALL_MESSAGES, ["msagv/**"]))
         else:
             mine.append(rule(f"{i}_reads", ["declare_subscriber", "declare_liveliness_subscriber",
@@ -302,9 +312,10 @@ def common_name(directory, identity: str) -> str:
     return read_manifest(directory)["identities"][identity]["cn"]
 
 
-def secure_config(directory, identity: str) -> dict:
+def secure_config(directory, identity: str, routed: bool = True) -> dict:
     """``{zenoh config key: value}`` for a process with ``identity`` (a name of the
-    directory's ``roles.json``: ``plant``, ``controller``, ``router`` or an extra).
+    directory's ``roles.json``: ``plant``, ``controller``, ``router`` or an extra);
+    ``routed``: it reaches the others through a router (:func:`acl_config`).
     SecurityError names a missing file or identity."""
     d = Path(directory)
     if not d.is_dir():
@@ -322,4 +333,4 @@ def secure_config(directory, identity: str) -> dict:
            "listen_private_key": key, "listen_certificate": cert,
            "connect_private_key": key, "connect_certificate": cert,
            "verify_name_on_connect": True}
-    return {"transport/link/tls": tls, "access_control": acl_config(manifest)}
+    return {"transport/link/tls": tls, "access_control": acl_config(manifest, routed)}

@@ -198,7 +198,10 @@ def make_config(opts: SessionOptions, role: str):
 
         try:
             ident = identity_for(opts.secure_dir, role, opts.id, opts.identity)
-            secure = secure_config(opts.secure_dir, ident)
+            # a router's certificate forwards only to its clients (and other routers); a
+            # peer's links refuse it (issue 30, item 3: least privilege)
+            secure = secure_config(opts.secure_dir, ident,
+                                   routed=opts.mode == "client" or role == "router")
         except SecurityError as e:
             raise SessionError(str(e)) from None
         bad = [ep for ep in opts.connect + opts.listen if not ep.startswith("tls/")]

@@ -12,8 +12,9 @@ the wire (protocol version 2):
   only its own name there (:mod:`bridge.security`), so the identity is authenticated. On a
   plain bus the name in the key must be the session that Zenoh says sent the message (the
   ``source_info`` of a put or query, the ``replier_id`` of a reply), else the message has
-  no identity: a stock zenoh-python client cannot attach another session's id, so copying
-  the owner's id into a key buys nothing (a modified client can: docs/SECURITY.md);
+  no identity. That refuses a key naming another session, but the source info itself is
+  not authenticated: a session that received another's message can attach that session's
+  id to its own put (``zenoh.SourceInfo`` is public; issue 30, item 2, docs/SECURITY.md);
 * the first protocol version's keys (``K`` itself, no identity): a subscriber and a
   queryable listen there too and report the message with no sender (None), so a node can
   tell an old client why it is refused;
@@ -21,7 +22,12 @@ the wire (protocol version 2):
   ``application/msgpack``; each put and query carries ``source_info`` (this session and the
   caller's sequence number);
 * queries: target ``ALL``, consolidation ``NONE``; replies with the msgpack encoding;
-* liveliness: tokens, a liveliness subscriber with history, a liveliness get.
+* liveliness: tokens, a liveliness subscriber with history, a liveliness get;
+* replies (of a query and of a liveliness get) are taken by a callback that only appends
+  to a list, at most :data:`MAX_REPLIES` of them (the rest counted in :attr:`dropped_replies`),
+  never through Zenoh's default FIFO channel: a full channel (256 replies) made Zenoh's
+  receive thread wait for the reader while holding the session, and a real-time plant
+  whose token query matched 256 tokens stopped publishing (issue 30).
 
 Callbacks run on Zenoh's threads. The session is opened by :func:`bridge.session.open_session`
 (:meth:`ZenohTransport.open`), or an open one is wrapped (``owns=False``: a test's or a
@@ -31,6 +37,7 @@ benchmark's session, which it closes itself).
 from __future__ import annotations
 
 import re
+import threading
 from typing import Callable
 
 from . import messages as M
@@ -38,6 +45,8 @@ from .session import SessionOptions, open_session, secure_identity
 from .transport import Query, Reply, Sample, TransportError
 
 _SN_MASK = 0xFFFFFFFF  # Zenoh's source sequence number is a u32
+MAX_REPLIES = 1024  # replies a query or a token query keeps (the rest are counted, dropped)
+REPLY_GRACE_S = 1.0  # a query waits this long past its timeout for Zenoh's end of replies
 _CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")  # an identity: one literal key chunk
 
 
@@ -105,6 +114,31 @@ class ZenohTransport:
             raise TransportError(f"identity '{self.id}' is not one key chunk")
         self._owns = owns
         self._entity = None  # the entity id named by the source info of queries
+        self.dropped_replies = 0  # replies beyond MAX_REPLIES (a query matched too many)
+
+    def _gather(self, get, timeout: float, convert) -> list:
+        """Call ``get(handler)`` with a callback handler, keep ``convert(reply)`` (None:
+        skipped) of at most MAX_REPLIES replies, and wait for the end of the replies (or
+        ``timeout`` + REPLY_GRACE_S). Zenoh's threads never wait on the caller."""
+        import zenoh
+
+        out: list = []
+        done = threading.Event()
+
+        def on_reply(r) -> None:
+            if len(out) >= MAX_REPLIES:
+                self.dropped_replies += 1
+                return
+            try:
+                item = convert(r)
+            except Exception:  # a malformed reply is no reply
+                return
+            if item is not None:
+                out.append(item)
+
+        get(zenoh.handlers.Callback(on_reply, done.set))
+        done.wait(timeout + REPLY_GRACE_S)
+        return out[:]
 
     @classmethod
     def open(cls, opts: SessionOptions, role: str) -> "ZenohTransport":
@@ -188,20 +222,26 @@ class ZenohTransport:
             raise TransportError(f"query to '{to}': not an identity")
         entity = self._entity if self._entity is not None else self.session.id
         depth = key.count("/") + 2
-        out = []
-        for r in self.session.get(f"{key}/{to or '*'}/{self.id}{params}", payload=payload,
-                                  source_info=zenoh.SourceInfo(entity, int(sn) & _SN_MASK),
-                                  target=zenoh.QueryTarget.ALL,
-                                  consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout):
+        confirm = self._confirm
+
+        def convert(r) -> Reply | None:
             if r.ok is not None:
                 k = str(r.ok.key_expr).split("/")
                 who = k[-2] if len(k) == depth + 1 else ""
-                if self._confirm and (r.replier_id is None or str(r.replier_id.zid) != who):
+                if confirm and (r.replier_id is None or str(r.replier_id.zid) != who):
                     who = ""
-                out.append(Reply(identity_chunk(who), r.ok.payload.to_bytes(), True, key))
-            elif r.replier_id is not None:  # (none: Zenoh's own end of the query, a timeout)
-                out.append(Reply(None, r.err.payload.to_bytes(), False))
-        return out
+                return Reply(identity_chunk(who), r.ok.payload.to_bytes(), True, key)
+            if r.replier_id is not None:  # (none: Zenoh's own end of the query, a timeout)
+                return Reply(None, r.err.payload.to_bytes(), False)
+            return None
+
+        return self._gather(
+            lambda handler: self.session.get(
+                f"{key}/{to or '*'}/{self.id}{params}", handler, payload=payload,
+                source_info=zenoh.SourceInfo(entity, int(sn) & _SN_MASK),
+                target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=timeout),
+            timeout, convert)
 
     # ---- liveliness ------------------------------------------------------------------------
     def declare_token(self, key: str) -> _Declared:
@@ -219,8 +259,9 @@ class ZenohTransport:
                                                                       history=True))
 
     def tokens(self, key: str, timeout: float = 0.3) -> list[str]:
-        return [str(r.ok.key_expr) for r in self.session.liveliness().get(key, timeout=timeout)
-                if r.ok is not None]
+        return self._gather(
+            lambda handler: self.session.liveliness().get(key, handler, timeout=timeout),
+            timeout, lambda r: str(r.ok.key_expr) if r.ok is not None else None)
 
     def close(self) -> None:
         if self._owns:

@@ -498,7 +498,11 @@ def add_session_args(ap: argparse.ArgumentParser, router: bool = False) -> None:
                         "over it")
     g.add_argument("--secure", metavar="DIR",
                    help="mutual TLS and access control with the certificates of DIR "
-                        "(msagv certs DIR); endpoints become tls/... (docs/SECURITY.md)")
+                        "(msagv certs DIR); endpoints become tls/... (docs/SECURITY.md). "
+                        "Without it, on the plain bus, identities are taken on trust: any "
+                        "peer can answer the params or hold a token as any identity, so a "
+                        "lone liar is not told from the plant; set MSAGV_REQUIRE_SECURE=1 "
+                        "in production")
     g.add_argument("--lease-ms", type=int, default=DEFAULT_LEASE_MS,
                    help=f"transport lease [ms]: how soon a dead process is noticed "
                         f"(default {DEFAULT_LEASE_MS})")

@@ -168,6 +168,8 @@ def plant_main(argv: list[str]) -> int:
                   "scenario": dict(scenario_info(scenario, vehicle, ref, None, duration),
                                    period_s=cfg.period)}
         rec = open_recording(a, header)
+        if rec is not None:
+            rec.hurry = sig.event  # stopped by a signal: the ROS 2 bag finishes on its own
         rec = open_foxglove(a, "msagv plant", header, rec)
         if want_view:  # beside the recorder: it only queues, a thread logs
             from msagv.experiments.viewer import RunView, Tee, ViewSink
@@ -186,11 +188,13 @@ def plant_main(argv: list[str]) -> int:
         if hasattr(plant, "close"):
             plant.close()
     _plant_report(summary, a.json)
-    if a.fmu:
+    if a.fmu or summary.get("close_abandoned"):
         # Everything is flushed and closed: leave without the interpreter's and the shared
         # libraries' exit handlers. A pythonfmu binary and Zenoh's static destructors in one
         # process intermittently aborted at exit ('corrupted double-linked list', in
-        # zenoh_shm's cleanup) after a complete, correct run.
+        # zenoh_shm's cleanup) after a complete, correct run. A session whose close was
+        # abandoned after a signal (bridge.plant_node.CLOSE_S) is left the same way: the
+        # summary is out, and the interpreter's exit would wait for Zenoh.
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(rc)
@@ -385,11 +389,11 @@ def arm_main(argv: list[str]) -> int:
     try:
         opts = options_from_args(a)
         if a.controller is not None:
-            from msagv.bridge.zenoh_transport import identity_chunk
+            from msagv.bridge.ownership import identity_error
 
-            if identity_chunk(a.controller) is None:
-                raise OptionError(f"--controller: '{a.controller}' is not an identity (one key "
-                                  f"chunk of A-Z a-z 0-9 _ . -)")
+            why = identity_error(a.controller)
+            if why is not None:
+                raise OptionError(f"--controller: not an identity: {why}")
         if not a.wait > 0:
             raise OptionError(f"--wait must be > 0, got {a.wait:g}")
         t = ZenohTransport.open(opts, "operator")
