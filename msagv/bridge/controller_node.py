@@ -43,6 +43,7 @@ from .plant_node import percentiles_ms
 from .presence import Presence
 from .ros_msgs import predicted_poses
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, freeze_heap
+from .recording import NullRecorder
 from .session import Keys, SessionError, SessionOptions
 from .transport import Sample, Transport
 from .zenoh_transport import ZenohTransport
@@ -111,7 +112,8 @@ class ControllerNode:
         self.keys = keys
         self.cfg = cfg
         self.transport: Transport | None = None  # open()
-        self.rec = recorder
+        self.recording = recorder is not None
+        self.rec = recorder if recorder is not None else NullRecorder()
         self.rej = M.Rejections(f"controller {keys.id}", log)
         self.stats = ControllerStats()
         self.stop = threading.Event()
@@ -247,7 +249,7 @@ class ControllerNode:
             else:
                 log.info("vehicle %s not granted: %s; claiming again every %g s", self.keys.id,
                          reason, CLAIM_RETRY_S)
-        if self.rec is not None and (granted != was or reason != told):
+        if granted != was or reason != told:
             self.rec.event("granted", granted=granted, reason=reason)
 
     def close(self) -> None:
@@ -302,8 +304,7 @@ class ControllerNode:
                 self._held = None
             log.warning("plant %s gone (liveliness token lost): not commanding%s", self.keys.id,
                         "" if self.cfg.on_plant_loss == "exit" else "; waiting for it to return")
-        if self.rec is not None:
-            self.rec.event("plant_alive", present=present)
+        self.rec.event("plant_alive", present=present)
         self._event.set()
 
     def check_fallback_loss(self, now: float) -> None:
@@ -316,8 +317,7 @@ class ControllerNode:
         sender = sample.sender
         if sender is None or sender != self.plant_zid:  # counted and dropped first
             self.rej.add_reason(M.NOT_BOUND, self.keys.state, lambda: self._not_bound(sender))
-            if self.rec is not None:
-                self.rec.message("rx", self.keys.state, sample.payload, why=M.NOT_BOUND)
+            self.rec.message("rx", self.keys.state, sample.payload, why=M.NOT_BOUND)
             return
         self.handle_state(sample.payload, time.perf_counter(), sender)
 
@@ -336,11 +336,9 @@ class ControllerNode:
             st = M.decode_state(payload, self.nw)
         except M.MessageError as e:
             self.rej.add(e, key)
-            if self.rec is not None:
-                self.rec.message("rx", key, payload, why=e.reason)
+            self.rec.message("rx", key, payload, why=e.reason)
             return None
-        if self.rec is not None:
-            self.rec.message("rx", key, payload)
+        self.rec.message("rx", key, payload)
         self._last_state_rx = time.monotonic()
         pres = self._plant_presence
         if not self.plant_present and pres is not None:
@@ -376,11 +374,9 @@ class ControllerNode:
                 raise M.MessageError(M.BAD_VALUE, str(e)) from None
         except M.MessageError as e:
             self.rej.add(e, key)
-            if self.rec is not None:
-                self.rec.message("rx", key, payload, why=e.reason)
+            self.rec.message("rx", key, payload, why=e.reason)
             return None
-        if self.rec is not None:
-            self.rec.message("rx", key, payload)
+        self.rec.message("rx", key, payload)
         with self._lock:
             self._pending_ref = m
         self._event.set()
@@ -399,14 +395,12 @@ class ControllerNode:
             with self._lock:
                 item, self._pending = self._pending, None
             if item is None:
-                if self.rec is not None:
-                    self.rec.maybe_flush()
+                self.rec.maybe_flush()
                 continue
             if self.step(*item) == "end" and self.cfg.exit_at_end:
                 self.exit_reason = "end of run"
                 break
-            if self.rec is not None:
-                self.rec.maybe_flush()
+            self.rec.maybe_flush()
         if self.exit_reason is None:
             self.exit_reason = "stopped"
         return self.summary()
@@ -421,8 +415,7 @@ class ControllerNode:
                 f"disappeared and no state came for {self.loss.confirm_s:g} s); exiting "
                 f"(--on-plant-loss exit)")
         log.warning("plant %s (session %s) lost: waiting for a plant to bind to", self.keys.id, zid)
-        if self.rec is not None:
-            self.rec.event("plant_lost", zid=zid)
+        self.rec.event("plant_lost", zid=zid)
         self._unbind()
         if self._rebind is not None:
             new = self._rebind()  # blocks until a plant answers (or stop)
@@ -453,8 +446,7 @@ class ControllerNode:
                 # re-sends an unanswered state); the same command again, not a new solve
                 self._pub.put(sent[1], self._cmd_seq - 1)
                 self.stats.resent += 1
-                if self.rec is not None:
-                    self.rec.message("tx", self.keys.cmd, sent[1])
+                self.rec.message("tx", self.keys.cmd, sent[1])
                 return "resent"
             # never answered (dropped while the plant was away, or not granted): answer it
             solved = self._solved
@@ -467,8 +459,7 @@ class ControllerNode:
             self.stats.new_runs += 1
             if last is not None:
                 log.info("new plant run (state seq %d after %d): MPC reset", seq, last)
-            if self.rec is not None:
-                self.rec.event("new_run", seq=seq)
+            self.rec.event("new_run", seq=seq)
         self._last_seq = seq
         if st.get("end"):
             self.stats.ends += 1
@@ -510,12 +501,11 @@ class ControllerNode:
         self._pub.put(payload, self._cmd_seq)
         self._sent = (seq, payload)
         self._cmd_seq += 1
-        if self.rec is not None:
-            self.rec.message("tx", self.keys.cmd, payload)
-            if hasattr(self.rec, "predicted_path"):  # the ROS 2 channel predicted_path
-                poses = predicted_poses(self.mpc)
-                if poses is not None:
-                    self.rec.predicted_path(st["t"], self.mpc.settings.dt, poses)
+        self.rec.message("tx", self.keys.cmd, payload)
+        if self.recording:  # the ROS 2 channel predicted_path (a prediction: only recorded)
+            poses = predicted_poses(self.mpc)
+            if poses is not None:
+                self.rec.predicted_path(st["t"], self.mpc.settings.dt, poses)
         self.stats.answered += 1
         return "sent"
 
@@ -543,8 +533,7 @@ class ControllerNode:
         self.stats.references += 1
         log.info("new reference '%s' (%d samples, t %.2f..%.2f s) from t = %.2f s", ref.name,
                  len(t), t[0], t[-1], t_now)
-        if self.rec is not None:
-            self.rec.event("reference", t=t_now, name=ref.name)
+        self.rec.event("reference", t=t_now, name=ref.name)
 
     def summary(self) -> dict:
         s = self.stats

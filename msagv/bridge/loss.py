@@ -30,6 +30,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 RUN, HOLD, SAFE = "run", "hold", "safe"
 
 STALE_MS = 50.0
@@ -50,7 +52,8 @@ class Decision:
 class CommandWatch:
     """The realtime plant's state machine over its commands (see the module)."""
 
-    def __init__(self, max_missed: int, resume_periods: int = 3, period: float = 0.01):
+    def __init__(self, max_missed: int, resume_periods: int = 3,
+                 period: float = CONTROL_PERIOD):
         if max_missed < 0:
             raise ValueError(f"max_missed must be >= 0, got {max_missed}")
         if resume_periods < 1:

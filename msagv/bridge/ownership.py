@@ -30,6 +30,8 @@ import threading
 import time
 from dataclasses import dataclass
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 from . import messages as M
 
 log = logging.getLogger("msagv.bridge")
@@ -184,7 +186,8 @@ class Ownership:
     why)`` is called (outside the lock) whenever the owner changes, ``on_event(name,
     fields)`` on a latch and an arm (for the recording)."""
 
-    def __init__(self, on_change=None, policy: RearmPolicy = RearmPolicy(), period: float = 0.01,
+    def __init__(self, on_change=None, policy: RearmPolicy = RearmPolicy(),
+                 period: float = CONTROL_PERIOD,
                  on_event=None):
         self.owner: str | None = None
         self.state = FREE

@@ -45,12 +45,14 @@ import numpy as np
 from msagv.controller.metrics import percentiles
 from msagv.plant.signals import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
 
+from msagv.plant.signals import CONTROL_PERIOD
 from . import messages as M
 from .loss import SAFE, STALE_MS, CommandWatch
 from .ownership import (BAD_ARM, BAD_CLAIM, CLAIM, LATCHED, Ownership, RearmPolicy,
                         decode_arm, decode_claim, encode_armed, encode_grant)
 from .presence import TokenSet
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_heap
+from .recording import NullRecorder
 from .session import Keys, SessionError, SessionOptions
 from .transport import Query, Sample, Transport
 from .zenoh_transport import ZenohTransport
@@ -92,7 +94,7 @@ class PlantConfig:
     """
 
     run_mode: str = "lockstep"
-    period: float = 0.01
+    period: float = CONTROL_PERIOD
     steps: int = 100
     timeout_s: float = 10.0
     wait_s: float = 60.0
@@ -186,7 +188,8 @@ class PlantNode:
         self.keys = keys
         self.cfg = cfg
         self.transport: Transport | None = None  # open()
-        self.rec = recorder
+        self.recording = recorder is not None
+        self.rec = recorder if recorder is not None else NullRecorder()
         self.rej = M.Rejections(f"plant {keys.id}", log)
         self.stats = PlantStats()
         self.seq = -1  # newest published state
@@ -239,7 +242,7 @@ class PlantNode:
         self._decls.append(t.queryable(k.params, self._on_params_query))
         self._decls.append(t.queryable(k.claim, self._on_claim_query))
         self._decls.append(t.queryable(k.arm, self._on_arm_query))
-        if self.rec is not None:
+        if self.recording:  # the references a controller sends, recorded
             self._decls.append(t.subscribe(k.reference, self._on_reference_sample))
         self._beat, self._last_stall = time.monotonic(), -1e9
         threading.Thread(target=self._heartbeat, daemon=True, name="plant heartbeat").start()
@@ -353,8 +356,7 @@ class PlantNode:
             log.info("per-wheel wear in the state: %s (%s)", "on" if on else "off",
                      "asked by the owner's claim" if self.cfg.wheel_wear == "auto"
                      else "--wheel-wear")
-            if self.rec is not None:
-                self.rec.event("wheel_wear", on=on)
+            self.rec.event("wheel_wear", on=on)
 
     def _on_ownership_event(self, name: str, fields: dict) -> None:
         if name == "latched":
@@ -363,8 +365,7 @@ class PlantNode:
                         self.keys.id, "" if self.ownership.policy.same_after is None else
                         f" or the same identity claims it again after "
                         f"{self.ownership.policy.same_after} periods")
-        if self.rec is not None:
-            self.rec.event(name, t=max(self.seq, 0) * self.cfg.period, **fields)
+        self.rec.event(name, t=max(self.seq, 0) * self.cfg.period, **fields)
 
     def _quiet(self, who: str) -> bool:
         """Nothing (a command or a claim) from ``who`` for the staleness bound."""
@@ -376,8 +377,7 @@ class PlantNode:
         log.info("vehicle %s: %s", self.keys.id, why)
         if self._tokens is not None:
             self._tokens.focus(owner)
-        if self.rec is not None:
-            self.rec.event("owner", owner=owner, why=why)
+        self.rec.event("owner", owner=owner, why=why)
         self._update_presence()
 
     def _on_token(self, zid: str, present: bool) -> None:
@@ -422,8 +422,7 @@ class PlantNode:
         self._on_ctl_change(self._tokens is not None and self._tokens.present(owner))
 
     def _on_reference_sample(self, sample: Sample) -> None:
-        if self.rec is not None:
-            self.rec.message("rx", self.keys.reference, sample.payload)
+        self.rec.message("rx", self.keys.reference, sample.payload)
 
     def _on_ctl_change(self, present: bool) -> None:
         """The owner's presence (its token) changed."""
@@ -440,8 +439,7 @@ class PlantNode:
             else:
                 self.stats.controller_losses += 1
                 log.warning("controller %s gone (liveliness token lost)", self.keys.id)
-            if self.rec is not None:
-                self.rec.event("controller_alive", present=present)
+            self.rec.event("controller_alive", present=present)
         self._ctl_event.set()
 
     def _on_cmd_sample(self, sample: Sample) -> None:
@@ -451,9 +449,8 @@ class PlantNode:
             # anyone else costs this, docs/PROTOCOL.md section 5)
             self.ownership.violation(sender)
             self.rej.add_reason(M.NOT_OWNER, self.keys.cmd, lambda: self._not_owner(sender))
-            if self.rec is not None:
-                self.rec.message("rx", self.keys.cmd, sample.payload, time.time(),
-                                 why=M.NOT_OWNER)
+            self.rec.message("rx", self.keys.cmd, sample.payload, time.time(),
+                             why=M.NOT_OWNER)
             return
         self._heard = (sender, time.monotonic())
         self.handle_cmd(sample.payload, time.perf_counter(), time.time(), sender)
@@ -483,11 +480,9 @@ class PlantNode:
                                                    f"{j * self.cfg.period}")
         except M.MessageError as e:
             self.rej.add(e, key)
-            if self.rec is not None:
-                self.rec.message("rx", key, payload, rx_wall, why=e.reason)
+            self.rec.message("rx", key, payload, rx_wall, why=e.reason)
             return None
-        if self.rec is not None:
-            self.rec.message("rx", key, payload, rx_wall)
+        self.rec.message("rx", key, payload, rx_wall)
         if j >= self.cfg.steps:
             # the answer to the end state: the run is over, nothing will apply it
             with self._lock:
@@ -543,8 +538,7 @@ class PlantNode:
         if end:
             self.ownership.end()  # from now on the owner's release is the normal end
         self._pub.put(payload, seq)
-        if self.rec is not None:
-            self.rec.message("tx", self.keys.state, payload)
+        self.rec.message("tx", self.keys.state, payload)
         if end:
             self.final_state = st
 
@@ -649,8 +643,7 @@ class PlantNode:
                 return
             self._apply(c.omega_w, c.omega_s)
             self.publish_state(k + 1, end=k + 1 == cfg.steps)
-            if self.rec is not None:
-                self.rec.maybe_flush()
+            self.rec.maybe_flush()
         self._linger()
 
     def _run_realtime(self) -> None:
@@ -691,8 +684,7 @@ class PlantNode:
                 log.warning("resumed normal operation at t = %.2f s (the owner kept up for %d "
                             "periods; newest command answers state %d)", k * T,
                             cfg.resume_periods, n.state_seq)
-                if self.rec is not None:
-                    self.rec.event("safe", on=False, t=k * T)
+                self.rec.event("safe", on=False, t=k * T)
             if d.use_command:
                 u_w, u_s = n.omega_w, n.omega_s
             else:
@@ -701,8 +693,7 @@ class PlantNode:
                     st.safe_events += 1
                     log.warning("SAFE at t = %.2f s: %s; holding steering, ramping the wheels "
                                 "down at %g m/s^2", k * T, d.entered_safe, cfg.safe_decel)
-                    if self.rec is not None:
-                        self.rec.event("safe", on=True, t=k * T, why=d.entered_safe)
+                    self.rec.event("safe", on=True, t=k * T, why=d.entered_safe)
                 st.safe_periods += 1
                 held_w, _ = self.plant.inputs
                 u_w = np.maximum(np.asarray(held_w) - self.ramp * T, 0.0)
@@ -719,8 +710,7 @@ class PlantNode:
             # catches up or re-anchors its clock next, gets two periods from now)
             self._rt_due = max(w0 + (k + 3) * T, done + 2 * T)
             self._wd_active = False
-            if self.rec is not None:
-                self.rec.maybe_flush()
+            self.rec.maybe_flush()
         self._rt_due = None
         self._linger()
 
@@ -820,8 +810,7 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
     t = None
     try:
         t = transport if transport is not None else ZenohTransport.open(opts, "plant")
-        if hasattr(plant, "warmup"):
-            plant.warmup()  # the integrator compiled before the real-time clock starts
+        plant.warmup()  # the integrator compiled before the real-time clock starts
         freeze_heap()
         node.open(t)
         log.info("%s plant ready: %s, %d steps of %g s", cfg.run_mode, plant.vehicle.name,

@@ -28,6 +28,8 @@ import os
 from pathlib import Path
 from typing import Mapping
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 from . import ros_msgs as R
 
 log = logging.getLogger("msagv.recording")
@@ -166,7 +168,7 @@ class RosBag(R.RunChannels):
         self.path = Path(bag)
         self.header = dict(header)
         super().__init__(vehicle_from_dict(self.header["vehicle"]),
-                         float(self.header.get("period") or 0.01), self.header.get("reference"))
+                         float(self.header.get("period") or CONTROL_PERIOD), self.header.get("reference"))
         self._chunk = chunk_size
         self._max_bytes = max_bytes
         self._keep = keep

@@ -24,7 +24,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from msagv.plant.signals import BODY_FIELDS, WEAR_POWER_FIELDS, WHEEL_WEAR_FIELDS, wheel_suffixes
+from msagv.plant.signals import (BODY_FIELDS, CONTROL_PERIOD, WEAR_POWER_FIELDS,
+                                 WHEEL_WEAR_FIELDS, wheel_suffixes)
 
 FRAME_ODOM = "odom"
 FRAME_BASE = "base_link"
@@ -306,7 +307,7 @@ class RunMessages:
     the previous per-wheel wear work (for the wear power) and the peak wear power (the
     wheels' colour scale). ``vehicle``: a :class:`plant.vehicle.Vehicle`."""
 
-    def __init__(self, vehicle, period: float = 0.01):
+    def __init__(self, vehicle, period: float = CONTROL_PERIOD):
         self.vehicle = vehicle
         self.period = float(period)
         self.nw = vehicle.n_wheels

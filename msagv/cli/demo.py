@@ -21,6 +21,7 @@ from pathlib import Path
 
 from msagv.bridge.messages import RUN_MODES
 from msagv.bridge.process import free_port
+from msagv.plant.signals import CONTROL_PERIOD
 
 
 def msagv_cmd(*args: str) -> list[str]:
@@ -116,7 +117,7 @@ def _demo_scenario(a) -> dict:
     return {"case": "curve", "trajectory": None, "reference": "case1-curve",
             "speed_kmh": speed_value(a.speed), "vehicle": vehicle, "method": d.method,
             "model": d.model, "solver": a.solver, "seed": a.seed, "duration_s": a.duration,
-            "period_s": 0.01, "after_end": "continue", "plant": "native",
+            "period_s": CONTROL_PERIOD, "after_end": "continue", "plant": "native",
             "initial": "reference"}
 
 

@@ -23,6 +23,7 @@ from msagv.bridge.loss import STALE_MS
 from msagv.bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtime_priority,
                             setup_logging)
 
+from msagv.plant.signals import CONTROL_PERIOD
 from .args import (OptionError, add_case_args, add_common_args, add_fmu_args, add_mpc_args,
                    add_session_args, check_output, options_from_args, scenario_from_args)
 from .errors import USAGE_ERRORS
@@ -179,14 +180,13 @@ def plant_main(argv: list[str]) -> int:
             rec = Tee(rec, ViewSink(view, plant))
     except USAGE_ERRORS as e:
         print(f"msagv plant: {e}", file=sys.stderr)
-        if plant is not None and hasattr(plant, "close"):
+        if plant is not None:
             plant.close()
         return EXIT_USAGE
     try:
         summary, rc = serve(plant, cfg, opts, recorder=rec, signals=sig)
     finally:
-        if hasattr(plant, "close"):
-            plant.close()
+        plant.close()
     _plant_report(summary, a.json)
     if a.fmu or summary.get("close_abandoned"):
         # Everything is flushed and closed: leave without the interpreter's and the shared
@@ -294,7 +294,8 @@ def controller_main(argv: list[str]) -> int:
         override = {} if deadline is None else {"deadline_ms": deadline}
         if deadline is not None and a.deadline_ms is None:
             log.info("realtime plant: solve budget %g ms (--deadline-ms)", deadline)
-        return scenario.make_controller(vehicle, ref, period=params.period if params else 0.01,
+        return scenario.make_controller(vehicle, ref,
+                                        period=params.period if params else CONTROL_PERIOD,
                                         **override)
 
     def open_recorder(mpc, params):

@@ -18,6 +18,7 @@ import threading
 from msagv.bridge.loss import STALE_MS
 from msagv.bridge.process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, setup_logging
 
+from msagv.plant.signals import CONTROL_PERIOD
 from .args import (OptionError, add_case_args, add_common_args, add_mpc_args,
                    scenario_from_args)
 from .errors import USAGE_ERRORS
@@ -44,7 +45,8 @@ def main(argv: list[str]) -> int:
 
 
 def _safety_args(ap: argparse.ArgumentParser, who: str) -> None:
-    ap.add_argument("--period", type=float, default=0.01, help="control period T [s] (0.01)")
+    ap.add_argument("--period", type=float, default=CONTROL_PERIOD,
+                    help=f"control period T [s] ({CONTROL_PERIOD:g})")
     ap.add_argument("--stale-ms", type=float, default=STALE_MS,
                     help=f"{who}: more than this without fresh input starts the safe behaviour "
                          f"(default {STALE_MS:g})")
@@ -268,7 +270,7 @@ def plant_main(argv: list[str]) -> int:
                              safe_decel=a.safe_decel, resume_periods=a.resume_periods,
                              node_name=a.node_name)
     except USAGE_ERRORS as e:
-        if plant is not None and hasattr(plant, "close"):
+        if plant is not None:
             plant.close()
         return _ros_error(prog, e)
     header = {"role": "plant", "id": "ros2", "vehicle": vehicle.to_dict(), "period": cfg.period,
@@ -291,8 +293,7 @@ def plant_main(argv: list[str]) -> int:
         return _ros_error(prog, e)
     rc = EXIT_OK
     try:
-        if hasattr(plant, "warmup"):
-            plant.warmup()
+        plant.warmup()
         log.info("ROS 2 plant ready: %s, %s, %d steps of %g s", vehicle.name, cfg.run_mode,
                  cfg.steps, cfg.period)
         node.run()
@@ -306,8 +307,7 @@ def plant_main(argv: list[str]) -> int:
             summary["stopped_by"] = sig.name
         if rec is not None:
             summary["recording"] = rec.close(summary)
-        if hasattr(plant, "close"):
-            plant.close()
+        plant.close()
     if a.json:
         print(json.dumps(summary, default=str), flush=True)
     else:

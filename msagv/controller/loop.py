@@ -193,13 +193,13 @@ def closed_loop(plant, mpc: Controller, reference: Reference, duration: float, p
     when stderr is a terminal and the run is longer than 1000 steps). ``on_step(k, state,
     cmd)`` is called after each command (for recording). ``log``: a :class:`RunLog` to fill
     (so a caller interrupted mid-run keeps the rows so far). ``outputs``: also log the
-    plant's outputs under each command (slips, forces, powers), if it has ``outputs()``.
+    plant's outputs under each command (slips, forces, powers: ``PlantInterface.outputs``).
     """
     n = int(round(duration / period))
     if n < 1:
         raise ValueError("closed_loop: duration must be at least one control period")
     log = RunLog() if log is None else log
-    plant_outputs = getattr(plant, "outputs", None) if outputs else None
+    plant_outputs = plant.outputs if outputs else None
     st = plant.state_message()
     mpc.warmup(dict(st, t=st["t"]))
     if progress is None:

@@ -40,6 +40,7 @@ from typing import Any, Mapping
 
 from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
+from msagv.plant.signals import CONTROL_PERIOD
 
 log = logging.getLogger("msagv.foxglove")
 
@@ -92,7 +93,7 @@ class FoxgloveView:
 
         self.ctx = fg.Context()
         self._ch = _Channels(fg, self.ctx, vehicle_from_dict(header["vehicle"]),
-                             float(header.get("period") or 0.01), header.get("reference"))
+                             float(header.get("period") or CONTROL_PERIOD), header.get("reference"))
         self._subscribed = threading.Event()
         view = self
 

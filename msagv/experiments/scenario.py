@@ -49,9 +49,7 @@ class Built:
 
     def close(self) -> None:
         """Free what the plant holds (an FMU instance); a no-op for the native plant."""
-        close = getattr(self.plant, "close", None)
-        if close is not None:
-            close()
+        self.plant.close()
 
 
 @dataclass
@@ -350,9 +348,7 @@ class Scenario:
             warnings = self.check(vehicle, ref, initial)
             ctl = self.make_controller(vehicle, ref)
         except BaseException:
-            close = getattr(plant, "close", None)
-            if close is not None:
-                close()
+            plant.close()
             raise
         return Built(plant, ctl, ref, vehicle, initial, self.run_duration(ref), warnings)
 

@@ -471,6 +471,10 @@ class FmuPlant:
         """The FMU's most recent log messages."""
         return list(self._log)
 
+    def warmup(self) -> None:
+        """Nothing to prepare: the FMU is instantiated and initialised by the constructor
+        (:class:`plant.interface.PlantInterface`)."""
+
     def close(self) -> None:
         """Terminate and free the FMU instance and remove its unpack directory."""
         fmu, self._fmu = self._fmu, None

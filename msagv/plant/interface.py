@@ -63,6 +63,14 @@ class PlantInterface(Protocol):
     def set_state(self, snapshot: Any) -> None:
         """Restore a snapshot taken by :meth:`get_state` of this plant."""
 
+    def warmup(self) -> None:
+        """Get ready to step in real time (compile, load, allocate) without changing the
+        state: a real-time host calls it before its clock starts. May do nothing."""
+
+    def close(self) -> None:
+        """Free what the plant holds (an FMU instance, files); it is not stepped after.
+        May do nothing."""
+
 
 def check_inputs(vehicle: Vehicle, omega_w, omega_s) -> tuple[np.ndarray, np.ndarray]:
     """Validate commands: shapes (2n,), finite, ``omega_w >= 0``. Returns them as float

@@ -157,6 +157,9 @@ class Plant:
         dyn.integrate(y, self.t, self.t + 1e-3, self._u_w, self._u_s, self._P, self._wx,
                       self._wy, self.rtol, self.atol, 0.0, self.max_substeps, stats)
 
+    def close(self) -> None:
+        """Nothing to free: the native plant holds only arrays (:class:`PlantInterface`)."""
+
     def _refresh(self) -> None:
         self._dy = dyn.outputs(self._y, self._u_w, self._u_s, self._P, self._wx, self._wy,
                                self._aux)

@@ -50,6 +50,7 @@ from msagv.bridge.plant_node import percentiles_ms
 from msagv.bridge.recording import NullRecorder
 from msagv.controller.reference import Reference, from_samples
 
+from msagv.plant.signals import CONTROL_PERIOD
 from .runtime import Context
 
 log = logging.getLogger("msagv.ros2.controller")
@@ -342,7 +343,7 @@ class WearEstimate:
 # ---- the node ---------------------------------------------------------------------------------
 @dataclasses.dataclass
 class RosControllerConfig:
-    period: float = 0.01
+    period: float = CONTROL_PERIOD
     stale_ms: float = STALE_MS
     resume_periods: int = 3
     safe_decel: float = 2.0

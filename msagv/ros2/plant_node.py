@@ -39,6 +39,7 @@ from msagv.bridge.loss import STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
 from msagv.bridge.recording import NullRecorder
 
+from msagv.plant.signals import CONTROL_PERIOD
 from .runtime import Context, Ros2Unavailable
 
 log = logging.getLogger("msagv.ros2.plant")
@@ -54,7 +55,7 @@ class RosPlantConfig:
     wait_s, stale_ms, safe_decel, resume_periods); ``node_name`` the ROS node's name."""
 
     run_mode: str = "lockstep"
-    period: float = 0.01
+    period: float = CONTROL_PERIOD
     steps: int = 100
     timeout_s: float = 10.0
     wait_s: float = 60.0
