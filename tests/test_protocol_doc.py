@@ -369,3 +369,20 @@ def test_protocol_md_tables_match_the_code():
     assert f"into a list (at most {zenoh_transport.MAX_REPLIES})" in flat
     assert f"given {plant_node.CLOSE_S:g} s to close" in flat
     assert f"every {presence.POLL_S:g} s, at once on a grant" in flat
+
+
+def test_the_params_vehicle_row_names_every_key_the_plant_sends():
+    """Section 3.4's ``vehicle`` row lists the keys of the description a plant really sends
+    (``Vehicle.to_dict``, with its ``tire`` and ``plant`` tables): a strict client written
+    from the page must not meet a key the page does not name (``combined_slip`` once was)."""
+    import re
+    from pathlib import Path
+
+    from msagv.plant import default_vehicle
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "PROTOCOL.md").read_text()
+    row = next(line for line in doc.splitlines() if line.startswith("| `vehicle` | map |"))
+    named = set(re.findall(r"[A-Za-z_]+", " ".join(re.findall(r"`([^`]*)`", row))))
+    d = default_vehicle().to_dict()
+    want = set(d) | set(d["tire"]) | set(d["plant"])
+    assert want <= named, f"PROTOCOL.md 3.4's vehicle row does not name {sorted(want - named)}"
