@@ -264,3 +264,53 @@ def test_maneuver_stays_within_the_vehicle_and_excites(tmp_path):
     Scenario.from_file(out).build().close()  # the scenario file is one msagv run accepts
     printed = msagv("calibrate", "--maneuver")
     assert printed.returncode == 0 and printed.stdout.startswith("t,x,y,phi")
+
+
+@pytest.mark.slow
+def test_cli_on_a_recorded_run_over_zenoh(tmp_path):
+    """The whole path a user takes: --maneuver, the plant (tires x0.7 on B and mu) and the
+    controller (the base vehicle) as two processes over Zenoh in lockstep on a loopback
+    port, the plant's recording, msagv calibrate: each table's slope B C mu within 5 % and
+    its peak within 10 % of the plant's (the run passes half the peak)."""
+    from msagv.bridge.process import free_port
+    from msagv.cli.demo import msagv_cmd, stop_process
+    from msagv.experiments.calibrate import vehicle_toml
+
+    base = default_vehicle()
+    d = base.to_dict()
+    for part in ("lateral", "longitudinal"):
+        d["tire"][part]["B"] *= 0.7
+        d["tire"][part]["mu"] *= 0.7
+    from msagv.plant.vehicle import vehicle_from_dict
+
+    plant_v = vehicle_from_dict(dict(d, name="plant"))
+    (tmp_path / "plant.toml").write_text(vehicle_toml(plant_v))
+    (tmp_path / "base.toml").write_text(vehicle_toml(base))
+    assert msagv("calibrate", "--maneuver", "-o", tmp_path / "man.csv").returncode == 0
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    rec = tmp_path / "rec.mcap"
+    plant = subprocess.Popen(msagv_cmd("plant", "--vehicle", str(tmp_path / "plant.toml"),
+                                       "--trajectory", str(tmp_path / "man.csv"), "--listen", ep,
+                                       "--record", str(rec), "--record-ros2", "-q", "--json"),
+                             stdout=subprocess.PIPE, text=True, env=env)
+    ctl = subprocess.Popen(msagv_cmd("controller", "--vehicle", str(tmp_path / "base.toml"),
+                                     "--trajectory", str(tmp_path / "man.csv"), "--connect", ep,
+                                     "--exit-at-end", "-q"),
+                           stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        plant.communicate(timeout=900)
+        assert plant.returncode == 0
+        ctl.communicate(timeout=60)
+    finally:
+        stop_process(plant)
+        stop_process(ctl)
+    r = msagv("calibrate", rec, "--vehicle", tmp_path / "base.toml", "-o", tmp_path / "t.toml",
+              "--json", timeout=1800)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)["parameters"]
+    tv = values_of(plant_v)
+    for name, tol in (("lateral.K", 0.05), ("longitudinal.K", 0.05), ("lateral.mu", 0.10),
+                      ("longitudinal.mu", 0.10)):
+        assert doc[name]["identified"], (name, doc[name]["why"])
+        assert doc[name]["value"] == pytest.approx(tv[name], rel=tol), name
