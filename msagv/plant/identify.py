@@ -224,6 +224,8 @@ MAX_REL_SE = 0.10  # a parameter is identified when its standard error is below 
 MAX_ABS_SE = {"lateral.E": 0.1, "longitudinal.E": 0.1, "wheel_lag": 0.002, "steer_lag": 0.002}
 MIN_EXCITATION = 0.05  # ... its table's force reaches 5 % of the peak (measured a / (mu g))
 MIN_PEAK_REACH = 0.5  # ... and, for a peak friction, the model's tires pass half the peak
+MIN_SHAPE_REACH = 0.95  # ... for a shape C or E, the tires at their peak
+MIN_COMMAND_SWING = {"wheel_lag": 0.05, "steer_lag": 0.01}  # ... for a lag, commands that move
 TRIAL_PEAK_REACH = 0.3  # (tried from here: the reach is measured against the current peak)
 
 
@@ -449,6 +451,14 @@ def gate(name: str, values, excitation, reach, peak: float = MIN_PEAK_REACH) -> 
     if name.endswith(".mu") and reach[part] < peak:
         return (f"not reached: the tires use at most {reach[part]:.0%} of their {part} peak "
                 f"(needs {MIN_PEAK_REACH:.0%})")
+    if name.endswith((".C", ".E")) and reach[part] < MIN_SHAPE_REACH:
+        return (f"not reached: the tires use at most {reach[part]:.0%} of their {part} peak; "
+                f"the curve's shape is told from its peak only at the peak (needs "
+                f"{MIN_SHAPE_REACH:.0%})")
+    if name in ("wheel_lag", "steer_lag") and excitation[name] < MIN_COMMAND_SWING[name]:
+        return (f"not excited: the {'wheel speed' if name == 'wheel_lag' else 'steering rate'} "
+                f"commands swing by {excitation[name]:.3g} rad/s rms within a window (needs "
+                f"{MIN_COMMAND_SWING[name]:g})")
     return ""
 
 
@@ -500,6 +510,11 @@ def calibrate(data: RunData, base: Vehicle, *, fit_body: bool = False, window: i
         "longitudinal": float(np.percentile(np.abs(acc[moving, 0]), 99)) / (
             base.tire_longitudinal.mu * g),
         "lateral": float(np.percentile(np.abs(acc[moving, 1]), 99)) / (base.tire_lateral.mu * g)}
+    # how much the commands move within the windows (a lag shows only when they do)
+    for key, cmd in (("wheel_lag", prob.UW), ("steer_lag", prob.US)):
+        c = cmd[(prob.starts[:, None] + np.arange(window)[None, :]).ravel()]
+        c = c.reshape(len(prob.starts), window, -1)
+        excitation[key] = float(np.sqrt(np.mean((c - c.mean(axis=1, keepdims=True)) ** 2)))
     if progress:
         from tqdm import tqdm
 
