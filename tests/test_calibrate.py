@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from msagv.plant import Plant, default_vehicle
-from msagv.plant.identify import (IdentifyError, RunData, calibrate, values_of, vehicle_with)
+from msagv.plant.identify import IdentifyError, RunData, calibrate, values_of, vehicle_with
 from msagv.plant.vehicle import load_vehicle
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,7 +27,8 @@ def _truth():
     slope x1.3) and actuator lags the base vehicle does not have."""
     base = default_vehicle()
     v = values_of(base)
-    return base, vehicle_with(base, {"lateral.K": 0.7 * v["lateral.K"], "lateral.mu": 0.7 * v["lateral.mu"],
+    return base, vehicle_with(base, {"lateral.K": 0.7 * v["lateral.K"],
+                                     "lateral.mu": 0.7 * v["lateral.mu"],
                                      "longitudinal.K": 1.3 * v["longitudinal.K"],
                                      "wheel_lag": 0.04, "steer_lag": 0.03}, name="truth")
 
@@ -39,7 +40,8 @@ def drive(vehicle, seconds, noise=0.0, seed=0, lateral=True, speed_swing=True, v
     m/s on the velocities and wheel rims (a fifth of it on r, a tenth on the angles)."""
     rng = np.random.default_rng(seed)
     nw, r_w = vehicle.n_wheels, vehicle.wheel_radius
-    p = Plant(vehicle, initial={"vx": v0, **{f"omega_w_{w}": v0 / r_w for w in vehicle.wheel_names}})
+    p = Plant(vehicle, initial={"vx": v0,
+                                **{f"omega_w_{w}": v0 / r_w for w in vehicle.wheel_names}})
     n = int(round(seconds / T))
     t = np.arange(n + 1) * T
     body, delta, om = np.zeros((n + 1, 6)), np.zeros((n + 1, nw)), np.zeros((n + 1, nw))
