@@ -108,6 +108,19 @@ def test_standard_errors_grow_with_the_noise():
         assert hi.estimates[name].se > 2.0 * lo.estimates[name].se, name
 
 
+def test_fit_body_finds_the_yaw_inertia_and_says_the_mass_cannot_be_found():
+    """--fit-body on a plant 20 % heavier in yaw: the yaw inertia comes back within five
+    standard errors plus 1 %; the mass is not identified (every tire force scales with the
+    load m g / 2n, so no acceleration depends on it) and keeps the base value."""
+    base, truth = _truth()
+    truth = vehicle_with(truth, {"yaw_inertia": 1.2 * base.yaw_inertia})
+    cal = calibrate(drive(truth, 12.0, noise=0.005), base, fit_body=True)
+    e = cal.estimates["yaw_inertia"]
+    assert e.identified and abs(e.value - truth.yaw_inertia) <= 5 * e.se + 0.01 * truth.yaw_inertia
+    m = cal.estimates["mass"]
+    assert not m.identified and m.value == base.mass and "not excited" in m.why
+
+
 def test_a_straight_line_identifies_no_lateral_tire():
     """Straight ahead at constant speed (the wheels at a steady speed, no steering): no
     lateral parameter is identified; the tuned vehicle keeps the base lateral tire and
