@@ -24,6 +24,7 @@ COMMANDS = {
     "certs": "certs DIR: a CA and per-role certificates for --secure (mutual TLS, access control)",
     "run": "in-process closed loop (controller at 100 Hz on the stepping plant)",
     "report": "the paper's metrics and plots from a recording",
+    "calibrate": "calibrate RECORDING -o tuned.toml: the vehicle's tires and lags from a recording",
     "view": "view FILE: a recording in Rerun's 3D viewer (vehicle, wheel wear, paths, errors)",
     "recover": "recover FILE: a recording cut short by a kill or a full disk made readable",
     "experiment": "the paper's Cases 1-3, the Pareto front and the ridge study",
@@ -82,6 +83,9 @@ def _dispatch(cmd: str, rest: list[str]) -> int:
         return report_main(rest)
     if cmd == "recover":
         return recover_main(rest)
+    if cmd == "calibrate":
+        from .calibrate import main as calibrate_main
+        return calibrate_main(rest)
     if cmd == "experiment":
         from .experiment import main
         return main(rest)
