@@ -20,6 +20,7 @@ that name would be found instead).
 from __future__ import annotations
 
 import ast
+import json
 import re
 import shutil
 import subprocess
@@ -313,19 +314,32 @@ def test_the_import_path_is_the_file_path_without_an_install():
 
 def test_jedi_goes_to_the_definition_across_packages():
     """Go-to-definition, as an editor does it (jedi), from names imported across packages to
-    the file and line that define them."""
-    jedi = pytest.importorskip("jedi", reason="jedi is in the test extra")
-    src = ("from msagv.plant.vehicle import load_vehicle\n"
-           "from msagv.controller.mpc import MPC\n"
-           "from msagv.bridge.plant_node import PlantConfig\n")
-    script = jedi.Script(src, path=str(ROOT / "probe.py"), project=jedi.Project(str(ROOT)))
-    for line, name, rel in [(1, "load_vehicle", "msagv/plant/vehicle.py"),
-                            (2, "MPC", "msagv/controller/mpc.py"),
-                            (3, "PlantConfig", "msagv/bridge/plant_node.py")]:
-        col = src.splitlines()[line - 1].rindex(name)
-        defs = script.goto(line, col, follow_imports=True)
-        assert defs, f"jedi found no definition of {name}"
-        d = defs[0]
-        assert Path(d.module_path).resolve() == (ROOT / rel).resolve(), (name, d.module_path)
-        text = (ROOT / rel).read_text().splitlines()[d.line - 1]
+    the file and line that define them. (In a child process: jedi leaves threads and a
+    subprocess behind, and an FMU loaded in-process later in the same worker must not meet
+    them.)"""
+    pytest.importorskip("jedi", reason="jedi is in the test extra")
+    probes = [(1, "load_vehicle", "msagv/plant/vehicle.py"),
+              (2, "MPC", "msagv/controller/mpc.py"),
+              (3, "PlantConfig", "msagv/bridge/plant_node.py")]
+    code = (
+        "import json, sys, jedi\n"
+        "root, probes = sys.argv[1], json.loads(sys.argv[2])\n"
+        "src = ('from msagv.plant.vehicle import load_vehicle\\n'\n"
+        "       'from msagv.controller.mpc import MPC\\n'\n"
+        "       'from msagv.bridge.plant_node import PlantConfig\\n')\n"
+        "script = jedi.Script(src, path=root + '/probe.py', project=jedi.Project(root))\n"
+        "out = []\n"
+        "for line, name, _ in probes:\n"
+        "    col = src.splitlines()[line - 1].rindex(name)\n"
+        "    d = script.goto(line, col, follow_imports=True)\n"
+        "    out.append([str(d[0].module_path), d[0].line] if d else None)\n"
+        "print(json.dumps(out))\n")
+    r = subprocess.run([sys.executable, "-c", code, str(ROOT), json.dumps(probes)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    for (line, name, rel), got in zip(probes, json.loads(r.stdout)):
+        assert got, f"jedi found no definition of {name}"
+        path, lineno = got
+        assert Path(path).resolve() == (ROOT / rel).resolve(), (name, path)
+        text = (ROOT / rel).read_text().splitlines()[lineno - 1]
         assert f"class {name}" in text or f"def {name}" in text, (name, text)
