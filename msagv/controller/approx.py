@@ -48,7 +48,7 @@ code around it after inlining), and numba's JIT binds every call of a function t
 not inlined (``tile``, ``wheel_loop``: each kernel's object carries its own weak copy)
 to the first copy loaded into the process: the standalone kernel when the process
 compiled it, the calling kernel's own copy when it came from the cache. A run that
-compiled its kernels and one that loaded them then differed by 1e-10 to 1e-8 relative
+compiled its kernels and one that loaded them then differed by 3e-10 to 4e-8 relative
 (Case 1, 35 km/h, TWO: e_bar 1.7816685525470328 against 1.781668548591469). Without the
 flags every copy gives the same bits, whichever is bound (``tests/test_determinism.py``);
 the written-out fused multiply-adds keep most of what ``contract`` gave (the MF wheel
