@@ -456,3 +456,33 @@ def test_quick_study_with_a_users_vehicle_and_path(tmp_path):
     for row in user:
         if row["e_lat_rms_cm"] <= 1.0:
             assert row["W_tw"] >= 0.995 * row["W_tw_floor"], row["label"]
+
+
+def test_the_transcribed_lower_bound_on_a_circle_is_the_hand_computed_wear():
+    """benchmarks/floor_bound.py (IPOPT on the plant's equations, the path a constraint):
+    on the circle of the hand computation above, held to 0.2 mm and 0.02 deg, the least
+    wear is that hand computation (eq. 14 with the slip angle of f_lat(alpha) = F); a
+    looser tolerance never needs more wear (its feasible set holds the tighter one's)."""
+    pytest.importorskip("casadi")
+    from msagv.benchmarks.floor_bound import lower_bound
+
+    radius, speed_kmh, T = 40.0, 20.0, 2.0
+    v_ = _one_narrow_axle(VEH)
+    ref = path_from_curvature(np.full(int(200.0 / 0.02), 1.0 / radius), speed_kmh, "circle")
+    v = speed_kmh / 3.6
+    F = v_.mass * v * v / radius / v_.n_wheels
+    la = v_.tire_lateral
+    D = la.mu * v_.normal_load
+    lo, hi = 0.0, 0.5
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if magic_formula(mid, la.B, la.C, D, la.E) < F else (lo, mid)
+    alpha = 0.5 * (lo + hi)
+    want = v_.n_wheels * F * v * math.sin(alpha) * T  # |F_y v_wy|, v_wy = v sin(alpha)
+    tight = lower_bound(ref, v_, 3.0, 3.0 + T, tol=2e-4, dt=0.05, tol_phi=math.radians(0.02))
+    assert tight["status"] == "Solve_Succeeded"
+    assert tight["W_tw"] == pytest.approx(want, rel=1e-2)
+    loose = lower_bound(ref, v_, 3.0, 3.0 + T, tol=0.01, dt=0.05)
+    assert loose["W_tw"] <= tight["W_tw"] * (1 + 1e-6)
+    with pytest.raises(ValueError, match="t1 > t0"):
+        lower_bound(ref, v_, 3.0, 3.0, tol=0.01)
