@@ -119,3 +119,24 @@ def test_a_scenario_round_trips_through_its_dict():
     assert sc.settings == {"method": "two"}
     again = Scenario.from_dict(sc.to_dict())
     assert again.to_dict() == sc.to_dict()
+
+
+def test_a_run_reports_its_wear_floors_and_flags_a_broken_one(capsys):
+    """``msagv run`` computes the wear floors of exact tracking over the window it ran
+    (controller.floors, as the study does) and names every floor the run wears less than
+    0.995 x of, in the JSON and as a warning (never silently)."""
+    from msagv.controller.floors import broken_floor, broken_floor_warning, wear_floors
+
+    path = SCEN / "lane-change-3axle.toml"
+    rc, out, err = run(capsys, "run", path, "--duration", "1", "--json")
+    assert rc == 0, err
+    doc = json.loads(out)
+    sc = Scenario.from_file(path)
+    ref, _ = sc.reference()
+    f = wear_floors(ref, sc.plant_vehicle(sc.resolve_vehicle()), 0.0, 1.0, dt=0.05).as_dict()
+    assert doc["floors"] == pytest.approx(f, rel=1e-9)
+    assert doc["floors"]["W_tw_floor"] < 1e-3  # the first second is straight: no floor
+    expected = broken_floor(doc["metrics"], doc["floors"])
+    assert doc["broken_floor"] == expected
+    flagged = [w for w in doc["warnings"] if w.startswith("broken floor")]
+    assert flagged == ([broken_floor_warning(expected)] if expected else [])

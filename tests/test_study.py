@@ -81,6 +81,37 @@ def test_floor_is_zero_on_a_straight_line_and_rejects_an_empty_window():
     assert row["W_over_floor"] == pytest.approx(2.0)
 
 
+def test_broken_floor_by_hand():
+    """A run below 0.995 of a floor is flagged, part by part: W_tw, the slip wear W_s +
+    W_alpha (the sum the allocation bounds, not either alone) and W_t; at or above 0.995
+    nothing is."""
+    from msagv.controller.floors import broken_floor, broken_floor_warning
+    from msagv.experiments.study_analysis import _row, broken_floor_warnings
+
+    fl = {"W_s_floor": 100.0, "W_alpha_floor": 300.0, "W_t_floor": 600.0, "W_tw_floor": 1000.0}
+    # W_alpha 250 < 300 but W_s + W_alpha = 400 = its floor: a trade, not a broken floor
+    ok = {"W_s": 150.0, "W_alpha": 250.0, "W_t": 597.0, "W_tw": 997.0}
+    assert broken_floor(ok, fl) == []
+    low = {"W_s": 100.0, "W_alpha": 290.0, "W_t": 590.0, "W_tw": 980.0}
+    b = broken_floor(low, fl)
+    assert [p["part"] for p in b] == ["W_tw", "W_slip", "W_t"]
+    assert [p["ratio"] for p in b] == pytest.approx([0.98, 390.0 / 400.0, 590.0 / 600.0])
+    line = broken_floor_warning(b)
+    assert "\n" not in line and line.startswith("broken floor:") and "0.980" in line
+    assert broken_floor(low, {"W_tw_floor": 0.0}) == []  # no floor (a line): no ratio
+    assert broken_floor({"W_tw": 1e-7}, {"W_tw_floor": 1e-4}) == []  # a line's rounding
+    # the study: the row names the parts, and one warning per scenario says how many runs
+    tags = {"family": "TWO", "lever": "L", "level": 1.0, "aware": True, "scenario": "lane",
+            "class": "lane", "plant": "nominal", "seed": 0, "path_key": "p"}
+    runs = [{"spec": {"tags": tags, "label": f"TWO {i}"}, "status": "ok", "key": str(i),
+             "metrics": dict(m, e_lat_rms_cm=0.1)} for i, m in enumerate((ok, low))]
+    rows = [_row(r, {"p": {"floors": fl}}) for r in runs]
+    assert rows[0]["floor_broken"] is None
+    assert rows[1]["floor_broken"] == ["W_tw", "W_slip", "W_t"]
+    (w,) = broken_floor_warnings(rows)
+    assert w.startswith("broken floor: lane: 1 of 2 runs") and "lowest W_slip 0.975" in w
+
+
 @pytest.mark.parametrize("make", [lane_change, tight_turn,
                                   lambda v, s: random_path(v, s, seed=3)])
 @pytest.mark.parametrize("speed", [5.0, 20.0, 35.0])
@@ -425,3 +456,33 @@ def test_quick_study_with_a_users_vehicle_and_path(tmp_path):
     for row in user:
         if row["e_lat_rms_cm"] <= 1.0:
             assert row["W_tw"] >= 0.995 * row["W_tw_floor"], row["label"]
+
+
+def test_the_transcribed_lower_bound_on_a_circle_is_the_hand_computed_wear():
+    """benchmarks/floor_bound.py (IPOPT on the plant's equations, the path a constraint):
+    on the circle of the hand computation above, held to 0.2 mm and 0.02 deg, the least
+    wear is that hand computation (eq. 14 with the slip angle of f_lat(alpha) = F); a
+    looser tolerance never needs more wear (its feasible set holds the tighter one's)."""
+    pytest.importorskip("casadi")
+    from msagv.benchmarks.floor_bound import lower_bound
+
+    radius, speed_kmh, T = 40.0, 20.0, 2.0
+    v_ = _one_narrow_axle(VEH)
+    ref = path_from_curvature(np.full(int(200.0 / 0.02), 1.0 / radius), speed_kmh, "circle")
+    v = speed_kmh / 3.6
+    F = v_.mass * v * v / radius / v_.n_wheels
+    la = v_.tire_lateral
+    D = la.mu * v_.normal_load
+    lo, hi = 0.0, 0.5
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if magic_formula(mid, la.B, la.C, D, la.E) < F else (lo, mid)
+    alpha = 0.5 * (lo + hi)
+    want = v_.n_wheels * F * v * math.sin(alpha) * T  # |F_y v_wy|, v_wy = v sin(alpha)
+    tight = lower_bound(ref, v_, 3.0, 3.0 + T, tol=2e-4, dt=0.05, tol_phi=math.radians(0.02))
+    assert tight["status"] == "Solve_Succeeded"
+    assert tight["W_tw"] == pytest.approx(want, rel=1e-2)
+    loose = lower_bound(ref, v_, 3.0, 3.0 + T, tol=0.01, dt=0.05)
+    assert loose["W_tw"] <= tight["W_tw"] * (1 + 1e-6)
+    with pytest.raises(ValueError, match="t1 > t0"):
+        lower_bound(ref, v_, 3.0, 3.0, tol=0.01)

@@ -209,8 +209,23 @@ def _run(a, scenario, built, view, fox=None):
     return log, interrupted, None
 
 
+def _floors(scenario, vehicle, ref, ran: float, metrics: dict):
+    """The wear floors of exact tracking over the ``ran`` seconds of the run
+    (:func:`controller.floors.wear_floors`, as the study's, with the plant's vehicle) and
+    the floors the run's ``metrics`` lie below 0.995 x of: ``(floors, broken)``;
+    ``(None, [])`` for a run too short to have any (under 0.3 s)."""
+    from msagv.controller.floors import broken_floor, wear_floors
+
+    if ran < 0.3:
+        return None, []
+    t0 = float(ref.t[0])
+    f = wear_floors(ref, scenario.plant_vehicle(vehicle), t0, t0 + ran, dt=0.05).as_dict()
+    return f, broken_floor(metrics, f)
+
+
 def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) -> None:
     """The result: warnings, the JSON document, the log, the figures, the table."""
+    from msagv.controller.floors import broken_floor_warning
     from msagv.controller.metrics import (format_per_km, format_table, format_wheel_wear,
                                           wear_per_km)
     from msagv.experiments.checks import solve_time_warnings
@@ -228,6 +243,10 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
                         f"cover the {len(log.t)} steps run")
         warn(prog, warnings[-1:])
     m = log.metrics()
+    floors, broken = _floors(scenario, vehicle, ref, len(log.t) * scenario.period, m)
+    if broken:
+        warnings.append(broken_floor_warning(broken))
+        warn(prog, warnings[-1:])
     wear = wear_per_km(log.wheel_wear(), log.distance(), vehicle.tire_wear,  # per wheel and
                        vehicle.wheel_radius, tire_price(a, vehicle))  # axle, per km
     doc = result(prog.split(" ", 1)[1], info, m, warnings, completed=not interrupted, wear=wear)
@@ -236,6 +255,8 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     doc["disturbance"] = dist() if dist is not None else None  # offset-free estimate at the end
     tires = getattr(built.controller, "adapted_tires", None)
     doc["adapted_tires"] = tires() if tires is not None else None  # --adapt's factors
+    doc["floors"] = floors  # the wear floors of exact tracking over the run (controller.floors)
+    doc["broken_floor"] = broken  # the floors the run wears less than 0.995 x of
     if a.log:
         log.to_csv(a.log)
     if a.plot:
@@ -257,6 +278,10 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     print(format_table(m, f"{ref.name}{speed}, {settings.method.upper()} ({how}), {where}"
                           f"{' (interrupted)' if interrupted else ''}"))
     print("\n".join(format_wheel_wear(wear) + format_per_km(wear)))
+    if floors is not None:
+        print(f"  floor      W_tw [J] {floors['W_tw_floor']:.4g}   (W_s {floors['W_s_floor']:.3g}, "
+              f"W_alpha {floors['W_alpha_floor']:.3g}, W_t {floors['W_t_floor']:.3g}): exact "
+              f"tracking{'; BROKEN: the run wears less' if broken else ''}")
     for k, path in (("log", a.log), ("plot", a.plot), ("wear plot", a.wear_plot),
                     ("view", a.view_save), ("json", a.json_out)):
         if path:

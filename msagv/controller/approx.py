@@ -39,18 +39,31 @@ Methods and accuracy (maximum errors measured against the math library by
   ``|x| <= SINCOS_DOMAIN`` (the prediction's angles: headings, steering angles,
   ``C atan(.)`` of the Magic Formula, are far inside it); ``tan = sin / cos``.
 
-The kernels that use these compile with ``fastmath`` limited to ``contract`` (fused
-multiply-add), ``nsz`` and ``arcp``: no reassociation, which would undo the Cody-Waite
-reduction, and no ``nnan``/``ninf``, so infinities and NaN
-keep their IEEE meaning in the selects. The polynomials are evaluated by Estrin's scheme
-(pairs of terms, then pairs of pairs), not by Horner's rule: the prediction's wheel loop
+The kernels that use these compile without ``fastmath`` (IEEE arithmetic, :data:`FASTMATH`
+is empty): the polynomials' fused multiply-adds are written out (:func:`fma`, LLVM's
+``llvm.fma``), not left to the compiler. With ``contract``, ``nsz`` and ``arcp`` (the
+flags until issue 29) a function compiled into two kernels could round differently in
+each (where LLVM fuses a multiply into an add, or hoists a reciprocal, depends on the
+code around it after inlining), and numba's JIT binds every call of a function that is
+not inlined (``tile``, ``wheel_loop``: each kernel's object carries its own weak copy)
+to the first copy loaded into the process: the standalone kernel when the process
+compiled it, the calling kernel's own copy when it came from the cache. A run that
+compiled its kernels and one that loaded them then differed by 3e-10 to 4e-8 relative
+(Case 1, 35 km/h, TWO: e_bar 1.7816685525470328 against 1.781668548591469). Without the
+flags every copy gives the same bits, whichever is bound (``tests/test_determinism.py``);
+the written-out fused multiply-adds keep most of what ``contract`` gave (the MF wheel
+loop's vector arithmetic: 587 instructions, 497 with ``contract``, 701 with neither; the
+rollout's time per call was within the noise of a loaded 2-core machine of the former),
+and give the same bits on a CPU without FMA (the C library's ``fma``). No reassociation either,
+which would undo the Cody-Waite reduction. The polynomials are evaluated by Estrin's
+scheme (pairs of terms, then pairs of pairs), not by Horner's rule: the prediction's wheel loop
 is bound by the latency of its chains of dependent operations (a wheel-step chains three
 arc tangents and two sine-cosine pairs), and for ``P`` of degree 5 Estrin is four
 dependent steps deep where Horner is six (docs/PERFORMANCE.md: 10-13 % more
 wheel-steps per second). A shorter ``P`` for ``atan`` (degree 3, relative error 2e-8)
 was 6 % faster again but moved the predicted poses by up to 6e-6 m over a horizon
 (the dynamics amplify it), more than the 1e-6 m asked: not kept. The functions are
-compiled with these flags as ordinary numba functions marked ``forceinline`` (LLVM's
+compiled as ordinary numba functions marked ``forceinline`` (LLVM's
 ``alwaysinline``), so LLVM inlines them into the loops that call them, where the loops
 vectorise. Left to LLVM's inlining
 heuristic they were inlined on one machine (an Intel Xeon) and not on another (an AMD
@@ -70,10 +83,28 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
-# The flags of every kernel that inlines these (see the module docstring).
-FASTMATH = frozenset({"contract", "nsz", "arcp"})
+# The flags of every kernel that inlines these (see the module docstring): none. IEEE
+# arithmetic, so a function gives the same bits wherever it is compiled (fused
+# multiply-adds only where written, with fma below).
+FASTMATH = frozenset()
+
+
+@intrinsic
+def fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (LLVM's ``llvm.fma``: one instruction on a CPU with FMA,
+    the C library's ``fma`` elsewhere; the same bits either way)."""
+    if not all(isinstance(t, types.Float) for t in (a, b, c)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        x, y, z = (context.cast(builder, v, t, types.float64)
+                   for v, t in zip(args, signature.args))
+        return builder.fma(x, y, z)
+
+    return types.float64(a, b, c), codegen
 
 _inline = njit(cache=True, forceinline=True, error_model="numpy", fastmath=set(FASTMATH))
 
@@ -102,8 +133,8 @@ def _atan_poly(t):
     z = t * t
     z2 = z * z
     tz = t * z
-    p = (_A0 + z * _A1) + z2 * ((_A2 + z * _A3) + z2 * (_A4 + z * _A5))
-    return t + tz * p
+    p = fma(z2, fma(z2, fma(z, _A5, _A4), fma(z, _A3, _A2)), fma(z, _A1, _A0))
+    return fma(tz, p, t)
 
 
 @_inline
@@ -160,8 +191,8 @@ def sincos(x):
     r = (x - n * _PIO2_1) - n * _PIO2_2
     z = r * r
     z2 = z * z  # (Estrin's scheme, as in atan)
-    s = r + (r * z) * ((_S0 + z * _S1) + z2 * (_S2 + z * _S3))
-    c = (1.0 - 0.5 * z) + z2 * ((_C0 + z * _C1) + z2 * (_C2 + z * _C3))
+    s = fma(r * z, fma(z2, fma(z, _S3, _S2), fma(z, _S1, _S0)), r)
+    c = fma(z2, fma(z2, fma(z, _C3, _C2), fma(z, _C1, _C0)), fma(-0.5, z, 1.0))
     q = n - 4.0 * np.floor(0.25 * n)  # the quadrant, 0..3, kept in floating point
     # one comparison per mask (a boolean | of two masks cost packing instructions):
     # q in {1, 3} <=> |q - 2| = 1; q in {1, 2} <=> |q - 1.5| = 0.5

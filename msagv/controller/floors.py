@@ -51,6 +51,40 @@ from msagv.plant.tire import magic_formula
 from msagv.plant.vehicle import G_ACCEL, Vehicle
 
 
+BROKEN_RATIO = 0.995  # a run's wear below this times its floor: the floor is broken
+NO_FLOOR_J = 1.0  # J: a floor below this (a straight path: the allocation's rounding) is none
+
+
+def broken_floor(metrics: dict, floors: dict, ratio: float = BROKEN_RATIO) -> list[dict]:
+    """The floors a run's wear ``metrics`` (``W_tw``, ``W_s``, ``W_alpha``, ``W_t`` [J]) lies
+    below ``ratio`` times of (``floors``: :meth:`Floors.as_dict`), as ``[{part, W, floor,
+    ratio}]`` (empty: none). The parts: ``W_tw``; ``W_slip`` = W_s + W_alpha, the sum the
+    force allocation bounds (its split between W_s and W_alpha is the floor's optimum, not
+    a bound on either: a run may trade one for the other); ``W_t``, the steering travel's.
+    A floor of exact tracking bounds a run that tracks: a run below it means the floor is
+    not a lower bound on this path (or the run cut the path short: see its error). Floors
+    under ``NO_FLOOR_J`` (a straight path's, 1e-4 J of rounding) are not compared."""
+    parts = (("W_tw", metrics.get("W_tw"), floors.get("W_tw_floor")),
+             ("W_slip", _sum(metrics.get("W_s"), metrics.get("W_alpha")),
+              _sum(floors.get("W_s_floor"), floors.get("W_alpha_floor"))),
+             ("W_t", metrics.get("W_t"), floors.get("W_t_floor")))
+    return [{"part": name, "W": w, "floor": f, "ratio": w / f} for name, w, f in parts
+            if w is not None and f is not None and f >= NO_FLOOR_J and w < ratio * f]
+
+
+def _sum(a, b):
+    return None if a is None or b is None else a + b
+
+
+def broken_floor_warning(broken: list[dict], what: str = "the run") -> str:
+    """A one-line warning for :func:`broken_floor`'s (non-empty) result."""
+    parts = ", ".join(f"{p['part']} {p['W']:.4g} J = {p['ratio']:.3f} x its floor "
+                      f"{p['floor']:.4g} J" for p in broken)
+    return (f"broken floor: {what} wears less than {BROKEN_RATIO} x the wear floor of exact "
+            f"tracking ({parts}): the floor is not a lower bound here (docs/RESULTS.md, "
+            f"Wear floors)")
+
+
 @dataclass(frozen=True)
 class Floors:
     """The wear floors of a reference over a time window [J], and their time series."""

@@ -122,7 +122,10 @@ def _layout_stamp():
 
 lay.drop_stale_cache(_layout_stamp, _STAMP, __file__)
 
-_EXACT_FLAGS = True  # the exact kernels: numba's fastmath, as before the SIMD layout
+# numba's fastmath flags of both predictions: none (controller.approx, FASTMATH: with any,
+# a kernel compiled in the process and the same kernel loaded from the cache gave results
+# differing in the last bits, issue 29)
+_EXACT_FLAGS = set(_approx.FASTMATH)
 _FAST_FLAGS = set(_approx.FASTMATH)
 
 

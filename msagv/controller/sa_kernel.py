@@ -201,11 +201,12 @@ ITERATE = {(pred.name, kind, parallel): _make_iterate(
 # When a step stalls (gains less than GN_TOL of the cost) with an updated Jacobian, the
 # differences are taken again (GN_REFRESH times at most); with a fresh one, it stops.
 # docs/PERFORMANCE.md has what each choice bought.
-# Its linear algebra allows fused multiply-adds only (fastmath "contract"), not numba's full
-# fastmath: with reassociation LLVM vectorised these sums differently when a kernel was
-# compiled in the process than when it was loaded from numba's cache, so the first run after
-# a change and the runs after it differed in the last bits (a process loading the cache and
-# one that compiled disagreed at step 0 by 4e-14 rad/s; tests/test_polish.py checks it).
+# Its linear algebra is IEEE arithmetic (no fastmath flags): with numba's full fastmath LLVM
+# vectorised these sums differently when a kernel was compiled in the process than when it
+# was loaded from numba's cache (a process loading the cache and one that compiled
+# disagreed at step 0 by 4e-14 rad/s; tests/test_polish.py checks it), and even
+# "contract" alone leaves where a multiply is fused to the code around each copy of a
+# function (controller.approx's docstring; tests/test_determinism.py).
 GN_MUS = np.array([1e-2, 0.1, 1.0, 10.0])  # damping factors
 GN_ALPHAS = np.array([1.0, 0.3])  # step lengths of each damped step
 GN_TOL = 1e-4  # a step that lowers the cost by less than this fraction of it has stalled
@@ -278,7 +279,7 @@ def quadratic_value(A, b, c, z):
     return J
 
 
-@njit(cache=True, error_model="numpy", fastmath={"contract"})
+@njit(cache=True, error_model="numpy")
 def gauss_newton_gradient(Jr, r0, ge, A, z, b, g):
     """``g = 2 Jr r0 + ge + 2 A z + b`` (``Jr`` (D, M): the residuals' derivatives by row)."""
     D, M = Jr.shape
@@ -292,7 +293,7 @@ def gauss_newton_gradient(Jr, r0, ge, A, z, b, g):
         g[i] = 2.0 * t + ge[i] + 2.0 * u + b[i]
 
 
-@njit(cache=True, error_model="numpy", fastmath={"contract"})
+@njit(cache=True, error_model="numpy")
 def gauss_newton_hessian(Jr, A, H):
     """``H = 2 Jr Jr' + 2 A``."""
     D, M = Jr.shape
@@ -304,7 +305,7 @@ def gauss_newton_hessian(Jr, A, H):
             H[i, j] = H[j, i] = 2.0 * t + 2.0 * A[i, j]
 
 
-@njit(cache=True, error_model="numpy", fastmath={"contract"})
+@njit(cache=True, error_model="numpy")
 def broyden_update(Jr, ge, H, dz, dr, de):
     """Broyden's rank-one update of the Jacobian ``Jr`` (D, M) and the linear term's
     gradient ``ge`` after the step ``dz`` that changed the residuals by ``dr`` and the
@@ -344,7 +345,7 @@ def broyden_update(Jr, ge, H, dz, dr, de):
         ge[j] += v * dz[j]
 
 
-@njit(cache=True, error_model="numpy", fastmath={"contract"})
+@njit(cache=True, error_model="numpy")
 def damped_step(H, g, mu, Lc, dz):
     """Solve ``(H + mu diag H) dz = -g`` by Cholesky (``Lc`` (D, D) scratch); False when the
     matrix is not positive definite (then ``dz`` is undefined)."""

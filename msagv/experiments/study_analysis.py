@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from msagv.controller.floors import BROKEN_RATIO, NO_FLOOR_J, broken_floor
+
 from .families import FAMILIES
 from .tables import fmt, lower_front
 
@@ -55,7 +57,7 @@ TOLERANCES_CM = (0.5, 1.0, 5.0)  # the tolerance forms: NTWO's error + these [cm
 GRID = 50  # points of the equal-error mean, evenly spaced in log e over the shared range
 RESOLUTION_CM = 0.1  # cm: lateral RMS errors below this count as this (1 mm: finer
 #                      differences are no distinction between controllers)
-NO_WEAR_J = 1.0  # J: a floor below this (a straight path) is not divided by; a scenario
+NO_WEAR_J = NO_FLOOR_J  # J: a floor below this (a straight path) is not divided by; a scenario
 #                  whose every run wears less has nothing to compare
 CLASS_ORDER = ("case1", "case2", "lane", "turn", "random", "load", "4-axle", "robust", "user")
 NOMINAL = "all nominal"
@@ -130,7 +132,36 @@ def _row(r: dict, floors: dict, described: dict | None = None) -> dict:
         # it): there the ratio is undefined, not astronomically large
         row["W_over_floor"] = (m["W_tw"] / fl["W_tw_floor"] if fl["W_tw_floor"] >= NO_WEAR_J
                                else None)
+        # below 0.995 of its floor: the floor is broken on this path (never silently)
+        row["floor_broken"] = [b["part"] for b in broken_floor(m, fl)] or None
     return row
+
+
+def broken_floor_warnings(rows: list[dict]) -> list[str]:
+    """One warning per scenario instance with runs below 0.995 of their floor
+    (:func:`controller.floors.broken_floor`): how many, which parts, the lowest ratio and
+    that run's lateral error."""
+    by: dict[str, list[dict]] = {}
+    for r in rows:
+        if r.get("floor_broken"):
+            by.setdefault(r["scenario"], []).append(r)
+    out = []
+    for sc, rs in by.items():
+        n = sum(1 for r in rows if r["scenario"] == sc and r.get("W_tw") is not None)
+        parts = sorted({p for r in rs for p in r["floor_broken"]})
+        ratios = []
+        for r in rs:
+            for p in r["floor_broken"]:
+                w = r["W_s"] + r["W_alpha"] if p == "W_slip" else r[p]
+                f = (r["W_s_floor"] + r["W_alpha_floor"] if p == "W_slip" else r[p + "_floor"])
+                ratios.append((w / f, p, r))
+        q, p, worst = min(ratios, key=lambda x: x[0])
+        out.append(f"broken floor: {sc}: {len(rs)} of {n} runs wear less than "
+                   f"{BROKEN_RATIO} x the wear floor of exact tracking ({', '.join(parts)}; "
+                   f"lowest {p} {q:.3f} x its floor, {worst['label']}, lateral RMS "
+                   f"{_f(worst.get('e_lat_rms_cm'), 3)} cm): the floor is not a lower bound "
+                   f"on this path, and its W_tw / floor figures are not wear above a floor")
+    return out
 
 
 # ---- one scenario instance ------------------------------------------------------------------
@@ -481,9 +512,10 @@ def user_label(described: dict) -> str | None:
 
 
 def markdown(summary: dict, fam: list[dict], comparisons: list[dict], runs: dict,
-             described: dict) -> str:
+             described: dict, broken: list[str] = ()) -> str:
     user = user_label(described)
-    L = (_md_head(runs, described) + _md_headline(summary, user) + _md_forms(summary)
+    warn = ([f"**Warning: {w}.**\n" for w in broken] if broken else [])
+    L = (_md_head(runs, described) + warn + _md_headline(summary, user) + _md_forms(summary)
          + _md_families(summary) + _md_unmatched(comparisons) + _md_family_table(fam)
          + _md_scenarios(comparisons))
     return "\n".join(L) + "\n"
@@ -720,7 +752,8 @@ def report_study(results: list[dict], floors: dict, scenarios, described: dict, 
     summary = summarise(comparisons)
     fam = family_table(rows)
     runs = dict(runs, scenarios=len(scenarios))
-    (out / "study.md").write_text(markdown(summary, fam, comparisons, runs, described))
+    broken = broken_floor_warnings(rows)
+    (out / "study.md").write_text(markdown(summary, fam, comparisons, runs, described, broken))
     with (out / "study.csv").open("w", newline="") as f:
         cols = list(rows[0]) if rows else []
         cols += sorted({k for r in rows for k in r} - set(cols))
@@ -750,8 +783,14 @@ def report_study(results: list[dict], floors: dict, scenarios, described: dict, 
            "scenarios_described": described, "rows": rows, "comparisons": comparisons,
            "summary": summary, "families": fam,
            "floors": {k: v["floors"] for k, v in floors.items()},
+           "broken_floors": [{"scenario": r["scenario"], "label": r["label"], "key": r["key"],
+                              "parts": r["floor_broken"], "W_over_floor": r.get("W_over_floor"),
+                              "e_lat_rms_cm": r.get("e_lat_rms_cm")}
+                             for r in rows if r.get("floor_broken")],
            "runs": runs, "figures": figures, "out": str(out)}
-    text = json.dumps(stamp(doc, results), indent=1, default=_json_default)
+    doc = stamp(doc, results)
+    doc["warnings"] = broken + doc["warnings"]  # the broken floors first
+    text = json.dumps(doc, indent=1, default=_json_default)
     (out / "study.json").write_text(text)
     return json.loads(text)  # plain data, as a reader of the file gets it
 

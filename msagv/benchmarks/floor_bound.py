@@ -1,0 +1,195 @@
+"""An independent lower bound on a path's tire wear: a direct transcription solved by IPOPT.
+
+The wear floors of :mod:`controller.floors` allocate the forces of an exactly tracking
+vehicle sample by sample. This checks them from the other side (issue 29): the least wear
+work ``W_tw = int (P_s + P_alpha + P_t) dt`` of the plant's own equations (eq. 4-21: the
+rigid body, the Magic Formula tires of eq. 11-12 at the constant loads ``m g / (2n)``, the
+wear powers of eq. 13-15) over a window ``[t0, t1]``, with the path as a hard constraint:
+the position within ``tol`` of the reference at every node; the heading, the velocities
+and the wheel angles free in between, and at the window's ends the reference's (heading,
+velocities, every wheel at the quasi-steady angle: along its velocity plus the slip angle
+of :mod:`controller.floors`' allocation there; a window should start and end where the
+path is steady, where a tracking run is in that state), the commands within the vehicle's
+limits (``0 <= omega_w <= omega_w_max``, ``omega_s`` within its rate limits, ``delta``
+within its stops). No run that keeps within ``tol`` of the path can wear less (to the
+transcription's accuracy: trapezoidal collocation at ``dt``, commands held over each
+interval), so a floor above this optimum is not a floor.
+
+The transcription: states ``x, y, phi, vx, vy, r, delta_i`` at the nodes, commands per
+interval, ``|omega_s|`` split into two non-negative parts (so the cost is smooth);
+``P_s = F_x (omega_w r_w - v_wx) >= 0`` and ``P_alpha = -F_y v_wy >= 0`` need no absolute
+value (the force has the slip's sign). Started from the reference's kinematics.
+
+``python -m msagv.benchmarks.floor_bound SCENARIO.toml T0 T1 [--tol-cm 1] [--dt 0.02]``
+prints the optimum, the floor of :func:`controller.floors.wear_floors` over the same
+window, and with ``--log RUN.csv`` (a ``msagv run --log``) that run's wear over it, as
+JSON. CPU-heavy: a few seconds of path take a minute or more.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+
+def _mf(xi, B, C, D, E, ca):
+    Bx = B * xi
+    return D * ca.sin(C * ca.atan(Bx - E * (Bx - ca.atan(Bx))))
+
+
+def lower_bound(reference, vehicle, t0: float, t1: float, tol: float = 0.01,
+                dt: float = 0.02, max_iter: int = 3000, tol_phi: float | None = None) -> dict:
+    """The least ``W_tw`` [J] (and its parts) over ``[t0, t1]`` of a vehicle whose
+    position stays within ``tol`` [m] of ``reference`` (and its heading within
+    ``tol_phi`` [rad] of the reference's, if given) (module docstring)."""
+    import casadi as ca
+
+    from msagv.plant.dynamics import V_EPS_DEFAULT
+    from msagv.plant.vehicle import G_ACCEL
+
+    if not t1 > t0 or not tol > 0.0 or not dt > 0.0:
+        raise ValueError(f"floor_bound: need t1 > t0, tol > 0, dt > 0 (got {t0}, {t1}, "
+                         f"{tol}, {dt})")
+    N = max(int(round((t1 - t0) / dt)), 1)
+    h = (t1 - t0) / N
+    t = t0 + h * np.arange(N + 1)
+    R = reference.sample(t)
+    n = vehicle.n_wheels
+    wx, wy = vehicle.wheel_x, vehicle.wheel_y
+    m, Iz, rw = vehicle.mass, vehicle.yaw_inertia, vehicle.wheel_radius
+    FN = m * G_ACCEL / n
+    lo, la = vehicle.tire_longitudinal, vehicle.tire_lateral
+    lim = vehicle.limits
+    kt = vehicle.steer_loss_kt
+    v_eps = V_EPS_DEFAULT  # the plant's regularisation of |v_wx| (plant.tire.slip_ratio)
+
+    def rhs(X, U):
+        """(dX/dt, P_s, P_alpha) of the plant (eq. 4-21) at state X, commands U."""
+        phi, vx, vy, r = X[2], X[3], X[4], X[5]
+        c, s = ca.cos(phi), ca.sin(phi)
+        ub, vb = c * vx + s * vy, -s * vx + c * vy
+        fbx = fby = mz = 0
+        ps = pa = 0
+        for i in range(n):
+            d = X[6 + i]
+            om = U[i]
+            vxb, vyb = ub - r * wy[i], vb + r * wx[i]
+            cd, sd = ca.cos(d), ca.sin(d)
+            vwx, vwy = cd * vxb + sd * vyb, -sd * vxb + cd * vyb
+            den = ca.sqrt(vwx * vwx + v_eps * v_eps)
+            sl = (om * rw - vwx) / den
+            al = -ca.atan(vwy / den)
+            Fx = _mf(sl, lo.B, lo.C, lo.mu * FN, lo.E, ca)
+            Fy = _mf(al, la.B, la.C, la.mu * FN, la.E, ca)
+            ps += Fx * (om * rw - vwx)
+            pa += -Fy * vwy
+            bx, by = cd * Fx - sd * Fy, sd * Fx + cd * Fy
+            fbx += bx
+            fby += by
+            mz += wx[i] * by - wy[i] * bx
+        dX = ca.vertcat(vx, vy, r, (c * fbx - s * fby) / m, (s * fbx + c * fby) / m, mz / Iz,
+                        U[n:2 * n] - U[2 * n:3 * n])
+        return dX, ps, pa
+
+    Xs = ca.SX.sym("X", 6 + n)
+    Us = ca.SX.sym("U", 3 * n)
+    dX, ps, pa = rhs(Xs, Us)
+    f = ca.Function("f", [Xs, Us], [dX, ps, pa])
+
+    opti = ca.Opti()
+    X = opti.variable(6 + n, N + 1)
+    U = opti.variable(3 * n, N)
+    J_s = J_a = J_t = 0
+    for k in range(N):
+        d0, ps0, pa0 = f(X[:, k], U[:, k])
+        d1, ps1, pa1 = f(X[:, k + 1], U[:, k])
+        opti.subject_to(X[:, k + 1] == X[:, k] + 0.5 * h * (d0 + d1))
+        J_s += 0.5 * h * (ps0 + ps1)
+        J_a += 0.5 * h * (pa0 + pa1)
+        J_t += h * kt * FN * ca.sum1(U[n:3 * n, k])
+    opti.subject_to(opti.bounded(0.0, ca.vec(U[:n, :]), lim.omega_w_max))
+    opti.subject_to(opti.bounded(0.0, ca.vec(U[n:2 * n, :]), lim.omega_s_max))
+    opti.subject_to(opti.bounded(0.0, ca.vec(U[2 * n:, :]), -lim.omega_s_min))
+    opti.subject_to(opti.bounded(lim.delta_min, ca.vec(X[6:, :]), lim.delta_max))
+    for k in range(N + 1):
+        opti.subject_to((X[0, k] - R[k, 0]) ** 2 + (X[1, k] - R[k, 1]) ** 2 <= tol * tol)
+        if tol_phi is not None:
+            opti.subject_to(opti.bounded(R[k, 2] - tol_phi, X[2, k], R[k, 2] + tol_phi))
+    opti.minimize(J_s + J_a + J_t)
+    # the reference's motion, every wheel along its velocity: the start of the search, and
+    # the state at the window's ends (a run tracking the path is there, within its error;
+    # free ends would let the wheels be steered before the window, outside its wear)
+    phi, r = R[:, 2], R[:, 5]
+    c, s = np.cos(phi), np.sin(phi)
+    ub, vb = c * R[:, 3] + s * R[:, 4], -s * R[:, 3] + c * R[:, 4]
+    vwx = ub[:, None] - r[:, None] * wy[None, :]
+    vwy = vb[:, None] + r[:, None] * wx[None, :]
+    theta = np.unwrap(np.arctan2(vwy, vwx), axis=0)
+    # at the ends, each wheel at the quasi-steady angle (along its velocity plus the slip
+    # angle of the floor's allocation there: on a circle, the steady slip angle)
+    from msagv.controller.floors import wear_floors
+
+    ends = wear_floors(reference, vehicle, t0, t1, dt=h).delta[[0, -1]]
+    for j, k in enumerate((0, N)):
+        opti.subject_to(X[2:6, k] == R[k, 2:6])
+        opti.subject_to(X[6:, k] == ends[j])
+    opti.set_initial(X[:6, :], R[:, :6].T)
+    opti.set_initial(X[6:, :], theta.T)
+    opti.set_initial(U[:n, :], (np.hypot(vwx, vwy)[:-1] / rw).T)
+    rate = np.diff(theta, axis=0) / h
+    opti.set_initial(U[n:2 * n, :], np.maximum(rate, 0.0).T)
+    opti.set_initial(U[2 * n:, :], np.maximum(-rate, 0.0).T)
+    opti.solver("ipopt", {"print_time": False},
+                {"print_level": 0, "max_iter": max_iter, "tol": 1e-8,
+                 "acceptable_tol": 1e-6})
+    t_start = time.process_time()
+    sol = opti.solve()
+    Ws, Wa, Wt = (float(sol.value(v)) for v in (J_s, J_a, J_t))
+    return {"W_s": Ws, "W_alpha": Wa, "W_t": Wt, "W_tw": Ws + Wa + Wt, "t0": t0, "t1": t1,
+            "tol_m": tol, "tol_phi_rad": tol_phi, "dt": h, "nodes": N + 1,
+            "status": opti.stats()["return_status"], "cpu_s": time.process_time() - t_start}
+
+
+def run_wear(log_csv: str, t0: float, t1: float) -> dict:
+    """A run's wear over ``[t0, t1]`` from its ``msagv run --log`` (cumulative columns)."""
+    d = np.genfromtxt(log_csv, delimiter=",", names=True)
+    out = {}
+    for k in ("W_s", "W_alpha", "W_t"):
+        out[k] = float(np.interp(t1, d["t"], d[k]) - np.interp(t0, d["t"], d[k]))
+    out["W_tw"] = out["W_s"] + out["W_alpha"] + out["W_t"]
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    from msagv.controller.floors import wear_floors
+    from msagv.experiments.scenario import Scenario
+
+    ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.floor_bound",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("scenario", help="a scenario TOML (docs/SCENARIOS.md)")
+    ap.add_argument("t0", type=float)
+    ap.add_argument("t1", type=float)
+    ap.add_argument("--tol-cm", type=float, default=1.0, help="position tolerance [cm]")
+    ap.add_argument("--tol-deg", type=float, help="heading tolerance [deg] (default: free)")
+    ap.add_argument("--dt", type=float, default=0.02, help="collocation step [s]")
+    ap.add_argument("--log", help="a msagv run --log CSV of the same scenario: its wear")
+    a = ap.parse_args(argv)
+    sc = Scenario.from_file(a.scenario)
+    veh = sc.plant_vehicle(sc.resolve_vehicle())
+    ref, _ = sc.reference()
+    out = {"scenario": a.scenario,
+           "bound": lower_bound(ref, veh, a.t0, a.t1, a.tol_cm / 100.0, a.dt,
+                                tol_phi=None if a.tol_deg is None else np.radians(a.tol_deg)),
+           "floor": wear_floors(ref, veh, a.t0, a.t1, dt=0.05).as_dict()}
+    if a.log:
+        out["run"] = run_wear(a.log, a.t0, a.t1)
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
