@@ -133,7 +133,7 @@ def test_a_run_reports_its_wear_floors_and_flags_a_broken_one(capsys):
     doc = json.loads(out)
     sc = Scenario.from_file(path)
     ref, _ = sc.reference()
-    f = wear_floors(ref, sc.plant_vehicle(sc.resolve_vehicle()), 0.0, 1.0, dt=0.05).as_dict()
+    f = wear_floors(ref, sc.actual_vehicle(sc.resolve_vehicle()), 0.0, 1.0, dt=0.05).as_dict()
     assert doc["floors"] == pytest.approx(f, rel=1e-9)
     assert doc["floors"]["W_tw_floor"] < 1e-3  # the first second is straight: no floor
     expected = broken_floor(doc["metrics"], doc["floors"])

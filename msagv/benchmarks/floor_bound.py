@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--log", help="a msagv run --log CSV of the same scenario: its wear")
     a = ap.parse_args(argv)
     sc = Scenario.from_file(a.scenario)
-    veh = sc.plant_vehicle(sc.resolve_vehicle())
+    veh = sc.actual_vehicle(sc.resolve_vehicle())
     ref, _ = sc.reference()
     out = {"scenario": a.scenario,
            "bound": lower_bound(ref, veh, a.t0, a.t1, a.tol_cm / 100.0, a.dt,

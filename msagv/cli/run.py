@@ -219,7 +219,7 @@ def _floors(scenario, vehicle, ref, ran: float, metrics: dict):
     if ran < 0.3:
         return None, []
     t0 = float(ref.t[0])
-    f = wear_floors(ref, scenario.plant_vehicle(vehicle), t0, t0 + ran, dt=0.05).as_dict()
+    f = wear_floors(ref, scenario.actual_vehicle(vehicle), t0, t0 + ran, dt=0.05).as_dict()
     return f, broken_floor(metrics, f)
 
 
