@@ -347,3 +347,16 @@ def test_a_50mb_command_does_not_reach_the_recording(procs, tmp_path):
                for r in rej)
     print(f"\n50 MB cmd: rejected records {len(rej)}, missed periods {s['missed_periods']}, "
           f"recording {size} bytes")
+
+
+def test_an_event_may_carry_a_field_called_name(tmp_path):
+    """``event(name, **fields)`` takes ``name`` positionally only: the controller records a
+    new reference as ``event("reference", t=..., name=ref.name)`` (before, a recording
+    controller raised TypeError at its first new reference; so does the do-nothing one)."""
+    from msagv.bridge.recording import NullRecorder, Recorder
+
+    rec = Recorder(tmp_path / "r.mcap", header={"role": "controller"}, ros2=False)
+    rec.event("reference", t=1.0, name="case1-curve")
+    stats = rec.close({})
+    assert stats["errors"] == 0 and stats["dropped"] == 0, stats
+    NullRecorder().event("reference", t=1.0, name="case1-curve")

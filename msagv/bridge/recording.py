@@ -202,7 +202,7 @@ class NullRecorder:
     def predicted_path(self, t0: float, dt: float, poses) -> None:
         pass
 
-    def event(self, name: str, **fields) -> None:
+    def event(self, name: str, /, **fields) -> None:
         pass
 
     def maybe_flush(self) -> None:
@@ -307,7 +307,7 @@ class Recorder:
             self._put(("pred", float(t0), float(dt), [list(map(float, p)) for p in poses],
                        time.time()))
 
-    def event(self, name: str, **fields) -> None:
+    def event(self, name: str, /, **fields) -> None:
         rec = {"ts": time.time(), "ev": name}
         rec.update(fields)
         self._put(("ev", rec))

@@ -141,7 +141,7 @@ class FoxgloveView:
         self._put(("pred", float(t0), float(dt), [list(map(float, p)) for p in poses],
                    time.time()))
 
-    def event(self, name: str, **fields) -> None:
+    def event(self, name: str, /, **fields) -> None:
         pass
 
     def maybe_flush(self) -> None:

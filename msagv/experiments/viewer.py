@@ -412,7 +412,7 @@ class ViewSink:
         except queue.Full:
             self.dropped += 1
 
-    def event(self, name: str, **fields) -> None:
+    def event(self, name: str, /, **fields) -> None:
         pass
 
     def maybe_flush(self) -> None:
