@@ -583,6 +583,9 @@ def realtime_defaults(run_mode: str | None, deadline_ms: float | None,
     return deadline_ms, max_age_ms
 
 
+CONFIRM_S = 0.3  # s: a lone plant's answer is confirmed by a second query this much later
+
+
 def fetch_params(transport: Transport, keys: Keys, wait_s: float, stop: threading.Event
                  ) -> tuple[dict, str]:
     """The plant's params (validated) and the identity of the plant that answered,
@@ -590,10 +593,14 @@ def fetch_params(transport: Transport, keys: Keys, wait_s: float, stop: threadin
     (a second plant, or a rogue, on the same vehicle id): nothing is bound, and the query
     is repeated. Error replies (which name nobody) do not count as answers. On a plain bus
     the answer is taken on trust (logged, and said in ``--help``); with ``--secure`` only a plant
-    certificate of this vehicle can answer (the access control)."""
+    certificate of this vehicle can answer (the access control). A single answer binds only
+    when the next query, :data:`CONFIRM_S` later, is answered by the same plant alone: a
+    session connecting to several endpoints may ask before its second link is up, and must
+    not bind to one plant of two."""
     t0 = time.monotonic()
     told = False
     last_err = None
+    single = None  # the plant that alone answered the last query
     while not stop.is_set():
         try:
             good: dict[str, dict] = {}
@@ -608,6 +615,10 @@ def fetch_params(transport: Transport, keys: Keys, wait_s: float, stop: threadin
                     last_err = "a params reply without the replier's id"
                     continue
                 good.setdefault(zid, m)
+            if len(good) == 1 and single != next(iter(good)):
+                single = next(iter(good))  # asked again before binding
+                stop.wait(CONFIRM_S)
+                continue
             if len(good) == 1:
                 (zid, m), = good.items()
                 if transport.authenticated:
@@ -619,6 +630,7 @@ def fetch_params(transport: Transport, keys: Keys, wait_s: float, stop: threadin
                     log.info("params from plant %s (plain bus: taken on trust, see --secure)",
                              zid)
                 return m, zid
+            single = None
             if len(good) > 1:
                 last_err = (f"{len(good)} plant sessions answer {keys.params}/*/{transport.id} "
                             f"({', '.join(sorted(good))}): binding to none")
