@@ -125,7 +125,7 @@ class DisturbanceObserver:
         """Forget the estimate and the last state (d = 0)."""
         self.d = np.zeros(3)
         self.model.S[SLOTS] = 0.0
-        self._last = None  # (t, x0, z_raw) of the last period
+        self._last = None  # (t, x0, omega_w, omega_s, reference rows) of the last period
         self.updates = 0
 
     def predict_velocity(self, x0: np.ndarray, om_w: np.ndarray, om_s: np.ndarray,
