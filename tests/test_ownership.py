@@ -499,8 +499,9 @@ def test_token_set_tracks_a_bounded_number_and_always_its_focus(bus):
 
 
 def test_token_set_keeps_a_focus_that_still_sends_when_its_token_goes_missing(bus):
-    """Issue 30, item 4: the focus's token missing (here removed as by a router's query
-    that misses it) while the focus still sends is not a loss; missing *and* quiet is."""
+    """Issue 30, item 4: the focus's token missing from the query with no DELETE seen (as a
+    router's query misses a live token) while the focus still sends is not a loss;
+    missing *and* quiet is."""
     from msagv.bridge.presence import TokenSet
 
     prefix = "msagv/t0/alive/controller"
@@ -512,13 +513,34 @@ def test_token_set_keeps_a_focus_that_still_sends_when_its_token_goes_missing(bu
         tok = bus.endpoint("own").declare_token(f"{prefix}/own")
         ts.focus("own")  # already present: no change to report
         assert ts.present("own") and changes == []
-        assert bus.vanish(f"{prefix}/own") == 1
+        assert bus.vanish(f"{prefix}/own", notify=False) == 1
         wait_until(lambda: ts.summary()["kept_while_sending"] >= 3, 10.0,
                    "the missing token checked while the focus sends")
         assert ts.present("own") and changes == []
         quiet.set()  # nothing from it for the staleness bound: now it is lost
         wait_until(lambda: not ts.present("own"), 10.0, "the loss")
         assert changes == [("own", False)] and ts.summary()["suspicions"] == 1
+        tok.close()
+    finally:
+        ts.close()
+
+
+def test_token_set_loses_a_focus_whose_delete_is_confirmed_even_if_its_identity_still_sends(bus):
+    """A DELETE that the query confirms is the session gone: the focus is lost at once,
+    even while messages still arrive under its identity (on the plain bus a client can copy
+    an identity: they must not keep a dead owner's vehicle from latching)."""
+    from msagv.bridge.presence import TokenSet
+
+    prefix = "msagv/t0/alive/controller"
+    changes: list = []
+    ts = TokenSet(bus.endpoint("plant"), prefix, lambda z, p: changes.append((z, p)),
+                  quiet=lambda z: False)  # "it still sends"
+    try:
+        tok = bus.endpoint("own").declare_token(f"{prefix}/own")  # (held: not collected)
+        ts.focus("own")
+        assert bus.vanish(f"{prefix}/own") == 1  # with its DELETE
+        wait_until(lambda: not ts.present("own"), 10.0, "the loss")
+        assert changes == [("own", False)] and ts.summary()["kept_while_sending"] == 0
         tok.close()
     finally:
         ts.close()

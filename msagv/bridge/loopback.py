@@ -283,14 +283,15 @@ class LoopbackBus:
         with self._lock:
             self._drops.append([chunks, int(count)])
 
-    def vanish(self, key: str) -> int:
+    def vanish(self, key: str, notify: bool = True) -> int:
         """Remove the tokens matching ``key`` without their endpoints knowing (an expired
-        lease); the watchers see them disappear. Returns how many vanished."""
+        lease); the watchers see them disappear (a DELETE), or with ``notify=False`` do not
+        (a token a router's query misses: issue 30, item 4). Returns how many vanished."""
         chunks = key_chunks(key)
         with self._lock:
             gone = [e for e in self._tables["tokens"] if intersects(e.chunks, chunks)]
         for e in gone:
-            self._remove(e)
+            self._remove(e, notify)
         return len(gone)
 
     def tokens(self, key: str) -> list[str]:
@@ -366,14 +367,14 @@ class LoopbackBus:
             self._call(w.callback, key, True)
         return w
 
-    def _remove(self, e: _Entry) -> None:
+    def _remove(self, e: _Entry, notify: bool = True) -> None:
         with self._lock:
             table = self._tables[e.table]
             if e not in table:
                 return  # closed already (or vanished)
             table.remove(e)
             watchers = ([w for w in self._tables["watchers"] if intersects(w.chunks, e.chunks)]
-                        if e.table == "tokens" else [])
+                        if e.table == "tokens" and notify else [])
         for w in watchers:
             self._call(w.callback, e.key, False)
 

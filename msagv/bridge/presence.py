@@ -168,10 +168,12 @@ class TokenSet:
     thread queries only the focus's own token (``prefix/{focus}``: one reply), every
     ``POLL_S`` and at once when the focus changes or its DELETE arrives.
 
-    The focus is lost only when its token is missing (a DELETE or a query nobody answers)
-    *and* ``quiet(focus)`` says it has sent nothing for the staleness bound: through a
-    router, Zenoh's token query now and then misses a live token (issue 30, item 4), and
-    one missing answer must not end a live owner. A focus whose token answers throughout
+    The focus is lost when its DELETE is confirmed by a query that does not find the
+    token, or when a query nobody answers (no DELETE seen) finds it missing *and*
+    ``quiet(focus)`` says it has sent nothing for the staleness bound: through a router,
+    Zenoh's token query now and then misses a live token (issue 30, item 4), and one
+    missing answer must not end a live owner; but a DELETE is the session gone, and what
+    still arrives under its identity afterwards (a client copying it) must not keep it. A focus whose token answers throughout
     ``VERIFY_S`` after a DELETE (a restarted peer) is kept. ``on_change(zid, present)`` is
     called for the focus only, from the transport's or the helper thread.
     """
@@ -189,6 +191,7 @@ class TokenSet:
         self._present: set[str] = set()
         self._focus: str | None = None
         self._suspect_since: float | None = None  # the focus's token missing since
+        self._deleted = False  # ... and the suspicion began with its DELETE
         self._lock = threading.Lock()
         self._closed = False
         self._stop = threading.Event()
@@ -216,7 +219,7 @@ class TokenSet:
         with self._lock:
             if zid == self._focus:
                 return
-            self._focus, self._suspect_since = zid, None
+            self._focus, self._suspect_since, self._deleted = zid, None, False
         self._wake.set()
 
     def _zid(self, key) -> str | None:
@@ -255,6 +258,7 @@ class TokenSet:
             if present:
                 if focus:
                     self._suspect_since = None
+                    self._deleted = False
                 was = zid in self._present
                 if self._add(zid) and focus and not was:
                     changed = True
@@ -262,6 +266,7 @@ class TokenSet:
                 if zid in self._present and self._suspect_since is None:
                     self._suspect_since = time.monotonic()
                     self.suspicions += 1
+                self._deleted = True
                 self._wake.set()  # the helper thread decides
             else:
                 self._present.discard(zid)
@@ -306,6 +311,7 @@ class TokenSet:
                 if since is None or now - since >= VERIFY_S:
                     # present, or answered throughout VERIFY_S after a DELETE: kept
                     self._suspect_since = None
+                    self._deleted = False
                     if not had:
                         self._add(zid)
                         changed = True
@@ -317,11 +323,16 @@ class TokenSet:
                     self.suspicions += 1
                     log.debug("tokens %s: %s missing from query (no DELETE seen)",
                               self.prefix, zid)
+            deleted = self._deleted
         if found or not had:
             if changed is not None and self.on_change is not None:
                 self.on_change(zid, True)
             return
-        if not self.quiet(zid):  # (outside the lock: the caller's own state)
+        # a DELETE that the query confirms is the token gone (a killed or closed session):
+        # lost whatever still arrives under that identity (on the plain bus a client can
+        # copy it); a token only missing from a query (a router's mis-answer) is lost only
+        # if its holder has also gone quiet
+        if not deleted and not self.quiet(zid):  # (outside the lock: the caller's state)
             with self._lock:
                 self.kept += 1
                 n = self.kept
@@ -334,7 +345,9 @@ class TokenSet:
                 return
             self._present.discard(zid)
             self._suspect_since = None
-        log.debug("tokens %s: %s gone (no token, nothing sent)", self.prefix, zid)
+            self._deleted = False
+        log.debug("tokens %s: %s gone (%s)", self.prefix, zid,
+                  "its DELETE confirmed" if deleted else "no token, nothing sent")
         if self.on_change is not None:
             self.on_change(zid, False)
 
