@@ -31,6 +31,19 @@ VERIFY_EVERY_S = 0.25
 POLL_S = 0.5  # s, reconciliation query period
 
 
+
+def _close_watch(w) -> None:
+    """Stop a token watch (:class:`Presence`, :class:`TokenSet`): closed under its lock, its
+    helper thread woken to end, its subscriber undeclared (a closing transport may refuse)."""
+    with w._lock:
+        w._closed = True
+    w._stop.set()
+    w._wake.set()
+    try:
+        w._sub.close()
+    except Exception:
+        pass
+
 class Presence:
     """``present`` is True while a liveliness token matching ``key`` exists.
 
@@ -143,14 +156,7 @@ class Presence:
                 self.on_change(present)
 
     def close(self) -> None:
-        with self._lock:
-            self._closed = True
-        self._stop.set()
-        self._wake.set()
-        try:
-            self._sub.close()
-        except Exception:
-            pass
+        _close_watch(self)
 
 
 MAX_TOKENS = 64  # controller tokens a plant tracks per vehicle (the owner's always among them)
@@ -358,11 +364,4 @@ class TokenSet:
                     "suspicions": self.suspicions, "kept_while_sending": self.kept}
 
     def close(self) -> None:
-        with self._lock:
-            self._closed = True
-        self._stop.set()
-        self._wake.set()
-        try:
-            self._sub.close()
-        except Exception:
-            pass
+        _close_watch(self)
