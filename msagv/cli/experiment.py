@@ -49,10 +49,13 @@ def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=PROG, description="The paper's experiments (Section 4: "
                                  "case1, case2, case3; pareto, ridge) and the study (does a "
                                  "wear term save wear at equal tracking error?).")
-    ap.add_argument("experiment", choices=cases.EXPERIMENTS + ("study",),
-                    help="the paper's Cases 1-3, the Pareto and ridge experiments, or the "
+    ap.add_argument("experiment", choices=cases.EXPERIMENTS + ("study", "mismatch"),
+                    help="the paper's Cases 1-3, the Pareto and ridge experiments, the "
                          "study (experiments.study: every family on many scenarios, wear at "
-                         "equal tracking error with confidence intervals)")
+                         "equal tracking error with confidence intervals), or mismatch (the "
+                         "study's question on plants whose tires the controller does not "
+                         "know: model wrong, identified, adapted, true; "
+                         "experiments.mismatch)")
     ap.add_argument("-o", "--out", metavar="DIR",
                     help="output directory (default runs/<experiment>)")
     ap.add_argument("--jobs", type=int, metavar="N", help="parallel runs (default: all cores)")
@@ -81,12 +84,23 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--ridge-scales", metavar="S,...",
                     help="pareto: factors of NTWO's R_ow, R_od; ridge: the levels (default 0,0.1,1)")
     ap.add_argument("--quick", action="store_true",
-                    help="study: the reduced design, a smoke test (QUICK_TIME on 2 cores; "
-                         "the full design FULL_TIME)")
+                    help="study: the reduced design, a smoke test (about a minute on 2 "
+                         "cores; the full design about 65 min, docs/RESULTS.md); mismatch: 2 plants (tires x0.8, x1.2), "
+                         "2 paths, 1 seed, the quick levels")
     ap.add_argument("--trajectory", metavar="FILE",
                     help="study: add your own scenario on this t,x,y,phi CSV, run whole at "
                          "its own timing (with --vehicle: driven by that vehicle; the "
                          "design's scenarios keep the paper's), summarised on its own")
+    ap.add_argument("--plants", metavar="NAME,...",
+                    help="mismatch: the plants (default all: tires x0.7-x1.3, B or mu alone "
+                         "x0.8/x1.2, combined-slip, load-transfer+lags)")
+    ap.add_argument("--paths", type=int, metavar="N",
+                    help="mismatch: random paths (default 10; --quick 2)")
+    ap.add_argument("--seeds", type=int, metavar="N",
+                    help="mismatch: annealer seeds per scenario (default 3; --quick 1)")
+    ap.add_argument("--quick-levels", action="store_true",
+                    help="mismatch: each family at its --quick levels (12 runs a scenario "
+                         "instead of 25)")
     ap.add_argument("--scheduler", metavar="ADDRESS",
                     help="a Dask scheduler (tcp://HOST:8786) whose workers run the runs "
                          "(default: a local Dask cluster of --jobs processes)")
@@ -105,6 +119,31 @@ def _run(a, progress: bool) -> dict:
     check_output(a.json_out, "--json-out")
     methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
     masses = _masses_kg(a)
+    if a.experiment != "mismatch":
+        for name in ("plants", "paths", "seeds"):
+            if getattr(a, name) is not None:
+                raise OptionError(f"--{name} applies to the mismatch experiment")
+        if a.quick_levels:
+            raise OptionError("--quick-levels applies to the mismatch experiment")
+    if a.experiment == "mismatch":
+        from msagv.experiments.mismatch import parse_plants, run_mismatch
+
+        for name in ("duration", "masses", "masses_t", "methods", "two_scales",
+                     "smooth_scales", "ridge_scales", "speeds", "vehicle", "trajectory"):
+            if getattr(a, name) is not None:
+                raise OptionError(f"--{name.replace('_', '-')} does not apply to the mismatch "
+                                  f"experiment (its design: --plants, --paths, --seeds, "
+                                  f"--quick, --quick-levels)")
+        if a.paths is not None and a.paths < 2:
+            raise OptionError(f"--paths: at least 2 (the interval resamples paths), got {a.paths}")
+        if a.seeds is not None and a.seeds < 1:
+            raise OptionError(f"--seeds: at least 1, got {a.seeds}")
+        return run_mismatch(a.out, plants=parse_plants(a.plants) if a.plants else None,
+                            n_paths=a.paths,
+                            seeds=None if a.seeds is None else tuple(range(a.seeds)),
+                            quick=a.quick, levels_quick=a.quick or a.quick_levels,
+                            jobs=a.jobs, scheduler=a.scheduler, force=a.force,
+                            progress=progress)
     if a.experiment != "study" and (a.quick or a.trajectory):
         raise OptionError("--quick and --trajectory apply to the study")
     if a.experiment == "study":
@@ -160,8 +199,8 @@ def main(argv: list[str]) -> int:
         print((out / "pareto.md").read_text())
     elif a.experiment == "ridge":
         print((out / "ridge.md").read_text())
-    elif a.experiment == "study":
-        print((out / "study.md").read_text())
+    elif a.experiment in ("study", "mismatch"):
+        print((out / f"{a.experiment}.md").read_text())
     else:
         print((out / "table.md").read_text())
     return 0

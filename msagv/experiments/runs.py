@@ -121,7 +121,7 @@ def build_settings(spec: RunSpec):
 def config_of(spec: RunSpec, digest: str | None = None) -> dict:
     """Everything that determines the run's result (the content of its key)."""
     s = build_settings(spec)
-    return {
+    cfg = {
         "schema": SCHEMA,
         "case": spec.case,
         "speed_kmh": float(spec.speed_kmh),
@@ -135,6 +135,10 @@ def config_of(spec: RunSpec, digest: str | None = None) -> dict:
         "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
         "code": digest or code_digest(),
     }
+    if spec.extra.get("plant_vehicle"):  # the plant's own vehicle file, by its content
+        sc = spec.scenario()
+        cfg["plant_vehicle"] = sc.actual_vehicle(sc.resolve_vehicle()).to_dict()
+    return cfg
 
 
 def run_key(spec: RunSpec, digest: str | None = None) -> str:

@@ -77,10 +77,19 @@ class StudyScenario:
     raw: bool = False  # also run the raw-decision families here
     heading_deg: float | None = None  # the start off the line (Case 2): heading error ...
     offset_m: float | None = None  # ... or lateral offset, moving along the line
+    # the plant's own vehicle file (experiments.mismatch: a plant unlike the controller's
+    # vehicle; ``plant`` then names it) and what the controller knows of it: the column
+    # ('wrong', 'identified', 'adapted', 'true') and its settings for every family
+    plant_vehicle: str | None = None
+    model: str | None = None
+    settings: dict = field(default_factory=dict)
 
     @property
     def name(self) -> str:
         """Unique within a design: runs are grouped by it."""
+        if self.cls == "mismatch":
+            return (f"mismatch {Path(self.trajectory).stem}, {self.plant}, model {self.model}, "
+                    f"seed {self.seed}")
         if self.case == "random":
             first = (f"random-{self.path_seed}" if self.cls in ("random", "user")
                      else f"{self.cls} random-{self.path_seed}")
@@ -109,25 +118,32 @@ class StudyScenario:
         return ", ".join(parts)
 
     def _key(self, names) -> str:
-        d = {k: getattr(self, k) for k in names}
+        d = {k: getattr(self, k) for k in names
+             if getattr(self, k) is not None or k not in ("plant_vehicle", "model")}
         if self.trajectory:
             d["trajectory_sha"] = hashlib.sha256(Path(self.trajectory).read_bytes()).hexdigest()
         if self.vehicle:
             d["vehicle_sha"] = hashlib.sha256(Path(self.vehicle).read_bytes()).hexdigest()
+        if self.plant_vehicle:
+            d["plant_vehicle_sha"] = hashlib.sha256(Path(self.plant_vehicle).read_bytes()
+                                                    ).hexdigest()
+        if self.settings:
+            d["settings"] = self.settings
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
     @property
     def path_key(self) -> str:
         """What determines the reference, the plant's vehicle and the window (the floors)."""
         return self._key(("case", "speed", "mass_kg", "axles", "path_seed", "plant",
-                          "duration", "vehicle", "trajectory"))
+                          "duration", "vehicle", "trajectory", "plant_vehicle"))
 
     @property
     def unit_key(self) -> str:
         """Everything but the annealer seed: the instances of one scenario, which the
         analysis averages before it resamples scenarios."""
         return self._key(("cls", "case", "speed", "mass_kg", "axles", "path_seed", "plant",
-                          "duration", "vehicle", "trajectory", "heading_deg", "offset_m"))
+                          "duration", "vehicle", "trajectory", "heading_deg", "offset_m",
+                          "plant_vehicle", "model"))
 
     def initial(self) -> dict:
         """The start's overrides of the plant's state (Case 2's sweep), else none."""
@@ -140,7 +156,8 @@ class StudyScenario:
         return st
 
     def extra_fields(self) -> dict:
-        ex = dict(PLANTS[self.plant])
+        ex = (dict(PLANTS[self.plant]) if self.plant_vehicle is None
+              else {"plant_vehicle": self.plant_vehicle})
         if self.axles:
             ex["axles"] = self.axles
         if self.case == "random":
@@ -275,11 +292,27 @@ def run_specs(scenarios: list[StudyScenario], quick: bool = False) -> list[RunSp
                         "aware": fam.wear_aware, "scenario": sc.name, "class": sc.cls,
                         "plant": sc.plant, "path_key": sc.path_key, "unit": sc.unit_key,
                         "seed": sc.seed}
+                settings = dict(fam.settings_at(x), seed=sc.seed)
+                if sc.model is not None:
+                    tags["model"] = sc.model
+                    settings.update(column_settings(sc.settings, settings, fam.solver))
                 specs.append(RunSpec(fam.label(x), sc.name, case,
                                      0.0 if sc.speed is None else float(sc.speed), sc.mass_kg,
-                                     dict(fam.settings_at(x), seed=sc.seed), sc.duration,
-                                     sc.vehicle, tags, dict(extra, **fam.extra())))
+                                     settings, sc.duration, sc.vehicle, tags,
+                                     dict(extra, **fam.extra())))
     return specs
+
+
+def column_settings(column: dict, family: dict, solver: str) -> dict:
+    """A column's settings (:mod:`experiments.mismatch`) as they apply to one family: the
+    online tire adaptation (``adapt``) only where the family predicts with the Magic Formula
+    model and solves with the annealer or the feed-forward (the adaptation scales the Magic
+    Formula's tires; IPOPT and acados build them into their code); everything else as it
+    is."""
+    out = dict(column)
+    if out.get("adapt") and (family.get("model", "mf") != "mf" or solver in ("ipopt", "acados")):
+        out.pop("adapt")
+    return out
 
 
 # ---- the floors, once per path ------------------------------------------------------------------

@@ -1,0 +1,580 @@
+"""The study's question for a vehicle whose tires the controller does not know:
+``msagv experiment mismatch``.
+
+A real vehicle's tire coefficients are never known to 10 %. This experiment asks the
+study's question (:mod:`experiments.study`: does a wear term save wear at the same tracking
+error?) on plants unlike the controller's vehicle file, in four columns of what the
+controller knows:
+
+* ``wrong``: the file's vehicle (the paper's), as a user who never measured the tires;
+* ``identified``: the vehicle ``msagv calibrate`` identifies from one logged run of that
+  plant (the excitation manoeuvre of ``msagv calibrate --maneuver``, driven by the default
+  controller with the file's vehicle; :func:`identify_task`);
+* ``adapted``: the file's vehicle with the online tire adaptation (``--adapt``) in every
+  family that predicts with the Magic Formula model;
+* ``true``: the plant's own vehicle file (the model right).
+
+Every family of the study in each column, each with the offset-free disturbance on (the
+same action for every family: the kinematic model's too, whose default is off). The paths
+are random paths drawn for the file's vehicle (seeds 1..N at 15, 20 and 25 km/h in turn,
+15 s each) and written as ``t,x,y,phi`` files, so every column drives the same path
+whatever vehicle the controller believes in. The plants (:data:`PLANTS`): the Magic
+Formula's stiffness factor B and peak friction mu together x0.7 to x1.3, each alone x0.8
+and x1.2, combined slip, load transfer with actuator lags.
+
+The ratio per scenario is the study's (:func:`experiments.study_analysis.compare`: each
+side's front, the geometric mean at equal error; unmatched scenarios counted and entered at
+their most-accurate ratio in a second column). Across scenarios the 95 % interval is a
+percentile bootstrap that resamples *paths* as blocks (every plant and seed of a path goes
+in or out together: the plants share the paths), each scenario's seeds averaged in logs
+first. ``identified - true`` and ``adapted - true`` are the paired differences of the
+geometric means over the same path blocks.
+
+The wear floors are not computed here (a floor per plant and path would take longer than
+the runs): the ratios need none.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .checks import ScenarioError
+from .runs import PERIOD, code_digest, dask_map, run_all
+from .study import StudyScenario, run_specs
+
+# the plants unlike the file: factors on the Magic Formula's B and mu (both curves), or the
+# plant's own options (vehicle file [plant])
+PLANTS: dict[str, dict] = {
+    "tires x0.7": {"B": 0.7, "mu": 0.7},
+    "tires x0.8": {"B": 0.8, "mu": 0.8},
+    "tires x0.9": {"B": 0.9, "mu": 0.9},
+    "tires x1.1": {"B": 1.1, "mu": 1.1},
+    "tires x1.2": {"B": 1.2, "mu": 1.2},
+    "tires x1.3": {"B": 1.3, "mu": 1.3},
+    "B x0.8": {"B": 0.8},
+    "B x1.2": {"B": 1.2},
+    "mu x0.8": {"mu": 0.8},
+    "mu x1.2": {"mu": 1.2},
+    "combined-slip": {"plant": {"combined_slip": 1.0}},
+    "load-transfer+lags": {"plant": {"cg_height": 1.2, "wheel_lag": 0.05, "steer_lag": 0.05}},
+}
+MODELS = ("wrong", "identified", "adapted", "true")
+COLUMN_SETTINGS = {"wrong": {"offset_free": True}, "identified": {"offset_free": True},
+                   "adapted": {"offset_free": True, "adapt": True},
+                   "true": {"offset_free": True}}
+PATH_SPEEDS = (15.0, 20.0, 25.0)  # km/h, path p at PATH_SPEEDS[(p - 1) % 3]
+DURATION = 15.0  # s of each path
+PATHS = 10
+SEEDS = (0, 1, 2)
+QUICK = {"plants": ("tires x0.8", "tires x1.2"), "paths": 2, "seeds": 1}
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in name).strip("-")
+
+
+def plant_vehicle(base, name: str):
+    """The plant ``name`` of :data:`PLANTS` made from the vehicle ``base``."""
+    from msagv.plant.vehicle import vehicle_from_dict
+
+    spec = PLANTS[name]
+    d = base.to_dict()
+    for part in ("longitudinal", "lateral"):
+        for k in ("B", "mu"):
+            d["tire"][part][k] *= spec.get(k, 1.0)
+    d["plant"].update({k: float(v) for k, v in spec.get("plant", {}).items()})
+    d["name"] = f"{base.name} ({name})"
+    return vehicle_from_dict(d)
+
+
+def parse_plants(text: str | None) -> tuple[str, ...]:
+    """``--plants``: names of :data:`PLANTS`, comma-separated (``all``: every one)."""
+    if text is None or text.strip() == "all":
+        return tuple(PLANTS)
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    bad = [n for n in names if n not in PLANTS]
+    if bad or not names:
+        raise ScenarioError(f"--plants: unknown plant '{bad[0] if bad else text}' (known: "
+                            f"{', '.join(PLANTS)}, or all)")
+    return names
+
+
+# ---- the inputs: paths and plants as files -----------------------------------------------------
+def write_inputs(out: Path, plants, n_paths: int) -> tuple[list[Path], dict[str, Path], Path]:
+    """The path files, the plants' vehicle files and the manoeuvre under ``OUT/inputs/``
+    (written once, deterministic: rewriting them gives the same bytes)."""
+    from msagv.experiments.calibrate import maneuver, maneuver_csv, vehicle_toml
+    from msagv.experiments.scenario import Scenario
+    from msagv.plant.vehicle import default_vehicle
+
+    d = out / "inputs"
+    d.mkdir(parents=True, exist_ok=True)
+    base = default_vehicle()
+
+    def put(p: Path, text: str) -> Path:
+        if not p.is_file() or p.read_text() != text:
+            p.write_text(text)
+        return p
+
+    paths = []
+    for p in range(1, n_paths + 1):
+        v = PATH_SPEEDS[(p - 1) % len(PATH_SPEEDS)]
+        ref, _ = Scenario(case="random", speed=v, path_seed=p, duration=DURATION).reference()
+        f = d / f"random-{p}-{v:g}kmh.csv"
+        lines = ["t,x,y,phi"] + [f"{t!r},{x!r},{y!r},{ph!r}" for t, x, y, ph in
+                                 zip(ref.t.tolist(), ref.x.tolist(), ref.y.tolist(),
+                                     ref.phi.tolist())]
+        paths.append(put(f, "\n".join(lines) + "\n"))
+    files = {name: put(d / f"plant-{_slug(name)}.toml",
+                       vehicle_toml(plant_vehicle(base, name),
+                                    f"msagv experiment mismatch: the plant '{name}'"))
+             for name in plants}
+    man = put(d / "maneuver.csv", maneuver_csv(maneuver(base)))
+    return paths, files, man
+
+
+# ---- the identified column: one logged run of the plant, then msagv calibrate ----------------
+def logged_run(plant_file: str, maneuver_csv: str):
+    """The excitation manoeuvre driven by the default controller that believes the file's
+    vehicle, on the plant of ``plant_file``: its states and commands as
+    :class:`plant.identify.RunData` (what the plant's recording holds, in process)."""
+    from msagv.controller.loop import closed_loop
+    from msagv.experiments.scenario import Scenario
+    from msagv.plant.identify import RunData
+
+    sc = Scenario(trajectory=maneuver_csv, plant_vehicle=plant_file, after_end="stop",
+                  settings={"threads": 1})
+    b = sc.build()
+    rows = []
+
+    def on_step(k, st, cmd):
+        rows.append((st["t"], [st[f] for f in ("x", "y", "phi", "vx", "vy", "r")],
+                     list(st["delta"]), list(st["omega_w"]), list(cmd.omega_w),
+                     list(cmd.omega_s)))
+
+    try:
+        closed_loop(b.plant, b.controller, b.reference, b.duration, period=PERIOD,
+                    on_step=on_step, progress=False, outputs=False)
+    finally:
+        b.close()
+    cols = list(zip(*rows))
+    return RunData(*(np.array(c, dtype=float) for c in cols))
+
+
+def identify_task(name: str, plant_file: str, maneuver_csv: str, out_toml: str,
+                  digest: str) -> dict:
+    """One plant's identified vehicle (a Dask task): the logged run, ``calibrate`` on it, the
+    vehicle file written to ``out_toml``; returns the estimates against the plant's truth."""
+    from msagv.experiments.calibrate import vehicle_toml
+    from msagv.plant.identify import calibrate, values_of
+    from msagv.plant.vehicle import default_vehicle, load_vehicle
+
+    t0 = time.perf_counter()
+    base = default_vehicle()
+    data = logged_run(plant_file, maneuver_csv)
+    cal = calibrate(data, base, name=f"{base.name} (identified: {name})")
+    Path(out_toml).write_text(vehicle_toml(
+        cal.vehicle, f"msagv experiment mismatch: identified from a logged run of '{name}'"))
+    truth = values_of(load_vehicle(plant_file))
+    est = {p: {"value": e.value, "truth": truth.get(p), "base": e.base, "se": e.se,
+               "identified": e.identified, "why": e.why} for p, e in cal.estimates.items()}
+    return {"plant": name, "estimates": est, "seconds": cal.seconds, "code": digest,
+            "vehicle": out_toml, "wall_s": time.perf_counter() - t0}
+
+
+def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, scheduler=None,
+                    force: bool = False, progress: bool = True) -> dict[str, dict]:
+    """Every plant's identified vehicle, cached under ``OUT/identified/`` (by the plant's
+    file, the manoeuvre and the code)."""
+    d = out / "identified"
+    d.mkdir(parents=True, exist_ok=True)
+    digest = code_digest()
+    have, todo = {}, []
+    for name, f in files.items():
+        key = hashlib.sha256(f.read_bytes() + man.read_bytes() + digest.encode()
+                             ).hexdigest()[:16]
+        js, toml = d / f"{_slug(name)}.json", d / f"{_slug(name)}.toml"
+        if not force and js.is_file() and toml.is_file():
+            old = json.loads(js.read_text())
+            if old.get("key") == key:
+                have[name] = old
+                continue
+        todo.append((name, str(f), str(man), str(toml), digest, key, js))
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(todo), desc="identify the plants", unit="plant",
+                   file=sys.stderr, dynamic_ncols=True)
+    keys = {t[0]: (t[5], t[6]) for t in todo}
+
+    def done(res):
+        key, js = keys[res["plant"]]
+        res["key"] = key
+        js.write_text(json.dumps(res, indent=1))
+        have[res["plant"]] = res
+        if bar is not None:
+            bar.update(1)
+
+    try:
+        args = [t[:5] for t in todo]
+        if args and jobs == 1 and scheduler is None:
+            for a in args:
+                done(identify_task(*a))
+        elif args:
+            dask_map(identify_task, args, done, jobs=jobs, scheduler=scheduler)
+    finally:
+        if bar is not None:
+            bar.close()
+    return have
+
+
+# ---- the design ----------------------------------------------------------------------------
+def design(paths: list[Path], files: dict[str, Path], identified: dict[str, dict],
+           seeds=SEEDS) -> list[StudyScenario]:
+    """Every (path, plant, column, seed) as a study scenario."""
+    out = []
+    for path in paths:
+        for name, f in files.items():
+            vehicles = {"wrong": None, "identified": identified[name]["vehicle"],
+                        "adapted": None, "true": str(f)}
+            for model in MODELS:
+                for k in seeds:
+                    out.append(StudyScenario(
+                        "mismatch", "file", None, plant=name, seed=k, duration=DURATION,
+                        vehicle=vehicles[model], trajectory=str(path),
+                        plant_vehicle=str(f), model=model,
+                        settings=dict(COLUMN_SETTINGS[model])))
+    return out
+
+
+def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | None = None,
+                 seeds=None, quick: bool = False, levels_quick: bool | None = None,
+                 jobs: int | None = None, scheduler: str | None = None, force: bool = False,
+                 progress: bool = True) -> dict:
+    """Run (or resume) the experiment; returns its summary (``mismatch.json``).
+    ``quick``: :data:`QUICK`'s plants, paths and seeds and the families' quick levels."""
+    if quick:
+        plants = plants or QUICK["plants"]
+        n_paths = n_paths or QUICK["paths"]
+        seeds = seeds or tuple(range(QUICK["seeds"]))
+    plants = tuple(plants or PLANTS)
+    n_paths = PATHS if n_paths is None else int(n_paths)
+    seeds = tuple(SEEDS if seeds is None else seeds)
+    if n_paths < 2:
+        raise ScenarioError(f"--paths: at least 2 (the interval resamples paths), got {n_paths}")
+    if not seeds or any(k < 0 for k in seeds):
+        raise ScenarioError(f"--seeds: at least one annealer seed >= 0, got {seeds}")
+    levels_quick = quick if levels_quick is None else levels_quick
+    out = Path(out) if out is not None else Path("runs") / ("mismatch-quick" if quick
+                                                            else "mismatch")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    paths, files, man = write_inputs(out, plants, n_paths)
+    identified = identify_plants(files, man, out, jobs, scheduler, force, progress)
+    scenarios = design(paths, files, identified, seeds)
+    specs = run_specs(scenarios, quick=levels_quick)
+    results, summ = run_all(specs, out, jobs=jobs, force=force, progress=progress,
+                            desc="mismatch", scheduler=scheduler)
+    summ["total_wall_s"] = time.perf_counter() - t0
+    summ["scenarios"] = len(scenarios)
+    design_doc = {"plants": list(plants), "paths": [p.name for p in paths],
+                  "seeds": list(seeds), "levels": "quick" if levels_quick else "default",
+                  "duration_s": DURATION, "speeds_kmh": list(PATH_SPEEDS)}
+    return report(results, scenarios, identified, design_doc, out, summ)
+
+
+# ---- the analysis --------------------------------------------------------------------------
+def _block_ci(blocks: list[np.ndarray], stat) -> list[float | None]:
+    """95 % percentile bootstrap of ``stat(concatenated blocks)`` resampling the blocks."""
+    from scipy.stats import bootstrap
+
+    from .study_analysis import BOOTSTRAP, _bootstrap_kw
+
+    if len(blocks) < 2:
+        return [None, None]
+    idx = np.arange(len(blocks))
+    vals = [stat(np.concatenate([blocks[j] for j in np.atleast_1d(i)])) for i in idx]
+    full = stat(np.concatenate(blocks))
+    if all(v == full for v in vals):
+        return [float(full), float(full)]
+
+    def s(i):
+        return stat(np.concatenate([blocks[j] for j in i]))
+
+    ci = bootstrap((idx,), s, vectorized=False, n_resamples=BOOTSTRAP, method="percentile",
+                   **_bootstrap_kw()).confidence_interval
+    return [float(ci.low), float(ci.high)]
+
+
+def pooled_blocked(items: list[dict], key: str = "ratio", fill: str | None = None) -> dict:
+    """The geometric mean of ``key`` over the scenarios of ``items`` (a scenario's seeds
+    averaged in logs first) with its 95 % interval resampling paths as blocks."""
+    units: dict[str, list[float]] = {}
+    block_of: dict[str, str] = {}
+    missing = 0
+    for d in items:
+        v = d.get(key)
+        if (v is None or not v > 0) and fill is not None:
+            v = d.get(fill)
+        if v is None or not v > 0:
+            missing += 1
+            continue
+        units.setdefault(d["unit"], []).append(math.log(v))
+        block_of[d["unit"]] = d["path"]
+    by_block: dict[str, list[float]] = {}
+    for u, logs in units.items():
+        by_block.setdefault(block_of[u], []).append(float(np.mean(logs)))
+    res = {"n": len(units), "paths": len(by_block), "missing": missing, "gmean": None,
+           "ci95": [None, None], "below_1": None}
+    if not units:
+        return res
+    blocks = [np.array(v) for v in by_block.values()]
+    allv = np.concatenate(blocks)
+    lo, hi = _block_ci(blocks, np.mean)
+    res.update(gmean=float(np.exp(allv.mean())), below_1=int(np.sum(allv < 0)),
+               ci95=[None if lo is None else float(np.exp(lo)),
+                     None if hi is None else float(np.exp(hi))])
+    return res
+
+
+def paired_difference(items: list[dict], model: str, key: str = "ratio",
+                      fill: str | None = None) -> dict:
+    """``gmean(model) - gmean(true)`` over the (path, plant, seed) both have, with its 95 %
+    interval resampling paths as blocks (the pairs stay together)."""
+    val = {}
+    for d in items:
+        v = d.get(key)
+        if (v is None or not v > 0) and fill is not None:
+            v = d.get(fill)
+        if v is not None and v > 0:
+            val[(d["path"], d["plant"], d["seed"], d["model"])] = math.log(v)
+    by_block: dict[str, list[tuple[float, float]]] = {}
+    for (path, plant, seed, m), v in val.items():
+        t = val.get((path, plant, seed, "true"))
+        if m == model and t is not None:
+            by_block.setdefault(path, []).append((v, t))
+    res = {"pairs": sum(len(v) for v in by_block.values()), "paths": len(by_block),
+           "difference": None, "ci95": [None, None]}
+    if not by_block:
+        return res
+    blocks = [np.array(v) for v in by_block.values()]
+
+    def stat(a):
+        a = a.reshape(-1, 2)
+        return float(np.exp(a[:, 0].mean()) - np.exp(a[:, 1].mean()))
+
+    flat = [b.ravel() for b in blocks]
+    res["difference"] = stat(np.concatenate(flat))
+    res["ci95"] = _block_ci(flat, stat)
+    return res
+
+
+def summarise(comparisons: list[dict], plants) -> dict:
+    """Per column: pooled over every plant and path, and per plant; the paired differences
+    against the true model."""
+    out = {"by_model": {}, "by_plant": {}, "against_true": {}}
+    for m in MODELS:
+        items = [d for d in comparisons if d["model"] == m]
+        out["by_model"][m] = {
+            "scenarios": len({d["unit"] for d in items}), "instances": len(items),
+            "equal_error": pooled_blocked(items),
+            "with_unmatched": pooled_blocked(items, fill="most_accurate"),
+            "unmatched": sum(d["reason"] is not None for d in items),
+            "e_ntwo_cm": _mean([d["e_ntwo_cm"] for d in items])}
+        out["by_plant"][m] = {}
+        for p in plants:
+            its = [d for d in items if d["plant"] == p]
+            out["by_plant"][m][p] = {
+                "equal_error": pooled_blocked(its),
+                "with_unmatched": pooled_blocked(its, fill="most_accurate"),
+                "unmatched": sum(d["reason"] is not None for d in its),
+                "instances": len(its), "e_ntwo_cm": _mean([d["e_ntwo_cm"] for d in its])}
+    for m in MODELS[:-1]:
+        out["against_true"][m] = {
+            "equal_error": paired_difference(comparisons, m),
+            "with_unmatched": paired_difference(comparisons, m, fill="most_accurate")}
+    return out
+
+
+def _mean(v):
+    v = [x for x in v if x is not None]
+    return float(np.mean(v)) if v else None
+
+
+def _ci_text(s: dict) -> str:
+    if s.get("gmean") is None:
+        return "n/a"
+    lo, hi = s["ci95"]
+    ci = "" if lo is None else f" [{lo:.3f}, {hi:.3f}]"
+    return f"{s['gmean']:.3f}{ci}"
+
+
+def _diff_text(s: dict) -> str:
+    if s.get("difference") is None:
+        return "n/a"
+    lo, hi = s["ci95"]
+    ci = "" if lo is None else f" [{lo:+.3f}, {hi:+.3f}]"
+    return f"{s['difference']:+.3f}{ci} ({s['pairs']} pairs)"
+
+
+ID_PARAMS = ("lateral.K", "lateral.mu", "longitudinal.K", "longitudinal.mu", "wheel_lag",
+             "steer_lag")
+
+
+def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
+             sentence: str) -> str:
+    plants = design_doc["plants"]
+    L = ["# Tires the controller does not know: the study's question on plants unlike the "
+         "vehicle file", "",
+         f"`msagv experiment mismatch`: {runs['runs']} runs ({runs['failed']} failed) on "
+         f"{len(design_doc['paths'])} random paths ({DURATION:g} s at "
+         f"{', '.join(f'{v:g}' for v in PATH_SPEEDS)} km/h in turn) x {len(plants)} plants x "
+         f"4 columns x {len(design_doc['seeds'])} annealer seed(s), the families' "
+         f"{design_doc['levels']} levels, every family with the offset-free disturbance.", "",
+         f"**{sentence}**", "",
+         "Wear-aware / wear-blind tire wear at equal lateral RMS error (the study's rule), "
+         "geometric mean over paths and plants, 95 % percentile bootstrap resampling paths as "
+         "blocks; *u*: scenarios whose fronts share no error (entered at their most-accurate "
+         "ratio in the second line of each cell's pair of tables).", "",
+         "| plant | model wrong | identified (one logged run) | adapted online | model true |",
+         "|---|---|---|---|---|"]
+    for p in plants:
+        cells = []
+        for m in MODELS:
+            s = summary["by_plant"][m][p]
+            cells.append(f"{_ci_text(s['equal_error'])} (u {s['unmatched']})")
+        L.append(f"| {p} | " + " | ".join(cells) + " |")
+    cells = [f"**{_ci_text(summary['by_model'][m]['equal_error'])}** "
+             f"(u {summary['by_model'][m]['unmatched']})" for m in MODELS]
+    L.append("| all | " + " | ".join(cells) + " |")
+    L += ["", "With the unmatched scenarios at their most-accurate ratio:", "",
+          "| plant | model wrong | identified | adapted | model true |", "|---|---|---|---|---|"]
+    for p in plants:
+        L.append(f"| {p} | " + " | ".join(
+            _ci_text(summary["by_plant"][m][p]["with_unmatched"]) for m in MODELS) + " |")
+    L.append("| all | " + " | ".join(
+        f"**{_ci_text(summary['by_model'][m]['with_unmatched'])}**" for m in MODELS) + " |")
+    L += ["", "Each column against the true model (the paired difference of the geometric "
+          "means over the same paths, plants and seeds; 95 % interval resampling paths):", "",
+          "| column | at equal error | with the unmatched |", "|---|---|---|"]
+    for m in MODELS[:-1]:
+        a = summary["against_true"][m]
+        L.append(f"| {m} - true | {_diff_text(a['equal_error'])} | "
+                 f"{_diff_text(a['with_unmatched'])} |")
+    L += ["", "NTWO's lateral RMS error [cm] (mean over paths): the offset-free disturbance "
+          "against each column's model:", "",
+          "| plant | model wrong | identified | adapted | model true |", "|---|---|---|---|---|"]
+    for p in plants:
+        L.append(f"| {p} | " + " | ".join(_f(summary["by_plant"][m][p]["e_ntwo_cm"])
+                                          for m in MODELS) + " |")
+    L += ["", "The identified vehicles (`msagv calibrate`'s estimator on one logged run of the "
+          "excitation manoeuvre per plant): value / truth, or why a parameter was not "
+          "identified (then the file's value is kept):", "",
+          "| plant | " + " | ".join(ID_PARAMS) + " |", "|---|" + "---|" * len(ID_PARAMS)]
+    for p in plants:
+        est = identified.get(p, {}).get("estimates", {})
+        cells = []
+        for k in ID_PARAMS:
+            e = est.get(k)
+            if e is None:
+                cells.append("")
+            elif not e["identified"]:
+                cells.append("not identified")
+            elif e["truth"]:
+                cells.append(f"{e['value'] / e['truth']:.3f}")
+            else:
+                cells.append(f"{e['value']:.3g} (truth {e['truth']:.3g})")
+        L.append(f"| {p} | " + " | ".join(cells) + " |")
+    return "\n".join(L) + "\n"
+
+
+def _f(v):
+    return "n/a" if v is None else f"{v:.2f}"
+
+
+def the_sentence(summary: dict) -> str:
+    """What a user with unknown tires can expect, in one sentence, from the numbers."""
+    bm = summary["by_model"]
+
+    def t(m):
+        s = bm[m]["with_unmatched"]
+        return _ci_text(s)
+
+    return (f"With tires it does not know, the wear-aware controller wears "
+            f"{t('wrong')}x the best wear-blind controller's wear at equal error (unmatched "
+            f"scenarios at their most-accurate ratio); with the tires identified from one "
+            f"logged run {t('identified')}x, adapted online {t('adapted')}x, and with the "
+            f"true tires {t('true')}x")
+
+
+def plot(summary: dict, plants, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.9 * len(plants) + 2.5), 4.2))
+    cols = {"wrong": "C3", "identified": "C0", "adapted": "C2", "true": "k"}
+    rows = list(plants) + ["all"]
+    w = 0.8 / len(MODELS)
+    for j, m in enumerate(MODELS):
+        for i, p in enumerate(rows):
+            s = (summary["by_model"][m] if p == "all" else summary["by_plant"][m][p]
+                 )["with_unmatched"]
+            if s["gmean"] is None:
+                continue
+            x = i + (j - 1.5) * w
+            lo, hi = s["ci95"]
+            yerr = None if lo is None else [[s["gmean"] - lo], [hi - s["gmean"]]]
+            ax.errorbar([x], [s["gmean"]], yerr=yerr, fmt="o", color=cols[m], ms=4,
+                        capsize=2, label=m if i == 0 else None)
+    ax.axhline(1.0, color="0.5", lw=0.8, ls="--")
+    ax.set_xticks(range(len(rows)))
+    ax.set_xticklabels(rows, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("wear-aware / wear-blind wear\nat equal error")
+    ax.set_title("Plants unlike the vehicle file: what the controller knows", fontsize=10)
+    ax.legend(fontsize=8, ncol=4, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def report(results: list[dict], scenarios, identified: dict, design_doc: dict, out: Path,
+           runs: dict) -> dict:
+    """Write ``mismatch.md``, ``mismatch.json``, ``mismatch.png``; return the JSON document."""
+    from .results import stamp
+    from .study_analysis import _json_default, _row, compare
+
+    meta = {sc.name: sc for sc in scenarios}
+    rows = [_row(r, {}) for r in results]
+    for r, res in zip(rows, results):
+        r["model"] = res["spec"]["tags"].get("model")
+    comparisons = compare(rows)
+    for d in comparisons:
+        sc = meta[d["scenario"]]
+        d.update(model=sc.model, path=Path(sc.trajectory).name)
+    summary = summarise(comparisons, design_doc["plants"])
+    sentence = the_sentence(summary)
+    (out / "mismatch.md").write_text(markdown(summary, identified, design_doc, runs, sentence))
+    figures = []
+    if any(r["status"] == "ok" for r in rows):
+        plot(summary, design_doc["plants"], out / "mismatch.png")
+        figures.append("mismatch.png")
+    doc = {"experiment": "mismatch", "design": design_doc, "sentence": sentence,
+           "summary": summary, "identified": identified, "rows": rows,
+           "comparisons": [{k: v for k, v in d.items() if k not in ("aware_front",
+                                                                    "blind_front")}
+                           for d in comparisons],
+           "runs": runs, "figures": figures, "out": str(out)}
+    doc = stamp(doc, results)
+    text = json.dumps(doc, indent=1, default=_json_default)
+    (out / "mismatch.json").write_text(text)
+    return json.loads(text)

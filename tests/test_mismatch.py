@@ -1,0 +1,150 @@
+"""msagv experiment mismatch (experiments.mismatch): the plants, the design's columns, the
+interval that resamples paths as blocks, the paired difference, the command's refusals."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msagv.experiments import mismatch as mm
+from msagv.experiments.checks import ScenarioError
+from msagv.experiments.study import run_specs
+from msagv.plant.vehicle import default_vehicle, load_vehicle
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_plants_scale_what_they_name_and_nothing_else():
+    base = default_vehicle()
+    for name, spec in mm.PLANTS.items():
+        v = mm.plant_vehicle(base, name)
+        for part, b, p in (("lateral", base.tire_lateral, v.tire_lateral),
+                           ("longitudinal", base.tire_longitudinal, v.tire_longitudinal)):
+            assert p.B == pytest.approx(b.B * spec.get("B", 1.0), rel=1e-12), (name, part)
+            assert p.mu == pytest.approx(b.mu * spec.get("mu", 1.0), rel=1e-12), (name, part)
+            assert (p.C, p.E) == (b.C, b.E)
+        assert v.mass == base.mass and v.yaw_inertia == base.yaw_inertia
+        plant = v.to_dict()["plant"]
+        for k, val in base.to_dict()["plant"].items():
+            assert plant[k] == spec.get("plant", {}).get(k, val), (name, k)
+
+
+def test_inputs_are_files_every_column_shares(tmp_path):
+    paths, files, man = mm.write_inputs(tmp_path, ("tires x0.8", "mu x1.2"), 2)
+    again = mm.write_inputs(tmp_path, ("tires x0.8", "mu x1.2"), 2)
+    assert [p.read_bytes() for p in paths] == [p.read_bytes() for p in again[0]]
+    v = load_vehicle(files["tires x0.8"])
+    assert v.tire_lateral.B == pytest.approx(0.8 * default_vehicle().tire_lateral.B)
+    identified = {n: {"vehicle": str(files[n])} for n in files}  # stand-in files, read only
+    scen = mm.design(paths, files, identified, seeds=(0,))
+    assert len(scen) == 2 * 2 * 4
+    assert {s.trajectory for s in scen} == {str(p) for p in paths}
+    for s in scen:
+        assert s.plant_vehicle == str(files[s.plant])
+        assert s.vehicle == {"wrong": None, "adapted": None, "identified": str(files[s.plant]),
+                             "true": str(files[s.plant])}[s.model]
+    names = [s.name for s in scen]
+    assert len(set(names)) == len(names)
+    specs = run_specs(scen, quick=True)
+    for sp in specs:
+        st, fam_model = sp.settings, sp.settings.get("model", "mf")
+        assert st["offset_free"] is True, sp.label  # the same action for every family
+        adapted = sp.tags["model"] == "adapted" and fam_model == "mf"
+        assert st.get("adapt", False) is adapted, (sp.label, sp.tags["model"])
+        sc = sp.scenario()
+        sc.mpc_settings()  # every column's settings are valid for every family
+        # the plant is the plant's file whatever the controller believes
+        assert sc.actual_vehicle(sc.resolve_vehicle()).tire_lateral.B == pytest.approx(
+            load_vehicle(sp.extra["plant_vehicle"]).tire_lateral.B)
+
+
+def _items(values: dict[str, list[float]]) -> list[dict]:
+    return [{"unit": f"{p}/{i}", "path": p, "ratio": v, "reason": None}
+            for p, vs in values.items() for i, v in enumerate(vs)]
+
+
+def test_blocked_interval_equals_the_bootstrap_of_the_path_means():
+    """Blocks of equal size: the mean over resampled blocks is the mean of resampled block
+    means, so the interval must equal scipy's bootstrap of the per-path means."""
+    from scipy.stats import bootstrap
+
+    from msagv.experiments.study_analysis import BOOTSTRAP, _bootstrap_kw
+
+    rng = np.random.default_rng(3)
+    values = {f"p{k}": list(np.exp(rng.normal(-0.05, 0.04, size=3))) for k in range(7)}
+    res = mm.pooled_blocked(_items(values))
+    logs = {p: np.log(v) for p, v in values.items()}
+    means = np.array([m.mean() for m in logs.values()])
+    assert res["gmean"] == pytest.approx(math.exp(means.mean()), rel=1e-12)
+    ci = bootstrap((means,), np.mean, n_resamples=BOOTSTRAP, method="percentile",
+                   **_bootstrap_kw()).confidence_interval
+    assert res["ci95"] == pytest.approx([math.exp(ci.low), math.exp(ci.high)], rel=1e-9)
+    assert res["n"] == 21 and res["paths"] == 7
+
+
+def test_blocks_widen_the_interval_when_a_path_is_repeated():
+    """Units of one path that agree are one observation, not many: the blocked interval of
+    3 paths x 10 identical units is the 3 paths' interval, wider than 30 independent units
+    would give."""
+    values = {"a": [0.9] * 10, "b": [0.95] * 10, "c": [1.02] * 10}
+    res = mm.pooled_blocked(_items(values))
+    lo, hi = res["ci95"]
+    assert lo == pytest.approx(0.9, rel=1e-9) and hi == pytest.approx(1.02, rel=1e-9)
+
+
+def test_unmatched_enter_only_with_fill():
+    items = _items({"a": [0.9, 0.95], "b": [1.0, 0.97]})
+    items[0].update(ratio=None, reason="no shared error", most_accurate=1.3)
+    plain = mm.pooled_blocked(items)
+    filled = mm.pooled_blocked(items, fill="most_accurate")
+    assert plain["n"] == 3 and plain["missing"] == 1
+    assert filled["n"] == 4 and filled["missing"] == 0
+    assert filled["gmean"] == pytest.approx((1.3 * 0.95 * 1.0 * 0.97) ** 0.25)
+
+
+def test_paired_difference_hand_computed():
+    comp = []
+    for path, (r_id, r_true) in {"a": (0.9, 0.92), "b": (1.0, 0.95)}.items():
+        for model, r in (("identified", r_id), ("true", r_true)):
+            comp.append({"path": path, "plant": "x", "seed": 0, "model": model, "ratio": r})
+    d = mm.paired_difference(comp, "identified")
+    expect = math.sqrt(0.9 * 1.0) - math.sqrt(0.92 * 0.95)
+    assert d["difference"] == pytest.approx(expect, rel=1e-12)
+    assert d["pairs"] == 2 and d["paths"] == 2
+    lo, hi = d["ci95"]
+    assert lo <= d["difference"] <= hi
+
+
+def test_parse_plants():
+    assert mm.parse_plants("all") == tuple(mm.PLANTS)
+    assert mm.parse_plants("tires x0.8, mu x1.2") == ("tires x0.8", "mu x1.2")
+    with pytest.raises(ScenarioError, match="unknown plant 'x9'"):
+        mm.parse_plants("tires x0.8,x9")
+
+
+@pytest.mark.parametrize("args, msg", [
+    (["--plants", "tires x9"], "unknown plant 'tires x9'"),
+    (["--paths", "1"], "--paths: at least 2"),
+    (["--seeds", "0"], "--seeds: at least 1"),
+    (["--speeds", "20"], "--speeds does not apply to the mismatch"),
+])
+def test_cli_refuses_bad_options_in_one_line(tmp_path, args, msg):
+    r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "mismatch", "-o",
+                        str(tmp_path / "out"), *args], capture_output=True, text=True,
+                       cwd=ROOT, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert msg in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "runs").exists()
+
+
+def test_study_options_refused_elsewhere(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "case1", "--paths", "3",
+                        "-o", str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT,
+                       timeout=120)
+    assert r.returncode == 2 and "--paths applies to the mismatch experiment" in r.stderr
