@@ -204,7 +204,7 @@ def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, sch
         if not force and js.is_file() and toml.is_file():
             old = json.loads(js.read_text())
             if old.get("key") == key:
-                have[name] = old
+                have[name] = dict(old, vehicle=str(toml))  # where this output keeps it
                 continue
         todo.append((name, str(f), str(man), str(toml), digest, key, js))
     bar = None

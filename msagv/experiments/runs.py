@@ -128,8 +128,9 @@ def config_of(spec: RunSpec, digest: str | None = None) -> dict:
         "duration": None if spec.duration is None else float(spec.duration),
         "period": PERIOD,
         "vehicle": build_vehicle(spec).to_dict(),
-        "extra": dict(spec.extra),
-        # a trajectory file by its content: an edited file reruns its runs
+        # files by their content, not their paths: an edited file reruns its runs, a moved
+        # one does not
+        "extra": {k: v for k, v in spec.extra.items() if k not in ("trajectory", "plant_vehicle")},
         "trajectory_sha": (hashlib.sha256(Path(spec.extra["trajectory"]).read_bytes()).hexdigest()
                            if spec.extra.get("trajectory") else None),
         "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
