@@ -148,3 +148,45 @@ def test_study_options_refused_elsewhere(tmp_path):
                         "-o", str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT,
                        timeout=120)
     assert r.returncode == 2 and "--paths applies to the mismatch experiment" in r.stderr
+
+
+def _result(sc, label, aware, e_cm, w, k):
+    tags = {"family": label.split()[0], "lever": "none", "level": None, "aware": aware,
+            "scenario": sc.name, "class": sc.cls, "plant": sc.plant, "seed": sc.seed,
+            "path_key": sc.path_key, "unit": sc.unit_key, "model": sc.model}
+    return {"key": f"k{k}", "status": "ok", "error": None, "wall_s": 1.0,
+            "spec": {"label": label, "group": sc.name, "tags": tags},
+            "metrics": {"W_tw": w, "e_lat_rms_cm": e_cm}}
+
+
+def test_report_pools_the_columns_as_hand_computed(tmp_path):
+    """Fronts built so that each scenario's equal-error ratio is known: the aware side is the
+    blind side's wear times a factor at the same errors, per column and path; the report
+    pools them as geometric means, says so in its sentence, and writes its files."""
+    paths, files, _ = mm.write_inputs(tmp_path, ("tires x0.8",), 2)
+    identified = {"tires x0.8": {"vehicle": str(files["tires x0.8"]), "estimates": {}}}
+    scen = mm.design(paths, files, identified, seeds=(0,))
+    factor = {("wrong", 0): 1.05, ("wrong", 1): 0.99, ("identified", 0): 0.96,
+              ("identified", 1): 0.94, ("adapted", 0): 0.97, ("adapted", 1): 0.95,
+              ("true", 0): 0.95, ("true", 1): 0.94}
+    results, k = [], 0
+    for sc in scen:
+        f = factor[(sc.model, paths.index(Path(sc.trajectory)))]
+        for e, w in ((0.2, 3000.0), (0.5, 2500.0), (1.0, 2000.0)):
+            results.append(_result(sc, f"NTWO{e}", False, e, w, k))
+            results.append(_result(sc, f"TWO-energy{e}", True, e, w * f, k + 1))
+            k += 2
+    design_doc = {"plants": ["tires x0.8"], "paths": [p.name for p in paths], "seeds": [0],
+                  "levels": "quick", "duration_s": mm.DURATION, "speeds_kmh": [15, 20]}
+    doc = mm.report(results, scen, identified, design_doc, tmp_path,
+                    {"runs": len(results), "failed": 0})
+    for m in mm.MODELS:
+        s = doc["summary"]["by_model"][m]["equal_error"]
+        assert s["gmean"] == pytest.approx(math.sqrt(factor[(m, 0)] * factor[(m, 1)]), rel=1e-9)
+        assert s["paths"] == 2 and doc["summary"]["by_model"][m]["unmatched"] == 0
+    d = doc["summary"]["against_true"]["identified"]["equal_error"]
+    assert d["difference"] == pytest.approx(math.sqrt(0.96 * 0.94) - math.sqrt(0.95 * 0.94))
+    assert f"{math.sqrt(1.05 * 0.99):.3f}" in doc["sentence"]
+    text = (tmp_path / "mismatch.md").read_text()
+    assert doc["sentence"] in text and "| tires x0.8 |" in text
+    assert (tmp_path / "mismatch.png").stat().st_size > 1000

@@ -442,8 +442,8 @@ def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
          f"**{sentence}**", "",
          "Wear-aware / wear-blind tire wear at equal lateral RMS error (the study's rule), "
          "geometric mean over paths and plants, 95 % percentile bootstrap resampling paths as "
-         "blocks; *u*: scenarios whose fronts share no error (entered at their most-accurate "
-         "ratio in the second line of each cell's pair of tables).", "",
+         "blocks; *u*: scenarios whose fronts share no error (left out here, entered at their "
+         "most-accurate ratio in the second table).", "",
          "| plant | model wrong | identified (one logged run) | adapted online | model true |",
          "|---|---|---|---|---|"]
     for p in plants:
@@ -508,11 +508,15 @@ def the_sentence(summary: dict) -> str:
         s = bm[m]["with_unmatched"]
         return _ci_text(s)
 
+    def u(m):
+        return f"{bm[m]['unmatched']} of {bm[m]['instances']}"
+
     return (f"With tires it does not know, the wear-aware controller wears "
-            f"{t('wrong')}x the best wear-blind controller's wear at equal error (unmatched "
-            f"scenarios at their most-accurate ratio); with the tires identified from one "
-            f"logged run {t('identified')}x, adapted online {t('adapted')}x, and with the "
-            f"true tires {t('true')}x")
+            f"{t('wrong')}x the best wear-blind controller's wear at equal error ({u('wrong')} "
+            f"scenarios unmatched, entered at their most-accurate ratio); with the tires "
+            f"identified from one logged run {t('identified')}x ({u('identified')}), adapted "
+            f"online {t('adapted')}x ({u('adapted')}), and with the true tires {t('true')}x "
+            f"({u('true')})")
 
 
 def plot(summary: dict, plants, path: Path) -> None:
