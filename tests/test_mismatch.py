@@ -190,3 +190,26 @@ def test_report_pools_the_columns_as_hand_computed(tmp_path):
     text = (tmp_path / "mismatch.md").read_text()
     assert doc["sentence"] in text and "| tires x0.8 |" in text
     assert (tmp_path / "mismatch.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_quick_design_end_to_end(tmp_path):
+    """The command on one plant (tires x0.8), two paths, the quick levels: the plant's
+    tires identified from its logged run (slopes within 5 %, peaks within 10 %), every run
+    finished, a ratio per column, the files written."""
+    r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "mismatch", "--quick",
+                        "--plants", "tires x0.8", "-o", str(tmp_path), "--json", "--jobs", "2"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=3600)
+    assert r.returncode == 0, r.stderr
+    import json
+
+    doc = json.loads(r.stdout)
+    est = doc["identified"]["tires x0.8"]["estimates"]
+    for name, tol in (("lateral.K", 0.05), ("longitudinal.K", 0.05), ("lateral.mu", 0.10),
+                      ("longitudinal.mu", 0.10)):
+        assert est[name]["identified"], name
+        assert est[name]["value"] == pytest.approx(est[name]["truth"], rel=tol), name
+    assert all(row["status"] == "ok" for row in doc["rows"])
+    for m in mm.MODELS:
+        assert doc["summary"]["by_model"][m]["instances"] == 2
+    assert (tmp_path / "mismatch.md").is_file() and (tmp_path / "mismatch.png").is_file()
