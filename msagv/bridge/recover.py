@@ -66,12 +66,8 @@ def _count(path: Path) -> Counter:
 
 def repair_mcap(path: str | Path) -> Repaired:
     """Make ``path`` a complete MCAP file (see the module docstring). Raises
-    :class:`RecordingError` for a file that is not MCAP at all."""
-    from mcap.exceptions import McapError
-    from mcap.records import Channel, Header, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap.writer import Writer
-
+    :class:`RecordingError` for a file that is not MCAP at all, or whose recovered copy
+    cannot be written (nothing is left behind then)."""
     p = Path(path)
     if not p.is_file():
         raise RecordingError(f"{p}: no such file")
@@ -82,6 +78,25 @@ def repair_mcap(path: str | Path) -> Repaired:
         n = _count(p)
         return Repaired(str(p), True, sum(n.values()), dict(n))
     tmp = p.with_name(p.name + ".recovering")
+    try:
+        counts = _rewrite(p, tmp)
+    except OSError as e:  # a full disk, a quota, a file-size limit: nothing left behind
+        tmp.unlink(missing_ok=True)
+        raise RecordingError(f"{p}: cannot write the recovered copy beside it "
+                             f"({e.strerror or e}); the recording is unchanged: free some "
+                             f"space and run msagv recover again") from None
+    os.replace(tmp, p)
+    return Repaired(str(p), False, sum(counts.values()), dict(counts))
+
+
+def _rewrite(p: Path, tmp: Path) -> Counter:
+    """Every complete record of ``p`` up to its cut, written as a complete MCAP file to
+    ``tmp``; the messages kept, by topic. A write that fails raises OSError."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Header, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import Writer
+
     counts: Counter = Counter()
     with open(p, "rb") as src, open(tmp, "wb") as dst:
         w = None
@@ -95,8 +110,8 @@ def repair_mcap(path: str | Path) -> Repaired:
                 r = next(it)
             except StopIteration:
                 break
-            except (McapError, ValueError, KeyError, EOFError, OSError, Exception):
-                break  # the cut: everything before it is kept
+            except (McapError, ValueError, KeyError, EOFError, Exception):
+                break  # the cut (reading): everything before it is kept
             if isinstance(r, Header):
                 w = Writer(dst)
                 w.start(profile=r.profile, library=r.library)
@@ -125,8 +140,7 @@ def repair_mcap(path: str | Path) -> Repaired:
             tmp.unlink()
             raise RecordingError(f"{p}: no MCAP header (nothing to recover)")
         w.finish()
-    os.replace(tmp, p)
-    return Repaired(str(p), False, sum(counts.values()), dict(counts))
+    return counts
 
 
 def recording_files(path: str | Path) -> tuple[list[Path], Path | None, list[Path]]:

@@ -27,7 +27,8 @@ COMMANDS = {
     "calibrate": "calibrate RECORDING -o tuned.toml: the vehicle's tires and lags from a recording",
     "view": "view FILE: a recording in Rerun's 3D viewer (vehicle, wheel wear, paths, errors)",
     "recover": "recover FILE: a recording cut short by a kill or a full disk made readable",
-    "experiment": "the paper's Cases 1-3, the Pareto front and the ridge study",
+    "experiment": "the paper's Cases 1-3, the Pareto front, the ridge study; the study (the "
+                  "paper's question at equal error) and mismatch (with tires it does not know)",
     "fmu": "fmu build | fmu simulate",
     "bench": "benchmarks (plant, rollout, controller, optimality, nmpc, transport, fmu)",
 }
