@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers import ROOT, msagv
+from helpers import ROOT, msagv, run_msagv
 
 T = 0.01
 
@@ -538,16 +538,20 @@ def _remaining(f, length, px, py):
     return (lambda v: f(min(length, s0 + v))), max(length - s0, 0.0)
 
 
-def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_file):
-    """Issue 32 item 2: a plan as NavFn gives it (one costmap cell apart, every orientation
-    the identity but the goal's, stamps zero) through a 90-degree turn, replanned at 1 Hz
-    from where the vehicle is, as Nav2 does: the vehicle heads along the path (no crabbing),
-    stands at the goal within 5 cm and 2 deg, and, the goal reached, stays: wheels stopped,
-    steering held at its angles while the plans to the same goal keep coming."""
+def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_file,
+                                                     tmp_path):
+    """Issue 32 items 2 and 3: a plan as NavFn gives it (one costmap cell apart, every
+    orientation the identity but the goal's, stamps zero) through a 90-degree turn,
+    replanned at 1 Hz from where the vehicle is, as Nav2 does: the vehicle heads along the
+    path (no crabbing), stands at the goal within 5 cm and 2 deg, and, the goal reached,
+    stays: wheels stopped, steering held at its angles while the plans to the same goal
+    keep coming. From rest to rest it wears at most 1.3x the same route (the plan's own
+    reference) given to ``msagv run`` as a CSV timed at the constant speed, the vehicle
+    starting on it at speed."""
     _ros()
     from msagv.plant import Plant
     from msagv.plant.vehicle import load_vehicle
-    from msagv.ros2.controller_node import GOAL_TURN
+    from msagv.ros2.controller_node import GOAL_TURN, SpeedProfile, plan_reference
 
     vehicle = load_vehicle(three_axle_file)
     f, length = _turn()
@@ -561,6 +565,7 @@ def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_
     try:
         assert car.matched(), procs.err("ctl")[-2000:]
         peer.spin(0.5)
+        x0 = _navfn_plan(0.0, 0.0, (f, length), goal_yaw)[0]
         car.plan(*_navfn_plan(0.0, 0.0, (f, length), goal_yaw))
         peer.spin(0.3)
         for k in range(3000):  # 30 s of the vehicle's time at most (the plan: about 18 s)
@@ -603,6 +608,22 @@ def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_
     assert summary["goals_reached"] == 1 and summary["plans_at_goal"] >= 2
     assert summary["plans_same_route"] >= 5  # the replans along the way: the same route
     assert summary["safe_events"] == 0
+    # the wear, against the same route timed at 12 km/h throughout as a CSV
+    worn = car.plant.outputs()["W_tw"]
+    ref, _ = plan_reference(np.zeros(len(x0)), *_navfn_plan(0.0, 0.0, (f, length), goal_yaw),
+                            0.0, SpeedProfile(12 / 3.6))
+    s = np.r_[0.0, np.cumsum(np.hypot(np.diff(ref.x), np.diff(ref.y)))]
+    csv = tmp_path / "timed.csv"
+    np.savetxt(csv, np.c_[s / (12 / 3.6), ref.x, ref.y, ref.phi], delimiter=",",
+               header="t,x,y,phi", comments="")
+    timed = run_msagv("run", "--trajectory", csv, "--vehicle", three_axle_file, "--json",
+                      "--no-progress", timeout=600)
+    assert timed.returncode == 0, timed.stderr[-2000:]
+    timed_w = json.loads(timed.stdout)["metrics"]["W_tw"]
+    print(f"wear from rest to rest {worn:.0f} J, the route timed at 12 km/h {timed_w:.0f} J: "
+          f"{worn / timed_w:.2f}x; {summary['low_speed']} states on the feed-forward")
+    assert summary["low_speed"] > 0
+    assert worn <= 1.3 * timed_w, (worn, timed_w)
 
 
 # ---- the controller's wear estimate ------------------------------------------------------------

@@ -69,6 +69,8 @@ def _ros_error(prog: str, e: BaseException) -> int:
 
 # ---- msagv ros2 controller ------------------------------------------------------------------
 def controller_parser() -> argparse.ArgumentParser:
+    from msagv.ros2.controller_node import LOW_SPEED_KMH
+
     ap = argparse.ArgumentParser(
         prog="msagv ros2 controller",
         description="The MPC as a ROS 2 node: odom, joint_states and plan in; "
@@ -92,6 +94,11 @@ def controller_parser() -> argparse.ArgumentParser:
                         "(default 1)")
     g.add_argument("--plan-lat-accel", type=float, default=1.5, metavar="M/S2",
                    help="at most this across the path in its curves (default 1.5)")
+    g.add_argument("--low-speed", type=float, default=LOW_SPEED_KMH, metavar="KMH",
+                   help="below this speed (the vehicle's and the reference's) the policy's "
+                        "plain feed-forward commands instead of the solver: the MPC's "
+                        "prediction misjudges the wear at walking pace (docs/ROS2.md; "
+                        f"default {LOW_SPEED_KMH:g}, 0: never)")
     g.add_argument("--goal-tolerance", type=float, default=0.05, metavar="M",
                    help="standing this close to the plan's goal (and within "
                         "--goal-yaw-tolerance) is reached: held, no MPC (default 0.05)")
@@ -133,7 +140,8 @@ def controller_main(argv: list[str]) -> int:
                     "plan_lat_accel": a.plan_lat_accel, "goal_tolerance": a.goal_tolerance,
                     "goal_yaw_tolerance_deg": a.goal_yaw_tolerance,
                     "stale_ms": a.stale_ms, "resume_periods": a.resume_periods,
-                    "safe_decel": a.safe_decel, "max_age_ms": a.max_age_ms}
+                    "safe_decel": a.safe_decel, "max_age_ms": a.max_age_ms,
+                    "low_speed_kmh": a.low_speed}
     except USAGE_ERRORS as e:
         return _ros_error(prog, e)
 

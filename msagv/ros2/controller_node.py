@@ -240,6 +240,7 @@ PARAMETERS = {
     "R": list, "plan_speed_kmh": float, "plan_accel": float, "plan_decel": float,
     "plan_lat_accel": float, "goal_tolerance": float, "goal_yaw_tolerance_deg": float,
     "stale_ms": float, "resume_periods": int, "safe_decel": float, "max_age_ms": float,
+    "low_speed_kmh": float,
 }
 
 
@@ -341,6 +342,9 @@ class WearEstimate:
 
 
 # ---- the node ---------------------------------------------------------------------------------
+LOW_SPEED_KMH = 5.0  # below this (measured and asked) the policy's plain feed-forward commands
+
+
 @dataclasses.dataclass
 class RosControllerConfig:
     period: float = CONTROL_PERIOD
@@ -354,6 +358,7 @@ class RosControllerConfig:
     goal_tolerance: float = 0.05
     goal_yaw_tolerance_deg: float = 2.0
     max_age_ms: float | None = None
+    low_speed_kmh: float = LOW_SPEED_KMH
     node_name: str = "msagv_controller"
     vehicle_id: str = "agv0"
 
@@ -376,11 +381,14 @@ class RosController:
                                   plan_lat_accel=p["plan_lat_accel"],
                                   goal_tolerance=p["goal_tolerance"],
                                   goal_yaw_tolerance_deg=p["goal_yaw_tolerance_deg"],
-                                  max_age_ms=p["max_age_ms"] or None)
+                                  max_age_ms=p["max_age_ms"] or None,
+                                  low_speed_kmh=p["low_speed_kmh"])
         positive = ("stale_ms", "safe_decel", "plan_speed_kmh", "plan_accel", "plan_decel",
                     "plan_lat_accel", "goal_tolerance", "goal_yaw_tolerance_deg")
         bad = [f"{k}={getattr(cfg, k):g}" for k in positive
                if not (math.isfinite(getattr(cfg, k)) and getattr(cfg, k) > 0)]
+        if not (math.isfinite(cfg.low_speed_kmh) and cfg.low_speed_kmh >= 0):
+            bad.append(f"low_speed_kmh={cfg.low_speed_kmh:g} (must be >= 0)")
         if bad or cfg.resume_periods < 1:
             raise ValueError(f"{', '.join(positive)} must be > 0 and resume_periods >= 1, got "
                              f"{', '.join(bad) or f'resume_periods={cfg.resume_periods}'}")
@@ -388,8 +396,13 @@ class RosController:
         self.vehicle = vehicle
         self.nw = vehicle.n_wheels
         self.mpc = make_mpc(p)
+        # at walking pace the plain feed-forward commands (see _controller_for)
+        self.low = (make_mpc(dict(p, solver="ff"))
+                    if cfg.low_speed_kmh > 0 and p["solver"] != "ff" else None)
         t0 = time.perf_counter()
         self.mpc.warmup()  # compiled before any topic is declared: a plant that sees this
+        if self.low is not None:
+            self.low.warmup()
         log.info("MPC warm (%.2f s)", time.perf_counter() - t0)  # node is answered at once
         self.rec = recorder if recorder is not None else NullRecorder()
         self.stop = stop or threading.Event()
@@ -422,7 +435,8 @@ class RosController:
         self.stats = {"answered": 0, "repeated": 0, "safe_events": 0, "safe_periods": 0,
                       "resumes": 0, "plans": 0, "rejected": 0, "new_runs": 0,
                       "dropped_stale": 0, "no_reference": 0, "goals_reached": 0,
-                      "held_at_goal": 0, "plans_at_goal": 0, "plans_same_route": 0}
+                      "held_at_goal": 0, "plans_at_goal": 0, "plans_same_route": 0,
+                      "low_speed": 0}
         self.solve_ms: list = []
         self.rej = M.Rejections("ros2 controller", log)
         c = self.ctx
@@ -534,8 +548,7 @@ class RosController:
             log.warning("plan: the pose stamps do not increase (Nav2's planners leave them "
                         "zero): timing the path along %s", how)
             self._told_arc = True
-        self.reference = ref
-        self.mpc.set_reference(ref)
+        self._set_reference(ref)
         log.info("new plan: %d poses, %.1f m, t %.2f..%.2f s (timed by %s)", len(msg.poses),
                  float(np.hypot(np.diff(ref.x), np.diff(ref.y)).sum()), ref.t[0], ref.t[-1], how)
 
@@ -543,14 +556,14 @@ class RosController:
     def _solve(self, st: dict, rx_perf: float) -> None:
         t = st["t"]
         if self._last_t is None or t < self._last_t:  # the first state, or a new run
-            self.mpc.reset()
+            for c in self._controllers():
+                c.reset()
             self.wear.reset()
             self.stats["new_runs"] += 1
             self._goal_held = None
             self._seq = 0
             if self.base_reference is not None:
-                self.reference = shifted(self.base_reference, t)
-                self.mpc.set_reference(self.reference)
+                self._set_reference(shifted(self.base_reference, t))
         self._last_t = t
         self._delta = np.asarray(st["delta"], dtype=float)
         self._fresh_tick = self._tick
@@ -566,7 +579,8 @@ class RosController:
             return  # the timer decides when the inputs are fresh again
         if self._at_goal(st):
             return
-        cmd = self.mpc.step(st, self.reference)
+        ctl = self._controller_for(st)
+        cmd = ctl.step(st, self.reference)
         self.solve_ms.append(cmd.solve_ms)
         if self.cfg.max_age_ms is not None and \
                 (self._now() - rx_perf) * 1000 > self.cfg.max_age_ms:
@@ -582,13 +596,41 @@ class RosController:
             cost=cmd.cost))
         self._cmd_seq += 1
         # after the commands: the horizon and the wear (not on the command's path)
-        poses = R.predicted_poses(self.mpc)
+        poses = R.predicted_poses(ctl)
         if poses is not None:
-            self.pub_pred.publish(R.encode(R.predicted_path(t, self.mpc.settings.dt, poses),
+            self.pub_pred.publish(R.encode(R.predicted_path(t, ctl.settings.dt, poses),
                                            R.TYPES[R.PREDICTED_PATH]))
-            self.rec.predicted_path(t, self.mpc.settings.dt, poses)
+            self.rec.predicted_path(t, ctl.settings.dt, poses)
         p, work = self.wear.update(st, cmd.omega_w, cmd.omega_s)
         self.pub_wear.publish(R.encode(self._wear_msg(p, work), R.TYPES[R.WEAR]))
+
+    def _controllers(self) -> list:
+        return [self.mpc] + ([self.low] if self.low is not None else [])
+
+    def _set_reference(self, ref: Reference) -> None:
+        self.reference = ref
+        for c in self._controllers():
+            c.set_reference(ref)
+
+    def _controller_for(self, st: dict):
+        """The solver's MPC, or below ``low_speed_kmh`` - the vehicle's speed and the
+        reference's both - the policy's plain feed-forward (``--solver ff``). At walking
+        pace the MPC's prediction misjudges the wear it minimises: it charges each
+        prediction step's slip wear at the step's first instant, held over its dt (0.1 s),
+        while at low speed the tires take up a wheel-speed change within milliseconds
+        (their relaxation time m v / (2n C)); so it scores the feed-forward's speeding up
+        from rest as dear and picks wheel speeds that fight each other, which the plant
+        wears for real (docs/ROS2.md, "What the profile costs in wear")."""
+        if self.low is None:
+            return self.mpc
+        lim = self.cfg.low_speed_kmh / 3.6
+        if math.hypot(st["vx"], st["vy"]) >= lim:
+            return self.mpc
+        r = self.reference.sample([st["t"]])[0]
+        if math.hypot(r[3], r[4]) >= lim:
+            return self.mpc
+        self.stats["low_speed"] += 1
+        return self.low
 
     def _same_goal(self, a, b) -> bool:
         """Two goals (x, y, phi) within the goal tolerances of each other."""
