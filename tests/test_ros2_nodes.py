@@ -495,6 +495,19 @@ class SimVehicle:
 
     def step(self, err) -> tuple[dict, list, list]:
         """Publish the state, wait for its commands, step the plant: (state, targets, wheels)."""
+        st = self.publish()
+        assert self.peer.spin(30, until=lambda: "steer" in self.got and "wheel" in self.got), \
+            f"no commands for state {self.k}: {err()[-2000:]}"
+        tgt, wheels = self.got["steer"], self.got["wheel"]
+        rates = (np.asarray(tgt) - np.asarray(st["delta"])) / T
+        self.plant.set_inputs(wheels, rates)
+        self.plant.do_step(self.plant.t, T)
+        self.k += 1
+        return st, tgt, wheels
+
+    def publish(self) -> dict:
+        """Publish the plant's state (joint states, then odometry) stamped k T; forget the
+        commands received so far. Returns the state."""
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import JointState
 
@@ -519,14 +532,7 @@ class SimVehicle:
         self.got.clear()
         self.pub_js.publish(js)
         self.pub_odom.publish(o)
-        assert self.peer.spin(30, until=lambda: "steer" in self.got and "wheel" in self.got), \
-            f"no commands for state {self.k}: {err()[-2000:]}"
-        tgt, wheels = self.got["steer"], self.got["wheel"]
-        rates = (np.asarray(tgt) - np.asarray(st["delta"])) / T
-        self.plant.set_inputs(wheels, rates)
-        self.plant.do_step(self.plant.t, T)
-        self.k += 1
-        return st, tgt, wheels
+        return st
 
 
 def _remaining(f, length, px, py):
@@ -738,3 +744,164 @@ def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
     t_safe = float(re.search(r"SAFE at t = ([0-9.]+) s", procs.err("plant")).group(1))
     speed = math.hypot(s["final_state"]["vx"], s["final_state"]["vy"])
     assert speed < max(0.5, 4.2 - 2.0 * (6.0 - t_safe) + 0.5), (t_safe, speed)
+
+
+# ---- a managed node: lifecycle, parameters at run time, diagnostics, services --------------
+def _call(peer, client, request):
+    """A service call by real rclpy: the response (the node answers within 60 s)."""
+    assert client.wait_for_service(timeout_sec=60), client.srv_name
+    fut = client.call_async(request)
+    assert peer.spin(60, until=fut.done), client.srv_name
+    return fut.result()
+
+
+def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three_axle_file):
+    """Issue 32 item 5: ``msagv ros2 controller --managed`` as Nav2's lifecycle_manager
+    drives a managed node, by rclpy's lifecycle services (lifecycle_msgs): unconfigured, it
+    has no topics; configured, it listens but commands nothing; active, it answers states;
+    at run time it takes weights and the plan's speed (an integer for a double) and refuses
+    a structural parameter and a bad value with their reasons; it publishes its diagnostics
+    on /diagnostics; ~/rearm ends its safe behaviour at once, ~/reset forgets the run;
+    deactivated it sends one stop (wheels 0, steering held) and then nothing; cleaned up
+    it is unconfigured again, and shut down the process ends."""
+    _ros()
+    try:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from std_srvs.srv import Trigger
+    except ImportError as e:
+        pytest.skip(f"diagnostic_msgs or std_srvs not installed: {e}")
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    from msagv.plant import Plant
+    from msagv.plant.vehicle import load_vehicle
+
+    vehicle = load_vehicle(three_axle_file)
+    # stale after 3 s, resumed only after 1000 fresh periods (10 s: never in this test): the
+    # safe behaviour comes from this test's silence alone and ends only by ~/rearm
+    procs.start("ctl", msagv("ros2", "controller", "--managed", "--vehicle", three_axle_file,
+                             "--speed", "8", "--stale-ms", "3000", "--resume-periods", "1000",
+                             "--json"))
+    peer = Peer("lifecycle_manager")
+    n = peer.node
+    name = "/msagv_controller"
+    change = n.create_client(ChangeState, f"{name}/change_state")
+    get = n.create_client(GetState, f"{name}/get_state")
+    setp = n.create_client(SetParameters, f"{name}/set_parameters")
+    diags = []
+    n.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    car = SimVehicle(peer, vehicle, Plant(vehicle, initial={"vx": 2.0}))
+
+    def state() -> str:
+        return _call(peer, get, GetState.Request()).current_state.label
+
+    def transition(tid: int) -> bool:
+        return _call(peer, change, ChangeState.Request(transition=Transition(id=tid))).success
+
+    def set_params(*params) -> list:
+        r = _call(peer, setp, SetParameters.Request(
+            parameters=[p.to_parameter_msg() for p in params]))
+        return [(x.successful, x.reason) for x in r.results]
+
+    def silent(seconds: float = 1.0) -> bool:
+        peer.spin(seconds)
+        return not car.got
+
+    def trigger(srv: str):
+        c = n.create_client(Trigger, f"{name}/{srv}")
+        return _call(peer, c, Trigger.Request())
+
+    def diag(until):
+        """The node's newest status that satisfies ``until`` (values as a dict)."""
+        found = {}
+
+        def ok():
+            for m in diags:
+                for s in m.status:
+                    if s.name.startswith("msagv_controller"):
+                        v = {kv.key: kv.value for kv in s.values}
+                        if until(s, v):
+                            found.update(v, _level=s.level, _message=s.message)
+            diags.clear()
+            return bool(found)
+        assert peer.spin(60, until=ok), "no matching diagnostics"
+        return found
+
+    x, y = _s_curve()
+    try:
+        assert state() == "unconfigured"
+        assert car.pub_odom.get_subscription_count() == 0  # nothing declared yet
+        # unconfigured, a structural parameter is taken (at the next configure)
+        assert set_params(Parameter("method", value="ntwo")) == [(True, "")]
+        assert transition(Transition.TRANSITION_CONFIGURE)
+        assert state() == "inactive"
+        assert car.matched()
+        car.plan(x, y, np.zeros(x.size))
+        peer.spin(0.3)
+        car.publish()
+        assert silent()  # inactive: nothing commanded
+        assert transition(Transition.TRANSITION_ACTIVATE)
+        assert state() == "active"
+        for _ in range(30):
+            car.step(lambda: procs.err("ctl"))
+        d = diag(lambda s, v: v.get("lifecycle") == "active" and int(v["answered"]) > 0)
+        assert d["safe"] == "false" and d["_level"] == b"\x00", d
+        assert float(d["solve_ms_max"]) > 0 and d["reference"] == "plan"
+        assert d["disturbance_d_u"] != "off" and d["adapt"] == "off"
+        # at run time: weights and the speed (an integer for a double) taken; a structural
+        # parameter and a bad value refused with the reason; the node commands on
+        res = set_params(Parameter("Q", value=[100.0, 100.0, 500.0]),
+                         Parameter("plan_speed_kmh", Parameter.Type.INTEGER, 10))
+        assert res == [(True, "")] * 2, res
+        ok, why = set_params(Parameter("method", value="two"))[0]
+        assert not ok and "method" in why and "unconfigured" in why, why
+        ok, why = set_params(Parameter("stale_ms", value=-1.0))[0]
+        assert not ok and "stale_ms=-1" in why, why
+        ok, why = set_params(Parameter("plan_accel", value="fast"))[0]
+        assert not ok and "plan_accel" in why and "number" in why, why
+        for _ in range(10):
+            car.step(lambda: procs.err("ctl"))
+        r = trigger("rearm")
+        assert not r.success and "not in the safe behaviour" in r.message, r.message
+        # silence: the node goes safe by itself and commands the ramp-down on its timer
+        car.got.clear()
+        assert peer.spin(60, until=lambda: "wheel" in car.got)
+        d = diag(lambda s, v: v.get("safe") == "true")
+        assert d["_level"] == b"\x03" and "no fresh odometry" in d["safe_reason"], d
+        car.step(lambda: procs.err("ctl"))  # fresh again, but far from 1000 periods
+        r = trigger("rearm")
+        assert r.success, r.message
+        d = diag(lambda s, v: v.get("safe") == "false")
+        r = trigger("reset")
+        assert r.success, r.message
+        d = diag(lambda s, v: v.get("reference") == "none")
+        car.plan(x - x[0] + car.plant.state_message()["x"], y, np.zeros(x.size))
+        peer.spin(0.3)
+        for _ in range(5):
+            st, tgt, wheels = car.step(lambda: procs.err("ctl"))
+        # deactivated: one stop, then nothing
+        car.got.clear()
+        assert transition(Transition.TRANSITION_DEACTIVATE)
+        assert peer.spin(60, until=lambda: "wheel" in car.got and "steer" in car.got)
+        assert car.got["wheel"] == [0.0] * vehicle.n_wheels
+        assert car.got["steer"] == [float(d) for d in st["delta"]]  # the last measured
+        assert state() == "inactive"
+        car.k += 1
+        car.publish()
+        assert silent()
+        assert transition(Transition.TRANSITION_CLEANUP)
+        assert state() == "unconfigured"
+        assert transition(Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
+        assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-2000:]
+    finally:
+        peer.close()
+    s = procs.json("ctl")
+    assert s["lifecycle"] == "finalized"
+    assert [t["transition"] for t in s["transitions"]] == [
+        "configure", "activate", "deactivate", "cleanup", "shutdown"]
+    assert s["parameters"]["method"] == "ntwo" and s["parameters"]["Q"] == [100.0, 100.0, 500.0]
+    assert s["parameters"]["plan_speed_kmh"] == 10.0
+    assert s["parameters_refused"] == 3 and s["rearms"] == 1 and s["resets"] == 1
+    assert s["safe_events"] >= 1

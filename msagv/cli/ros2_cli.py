@@ -86,6 +86,10 @@ def controller_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-age-ms", type=float, metavar="MS",
                     help="never send a command for a state received longer ago (default: none)")
     ap.add_argument("--node-name", default="msagv_controller", help="the ROS node's name")
+    ap.add_argument("--managed", action="store_true",
+                    help="start unconfigured and wait for the lifecycle transitions "
+                         "(configure, activate: Nav2's lifecycle_manager or ros2 lifecycle "
+                         "set); without it the node configures and activates itself")
     g = ap.add_argument_group("an unstamped plan (Nav2's): its speed profile and its goal")
     g.add_argument("--plan-accel", type=float, default=1.0, metavar="M/S2",
                    help="speeding up along the plan at most at this (default 1)")
@@ -171,7 +175,7 @@ def controller_main(argv: list[str]) -> int:
                                  "transport": "ros2", "argv": list(argv)})
         cfg = RosControllerConfig(period=a.period, node_name=a.node_name)
         node = RosController(make_mpc, defaults, vehicle, cfg, ros_args, reference,
-                             recorder=rec, stop=sig.event)
+                             recorder=rec, stop=sig.event, managed=a.managed)
     except Ros2Unavailable as e:
         return _ros_error(prog, e)
     except USAGE_ERRORS as e:
