@@ -314,7 +314,7 @@ def test_the_controller_node_tracks_an_unstamped_plan_and_stops_safely(procs, ro
 @pytest.mark.parametrize("params,says", [
     # an integer for a double is taken (plan_speed_kmh is read before stale_ms: the error
     # is stale_ms's own), a bad value is refused naming it
-    (["plan_speed_kmh:=8", "stale_ms:=-5.0"], "stale_ms"),
+    (["plan_speed_kmh:=8", "stale_ms:=-5.0"], "error: stale_ms must be > 0, got -5"),
     (["plann_speed_kmh:=8"], "ROS parameter plann_speed_kmh: unknown"),  # a misspelt name
     (["seed:=1.5"], "ROS parameter seed: expected an integer"),
 ])
@@ -858,11 +858,19 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         ok, why = set_params(Parameter("method", value="two"))[0]
         assert not ok and "method" in why and "unconfigured" in why, why
         ok, why = set_params(Parameter("stale_ms", value=-1.0))[0]
-        assert not ok and "stale_ms=-1" in why, why
+        assert not ok and why == "stale_ms must be > 0, got -1", why
         ok, why = set_params(Parameter("plan_accel", value="fast"))[0]
         assert not ok and "plan_accel" in why and "number" in why, why
-        for _ in range(10):
-            car.step(lambda: procs.err("ctl"))
+
+        def replan():  # Nav2: the rest of the path from the vehicle's position
+            here = car.plant.state_message()
+            i = int(np.argmin(np.hypot(x - here["x"], y - here["y"])))
+            car.plan(x[i:], y[i:], np.zeros(x.size - i))
+            peer.spin(0.3)
+            for _ in range(5):
+                car.step(lambda: procs.err("ctl"))
+        replan()  # the same route, timed afresh at the new speed
+        replan()  # the same route again: kept as timed (plans_same_route)
         r = trigger("rearm")
         assert not r.success and "not in the safe behaviour" in r.message, r.message
         # silence: the node goes safe by itself and commands the ramp-down on its timer
@@ -905,3 +913,4 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
     assert s["parameters"]["plan_speed_kmh"] == 10.0
     assert s["parameters_refused"] == 3 and s["rearms"] == 1 and s["resets"] == 1
     assert s["safe_events"] >= 1
+    assert s["plans_same_route"] == 1  # the first replan after the speed's change was timed

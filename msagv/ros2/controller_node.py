@@ -418,6 +418,7 @@ class RosController:
         self.rec = recorder if recorder is not None else NullRecorder()
         self.stop = stop or threading.Event()
         self.base_reference = reference
+        self.managed = managed
         self.configured = False
         self.active = False
         self._ended = False
@@ -472,7 +473,8 @@ class RosController:
             fn()
         except Exception as e:  # noqa: BLE001 - a transition that fails says why, once
             self._config_error = str(e)
-            log.error("%s failed: %s", name, e)
+            if self.managed:  # else the command line says it (exit 2)
+                log.error("%s failed: %s", name, e)
             self.transitions.append((name, "failure"))
             return fail
         self.transitions.append((name, "success"))
@@ -491,16 +493,17 @@ class RosController:
             max_age_ms=p["max_age_ms"] or None, low_speed_kmh=p["low_speed_kmh"])
         positive = ("stale_ms", "safe_decel", "plan_speed_kmh", "plan_accel", "plan_decel",
                     "plan_lat_accel", "goal_tolerance", "goal_yaw_tolerance_deg")
-        bad = [f"{k}={getattr(cfg, k):g}" for k in positive
+        bad = [f"{k} must be > 0, got {getattr(cfg, k):g}" for k in positive
                if not (math.isfinite(getattr(cfg, k)) and getattr(cfg, k) > 0)]
         if not (math.isfinite(cfg.low_speed_kmh) and cfg.low_speed_kmh >= 0):
-            bad.append(f"low_speed_kmh={cfg.low_speed_kmh:g} (must be >= 0)")
+            bad.append(f"low_speed_kmh must be >= 0, got {cfg.low_speed_kmh:g}")
         if cfg.max_age_ms is not None and not (math.isfinite(cfg.max_age_ms)
                                                and cfg.max_age_ms > 0):
-            bad.append(f"max_age_ms={cfg.max_age_ms:g} (0: none, else > 0)")
-        if bad or cfg.resume_periods < 1:
-            raise ValueError(f"{', '.join(positive)} must be > 0 and resume_periods >= 1, got "
-                             f"{', '.join(bad) or f'resume_periods={cfg.resume_periods}'}")
+            bad.append(f"max_age_ms must be > 0 (0: none), got {cfg.max_age_ms:g}")
+        if cfg.resume_periods < 1:
+            bad.append(f"resume_periods must be >= 1, got {cfg.resume_periods}")
+        if bad:
+            raise ValueError("; ".join(bad))
         return cfg
 
     def _low_speed_mpc(self, p: dict, cfg: RosControllerConfig):
