@@ -630,6 +630,12 @@ def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_
           f"{worn / timed_w:.2f}x; {summary['low_speed']} states on the feed-forward")
     assert summary["low_speed"] > 0
     assert worn <= 1.3 * timed_w, (worn, timed_w)
+    print(f"at the goal {math.hypot(end['x'] - gx, end['y'] - gy) * 100:.1f} cm, "
+          f"{math.degrees(abs((end['phi'] - goal_yaw + math.pi) % (2 * math.pi) - math.pi)):.2f}"
+          f" deg; lateral RMS {np.sqrt(np.mean(lat ** 2)) * 100:.1f} cm; heading vs velocity "
+          f"max {math.degrees(crab.max()):.1f} deg, mean {math.degrees(crab.mean()):.2f} deg; "
+          f"replans same route {summary['plans_same_route']}, at the goal "
+          f"{summary['plans_at_goal']}")
 
 
 # ---- the controller's wear estimate ------------------------------------------------------------
