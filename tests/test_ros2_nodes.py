@@ -789,7 +789,7 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
     # safe behaviour comes from this test's silence alone and ends only by ~/rearm
     procs.start("ctl", msagv("ros2", "controller", "--managed", "--vehicle", three_axle_file,
                              "--speed", "8", "--stale-ms", "3000", "--resume-periods", "1000",
-                             "--json"))
+                             "--adapt", "--json"))
     peer = Peer("lifecycle_manager")
     n = peer.node
     name = "/msagv_controller"
@@ -855,7 +855,11 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         d = diag(lambda s, v: v.get("lifecycle") == "active" and int(v["answered"]) > 0)
         assert d["safe"] == "false" and d["_level"] == b"\x00", d
         assert float(d["solve_ms_max"]) > 0 and d["reference"] == "plan"
-        assert d["disturbance_d_u"] != "off" and d["adapt"] == "off"
+        assert d["disturbance_d_u"] != "off" and d["adapt"] == "on"
+        # the adapted tires, as MPC.adapted_tires() names them (controller/adaptation.py)
+        from msagv.controller.adaptation import NAMES
+        assert all(f"tires_{k}" in d and f"tires_{k}_sd" in d for k in NAMES), d
+        assert int(d["tires_updates"]) > 0
         # at run time: weights and the speed (an integer for a double) taken; a structural
         # parameter and a bad value refused with the reason; the node commands on
         res = set_params(Parameter("Q", value=[100.0, 100.0, 500.0]),
