@@ -549,6 +549,7 @@ class RosController:
         self._cmd_seq = 0
         self._told_arc = False
         self._retime = False  # the plan's limits changed: the next plan is timed afresh
+        self._restart = False  # ~/reset: the next state starts a new run
         self._goal_held: tuple | None = None  # the goal (x, y, phi) reached and held
         self._hold: tuple | None = None  # (steering held, wheel speeds ramping down)
         self._diag_from = len(self.solve_ms)
@@ -740,8 +741,8 @@ class RosController:
         self._goal_held = None
         self._plan_msg = None
         self.reference = None
-        self._last_t = None  # the next state starts a new run
-        self.stats["resets"] += 1
+        self._restart = True  # the next state starts a new run; meanwhile, no plan: the
+        self.stats["resets"] += 1  # timer's safe behaviour ramps the wheels down
         log.warning("reset: the run is forgotten; waiting for a plan")
         self.rec.event("reset")
         response.success, response.message = True, "reset: waiting for a plan"
@@ -845,7 +846,8 @@ class RosController:
     # ---- the solve ---------------------------------------------------------------------
     def _solve(self, st: dict, rx_perf: float) -> None:
         t = st["t"]
-        if self._last_t is None or t < self._last_t:  # the first state, or a new run
+        if self._last_t is None or t < self._last_t or self._restart:  # a new run
+            self._restart = False
             for c in self._controllers():
                 c.reset()
             self.wear.reset()
@@ -1028,11 +1030,17 @@ class RosController:
         return self.summary()
 
     def close(self) -> None:
+        """Shut the node down (the lifecycle's shutdown: an active node sends its stop
+        first), then its context."""
         try:
-            if self.configured:
-                self._cleanup()
+            if not self._ended:
+                self.ctx.node.trigger_shutdown()
         finally:
-            self.ctx.close()
+            try:
+                if self.configured:  # the transition failed: taken down all the same
+                    self._cleanup()
+            finally:
+                self.ctx.close()
 
     def state_label(self) -> str:
         """The lifecycle state: unconfigured, inactive, active or finalized."""
