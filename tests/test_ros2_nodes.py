@@ -847,6 +847,9 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         assert car.pub_odom.get_subscription_count() == 0  # nothing declared yet
         # unconfigured, a structural parameter is taken (at the next configure)
         assert set_params(Parameter("method", value="ntwo")) == [(True, "")]
+        # ... a value out of range refused at once
+        assert set_params(Parameter("safe_decel", value=0.0)) == [
+            (False, "safe_decel must be > 0, got 0")]
         assert transition(Transition.TRANSITION_CONFIGURE)
         assert state() == "inactive"
         assert car.matched()
@@ -932,7 +935,7 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         "configure", "activate", "deactivate", "cleanup", "shutdown"]
     assert s["parameters"]["method"] == "ntwo" and s["parameters"]["Q"] == [100.0, 100.0, 500.0]
     assert s["parameters"]["plan_speed_kmh"] == 10.0
-    assert s["parameters_refused"] == 3 and s["rearms"] == 1 and s["resets"] == 1
+    assert s["parameters_refused"] == 4 and s["rearms"] == 1 and s["resets"] == 1
     assert s["safe_events"] == 2  # the silence, then no plan after the reset
     assert s["plans_same_route"] == 1  # the first replan after the speed's change was timed
 

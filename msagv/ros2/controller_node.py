@@ -594,6 +594,7 @@ class RosController:
         self.configured = True
 
     def _activate(self) -> None:
+        self._odom = self._joints = None  # only states received from now on are answered
         self.active = True
 
     def _deactivate(self) -> None:
@@ -660,6 +661,8 @@ class RosController:
             changed = [k for k in PARAMETERS if new[k] != self.params[k]]
             if self.configured and changed:
                 self._apply(new, changed)
+            elif changed:
+                self._config_from(new)  # a value out of range is refused now, not at configure
         except Exception as e:  # noqa: BLE001 - refused with its reason, nothing changed
             reason = str(e).removeprefix("ROS parameter ")
             self.stats["parameters_refused"] += 1
@@ -772,10 +775,14 @@ class RosController:
         return time.perf_counter()
 
     def _on_odom(self, msg) -> None:
+        if not self.active:
+            return  # inactive: states are not kept (one kept would be answered late)
         self._odom, self._odom_rx = msg, self._now()
         self._try()
 
     def _on_joints(self, msg) -> None:
+        if not self.active:
+            return
         self._joints = msg
         self._try()
 
@@ -786,7 +793,7 @@ class RosController:
     def _try(self, force: bool = False) -> None:
         o, j = self._odom, self._joints
         if o is None or j is None or not self.active:
-            return  # inactive: nothing is answered
+            return
         to = R.stamp_seconds(o.header.stamp)
         if self._last_t is not None and to == self._last_t:
             self._odom = None  # the same state again: answered once (a command names no
