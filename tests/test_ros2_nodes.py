@@ -882,6 +882,8 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         assert not ok and why == "stale_ms must be > 0, got -1", why
         ok, why = set_params(Parameter("plan_accel", value="fast"))[0]
         assert not ok and "plan_accel" in why and "number" in why, why
+        ok, why = set_params(Parameter("Q", value=[1.0, 2.0]))[0]  # the MPC's own check
+        assert not ok and "Q: need 3 finite weights" in why, why
 
         def replan():  # Nav2: the rest of the path from the vehicle's position
             here = car.plant.state_message()
@@ -935,7 +937,7 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         "configure", "activate", "deactivate", "cleanup", "shutdown"]
     assert s["parameters"]["method"] == "ntwo" and s["parameters"]["Q"] == [100.0, 100.0, 500.0]
     assert s["parameters"]["plan_speed_kmh"] == 10.0
-    assert s["parameters_refused"] == 4 and s["rearms"] == 1 and s["resets"] == 1
+    assert s["parameters_refused"] == 5 and s["rearms"] == 1 and s["resets"] == 1
     assert s["safe_events"] == 2  # the silence, then no plan after the reset
     assert s["plans_same_route"] == 1  # the first replan after the speed's change was timed
 

@@ -316,7 +316,7 @@ def declare_parameters(node, defaults: dict) -> dict:
 
 # What may change while the node is configured (inactive or active); the others change the
 # optimiser's structure and are taken while it is unconfigured (lifecycle cleanup, set,
-# configure). Weights: the MPC is built again from them at once (a few ms for the annealer
+# configure). Weights: the MPC is built again from them at once (for the annealer
 # and the feed-forward; IPOPT and acados build them into their problem at configure).
 WEIGHTS = ("Q", "L", "E", "R", "deadline_ms")
 PLAN = ("plan_speed_kmh", "plan_accel", "plan_decel", "plan_lat_accel")  # the next plan
