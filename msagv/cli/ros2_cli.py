@@ -74,8 +74,9 @@ def controller_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="msagv ros2 controller",
         description="The MPC as a ROS 2 node: odom, joint_states and plan in; "
-                    "steering_controller/commands, wheel_controller/commands, predicted_path "
-                    "and wear out (docs/ROS2.md). Options after --ros-args go to ROS "
+                    "steering_controller/commands, wheel_controller/commands, predicted_path, "
+                    "wear_estimate and /diagnostics out; a managed (lifecycle) node with "
+                    "~/rearm and ~/reset (docs/ROS2.md). Options after --ros-args go to ROS "
                     "(remapping, -p NAME:=VALUE for the parameters).",
         epilog="Without --case, --trajectory or --scenario the node waits for a plan on "
                "'plan'; with one of them it tracks that reference from its first state (its "
