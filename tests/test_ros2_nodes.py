@@ -927,14 +927,17 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         assert silent()
         assert transition(Transition.TRANSITION_CLEANUP)
         assert state() == "unconfigured"
-        assert transition(Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
+        # configured again (its topics declared anew), then shut down from inactive
+        assert transition(Transition.TRANSITION_CONFIGURE)
+        assert state() == "inactive" and car.matched()
+        assert transition(Transition.TRANSITION_INACTIVE_SHUTDOWN)
         assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-2000:]
     finally:
         peer.close()
     s = procs.json("ctl")
     assert s["lifecycle"] == "finalized"
     assert [t["transition"] for t in s["transitions"]] == [
-        "configure", "activate", "deactivate", "cleanup", "shutdown"]
+        "configure", "activate", "deactivate", "cleanup", "configure", "shutdown"]
     assert s["parameters"]["method"] == "ntwo" and s["parameters"]["Q"] == [100.0, 100.0, 500.0]
     assert s["parameters"]["plan_speed_kmh"] == 10.0
     assert s["parameters_refused"] == 5 and s["rearms"] == 1 and s["resets"] == 1
