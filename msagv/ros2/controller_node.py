@@ -369,6 +369,7 @@ LOW_SPEED_KMH = 5.0  # below this (measured and asked) the policy's plain feed-f
 DIAGNOSTICS = "/diagnostics"  # where diagnostic_updater publishes, absolute
 DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
 DIAGNOSTICS_PERIOD = 1.0  # s, on a steady clock (diagnostic_updater's default period)
+STOP_ACK_S = 1.0  # s: the longest wait for the subscribers to acknowledge the last stop
 
 
 @dataclasses.dataclass
@@ -604,6 +605,14 @@ class RosController:
         if self.active and self._last_t is not None and self._delta is not None:
             self._publish_cmd(self._delta, np.zeros(self.nw))
             self._last_cmd = (self._last_t, self._delta, np.zeros(self.nw))
+            # delivered before the publishers go (cleanup, shutdown, a signal): a reliable
+            # writer destroyed at once may drop what its readers have not acknowledged
+            from rclpy.duration import Duration
+
+            for pub in (self.pub_steer, self.pub_wheel):
+                if not pub.wait_for_all_acked(Duration(seconds=STOP_ACK_S)):
+                    log.warning("the stop command was not acknowledged within %g s",
+                                STOP_ACK_S)
         self.active = False
 
     def _cleanup(self) -> None:
