@@ -970,10 +970,11 @@ def test_a_stopped_controller_leaves_the_wheels_stopped(procs, ros_env, three_ax
         assert min(wheels) > 0
         car.got.clear()
         ctl.send_signal(signal.SIGTERM)
-        assert peer.spin(60, until=lambda: "wheel" in car.got and "steer" in car.got)
-        assert procs.wait("ctl", 60) == 0
+        assert peer.spin(60, until=lambda: "wheel" in car.got and "steer" in car.got), \
+            (car.got, procs.err("ctl")[-2000:])
+        assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-2000:]
     finally:
         peer.close()
-    assert car.got["wheel"] == [0.0] * vehicle.n_wheels
-    assert car.got["steer"] == [float(d) for d in st["delta"]]
-    assert procs.json("ctl")["lifecycle"] == "finalized"
+    assert car.got["wheel"] == [0.0] * vehicle.n_wheels, car.got
+    assert car.got["steer"] == [float(d) for d in st["delta"]], (car.got, st["delta"])
+    assert procs.json("ctl")["lifecycle"] == "finalized", procs.err("ctl")[-2000:]
