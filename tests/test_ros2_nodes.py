@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers import ROOT, msagv
+from helpers import ROOT, msagv, run_msagv
 
 T = 0.01
 
@@ -314,7 +314,7 @@ def test_the_controller_node_tracks_an_unstamped_plan_and_stops_safely(procs, ro
 @pytest.mark.parametrize("params,says", [
     # an integer for a double is taken (plan_speed_kmh is read before stale_ms: the error
     # is stale_ms's own), a bad value is refused naming it
-    (["plan_speed_kmh:=8", "stale_ms:=-5.0"], "stale_ms"),
+    (["plan_speed_kmh:=8", "stale_ms:=-5.0"], "error: stale_ms must be > 0, got -5"),
     (["plann_speed_kmh:=8"], "ROS parameter plann_speed_kmh: unknown"),  # a misspelt name
     (["seed:=1.5"], "ROS parameter seed: expected an integer"),
 ])
@@ -469,15 +469,20 @@ class SimVehicle:
         self.pub_js = n.create_publisher(JointState, "joint_states", 10)
         self.pub_plan = n.create_publisher(Path, "plan", 1)
         self.got: dict = {}
-        n.create_subscription(Float64MultiArray, "steering_controller/commands",
-                              lambda m: self.got.__setitem__("steer", list(m.data)), 10)
-        n.create_subscription(Float64MultiArray, "wheel_controller/commands",
-                              lambda m: self.got.__setitem__("wheel", list(m.data)), 10)
+        self.subs = [n.create_subscription(Float64MultiArray, topic,
+                                           lambda m, w=w: self.got.__setitem__(w, list(m.data)),
+                                           10)
+                     for w, topic in (("steer", "steering_controller/commands"),
+                                      ("wheel", "wheel_controller/commands"))]
         self.k = 0
 
     def matched(self, timeout: float = 120.0) -> bool:
+        """The node listens to the state and the plan, and this vehicle to its commands
+        (a command sent before discovery matched it would be lost: each state is answered
+        once)."""
         return self.peer.spin(timeout, until=lambda: self.pub_odom.get_subscription_count() > 0
-                              and self.pub_plan.get_subscription_count() > 0)
+                              and self.pub_plan.get_subscription_count() > 0
+                              and all(s.get_publisher_count() > 0 for s in self.subs))
 
     def plan(self, x, y, yaw) -> None:
         from geometry_msgs.msg import PoseStamped
@@ -495,6 +500,19 @@ class SimVehicle:
 
     def step(self, err) -> tuple[dict, list, list]:
         """Publish the state, wait for its commands, step the plant: (state, targets, wheels)."""
+        st = self.publish()
+        assert self.peer.spin(30, until=lambda: "steer" in self.got and "wheel" in self.got), \
+            f"no commands for state {self.k}: {err()[-2000:]}"
+        tgt, wheels = self.got["steer"], self.got["wheel"]
+        rates = (np.asarray(tgt) - np.asarray(st["delta"])) / T
+        self.plant.set_inputs(wheels, rates)
+        self.plant.do_step(self.plant.t, T)
+        self.k += 1
+        return st, tgt, wheels
+
+    def publish(self) -> dict:
+        """Publish the plant's state (joint states, then odometry) stamped k T; forget the
+        commands received so far. Returns the state."""
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import JointState
 
@@ -519,14 +537,7 @@ class SimVehicle:
         self.got.clear()
         self.pub_js.publish(js)
         self.pub_odom.publish(o)
-        assert self.peer.spin(30, until=lambda: "steer" in self.got and "wheel" in self.got), \
-            f"no commands for state {self.k}: {err()[-2000:]}"
-        tgt, wheels = self.got["steer"], self.got["wheel"]
-        rates = (np.asarray(tgt) - np.asarray(st["delta"])) / T
-        self.plant.set_inputs(wheels, rates)
-        self.plant.do_step(self.plant.t, T)
-        self.k += 1
-        return st, tgt, wheels
+        return st
 
 
 def _remaining(f, length, px, py):
@@ -538,16 +549,20 @@ def _remaining(f, length, px, py):
     return (lambda v: f(min(length, s0 + v))), max(length - s0, 0.0)
 
 
-def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_file):
-    """Issue 32 item 2: a plan as NavFn gives it (one costmap cell apart, every orientation
-    the identity but the goal's, stamps zero) through a 90-degree turn, replanned at 1 Hz
-    from where the vehicle is, as Nav2 does: the vehicle heads along the path (no crabbing),
-    stands at the goal within 5 cm and 2 deg, and, the goal reached, stays: wheels stopped,
-    steering held at its angles while the plans to the same goal keep coming."""
+def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_file,
+                                                     tmp_path):
+    """Issue 32 items 2 and 3: a plan as NavFn gives it (one costmap cell apart, every
+    orientation the identity but the goal's, stamps zero) through a 90-degree turn,
+    replanned at 1 Hz from where the vehicle is, as Nav2 does: the vehicle heads along the
+    path (no crabbing), stands at the goal within 5 cm and 2 deg, and, the goal reached,
+    stays: wheels stopped, steering held at its angles while the plans to the same goal
+    keep coming. From rest to rest it wears at most 1.3x the same route (the plan's own
+    reference) given to ``msagv run`` as a CSV timed at the constant speed, the vehicle
+    starting on it at speed."""
     _ros()
     from msagv.plant import Plant
     from msagv.plant.vehicle import load_vehicle
-    from msagv.ros2.controller_node import GOAL_TURN
+    from msagv.ros2.controller_node import GOAL_TURN, SpeedProfile, plan_reference
 
     vehicle = load_vehicle(three_axle_file)
     f, length = _turn()
@@ -561,6 +576,7 @@ def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_
     try:
         assert car.matched(), procs.err("ctl")[-2000:]
         peer.spin(0.5)
+        x0 = _navfn_plan(0.0, 0.0, (f, length), goal_yaw)[0]
         car.plan(*_navfn_plan(0.0, 0.0, (f, length), goal_yaw))
         peer.spin(0.3)
         for k in range(3000):  # 30 s of the vehicle's time at most (the plan: about 18 s)
@@ -603,6 +619,28 @@ def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_
     assert summary["goals_reached"] == 1 and summary["plans_at_goal"] >= 2
     assert summary["plans_same_route"] >= 5  # the replans along the way: the same route
     assert summary["safe_events"] == 0
+    # the wear, against the same route timed at 12 km/h throughout as a CSV
+    worn = car.plant.outputs()["W_tw"]
+    ref, _ = plan_reference(np.zeros(len(x0)), *_navfn_plan(0.0, 0.0, (f, length), goal_yaw),
+                            0.0, SpeedProfile(12 / 3.6))
+    s = np.r_[0.0, np.cumsum(np.hypot(np.diff(ref.x), np.diff(ref.y)))]
+    csv = tmp_path / "timed.csv"
+    np.savetxt(csv, np.c_[s / (12 / 3.6), ref.x, ref.y, ref.phi], delimiter=",",
+               header="t,x,y,phi", comments="")
+    timed = run_msagv("run", "--trajectory", csv, "--vehicle", three_axle_file, "--json",
+                      "--no-progress", timeout=600)
+    assert timed.returncode == 0, timed.stderr[-2000:]
+    timed_w = json.loads(timed.stdout)["metrics"]["W_tw"]
+    print(f"wear from rest to rest {worn:.0f} J, the route timed at 12 km/h {timed_w:.0f} J: "
+          f"{worn / timed_w:.2f}x; {summary['low_speed']} states on the feed-forward")
+    assert summary["low_speed"] > 0
+    assert worn <= 1.3 * timed_w, (worn, timed_w)
+    print(f"at the goal {math.hypot(end['x'] - gx, end['y'] - gy) * 100:.1f} cm, "
+          f"{math.degrees(abs((end['phi'] - goal_yaw + math.pi) % (2 * math.pi) - math.pi)):.2f}"
+          f" deg; lateral RMS {np.sqrt(np.mean(lat ** 2)) * 100:.1f} cm; heading vs velocity "
+          f"max {math.degrees(crab.max()):.1f} deg, mean {math.degrees(crab.mean()):.2f} deg; "
+          f"replans same route {summary['plans_same_route']}, at the goal "
+          f"{summary['plans_at_goal']}")
 
 
 # ---- the controller's wear estimate ------------------------------------------------------------
@@ -717,3 +755,226 @@ def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
     t_safe = float(re.search(r"SAFE at t = ([0-9.]+) s", procs.err("plant")).group(1))
     speed = math.hypot(s["final_state"]["vx"], s["final_state"]["vy"])
     assert speed < max(0.5, 4.2 - 2.0 * (6.0 - t_safe) + 0.5), (t_safe, speed)
+
+
+# ---- a managed node: lifecycle, parameters at run time, diagnostics, services --------------
+def _call(peer, client, request):
+    """A service call by real rclpy: the response (the node answers within 60 s)."""
+    assert client.wait_for_service(timeout_sec=60), client.srv_name
+    fut = client.call_async(request)
+    assert peer.spin(60, until=fut.done), client.srv_name
+    return fut.result()
+
+
+def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three_axle_file):
+    """Issue 32 item 5: ``msagv ros2 controller --managed`` as Nav2's lifecycle_manager
+    drives a managed node, by rclpy's lifecycle services (lifecycle_msgs): unconfigured, it
+    has no topics; configured, it listens but commands nothing; active, it answers states;
+    at run time it takes weights and the plan's speed (an integer for a double) and refuses
+    a structural parameter and a bad value with their reasons; it publishes its diagnostics
+    on /diagnostics; ~/rearm ends its safe behaviour at once, ~/reset forgets the run;
+    deactivated it sends one stop (wheels 0, steering held) and then nothing; cleaned up
+    it is unconfigured again, and shut down the process ends."""
+    _ros()
+    try:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from std_srvs.srv import Trigger
+    except ImportError as e:
+        pytest.skip(f"diagnostic_msgs or std_srvs not installed: {e}")
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    from msagv.plant import Plant
+    from msagv.plant.vehicle import load_vehicle
+
+    vehicle = load_vehicle(three_axle_file)
+    # stale after a minute (never, until this test sets stale_ms at run time), resumed only
+    # after 1000 fresh periods (10 s: never here): the safe behaviour comes from this test's
+    # silence alone and ends only by ~/rearm
+    procs.start("ctl", msagv("ros2", "controller", "--managed", "--vehicle", three_axle_file,
+                             "--speed", "8", "--stale-ms", "60000", "--resume-periods", "1000",
+                             "--adapt", "--json"))
+    peer = Peer("lifecycle_manager")
+    n = peer.node
+    name = "/msagv_controller"
+    change = n.create_client(ChangeState, f"{name}/change_state")
+    get = n.create_client(GetState, f"{name}/get_state")
+    setp = n.create_client(SetParameters, f"{name}/set_parameters")
+    diags = []
+    n.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    car = SimVehicle(peer, vehicle, Plant(vehicle, initial={"vx": 2.0}))
+
+    def state() -> str:
+        return _call(peer, get, GetState.Request()).current_state.label
+
+    def transition(tid: int) -> bool:
+        return _call(peer, change, ChangeState.Request(transition=Transition(id=tid))).success
+
+    def set_params(*params) -> list:
+        r = _call(peer, setp, SetParameters.Request(
+            parameters=[p.to_parameter_msg() for p in params]))
+        return [(x.successful, x.reason) for x in r.results]
+
+    def silent(seconds: float = 1.0) -> bool:
+        peer.spin(seconds)
+        return not car.got
+
+    def trigger(srv: str):
+        c = n.create_client(Trigger, f"{name}/{srv}")
+        return _call(peer, c, Trigger.Request())
+
+    def diag(until):
+        """The node's newest status that satisfies ``until`` (values as a dict)."""
+        found = {}
+
+        def ok():
+            for m in diags:
+                for s in m.status:
+                    if s.name.startswith("msagv_controller"):
+                        v = {kv.key: kv.value for kv in s.values}
+                        if until(s, v):
+                            found.update(v, _level=s.level, _message=s.message)
+            diags.clear()
+            return bool(found)
+        assert peer.spin(60, until=ok), "no matching diagnostics"
+        return found
+
+    x, y = _s_curve()
+    try:
+        assert state() == "unconfigured"
+        assert car.pub_odom.get_subscription_count() == 0  # nothing declared yet
+        # unconfigured, a structural parameter is taken (at the next configure)
+        assert set_params(Parameter("method", value="ntwo")) == [(True, "")]
+        # ... a value out of range refused at once
+        assert set_params(Parameter("safe_decel", value=0.0)) == [
+            (False, "safe_decel must be > 0, got 0")]
+        assert transition(Transition.TRANSITION_CONFIGURE)
+        assert state() == "inactive"
+        assert car.matched()
+        car.plan(x, y, np.zeros(x.size))
+        peer.spin(0.3)
+        car.publish()
+        assert silent()  # inactive: nothing commanded
+        assert transition(Transition.TRANSITION_ACTIVATE)
+        assert state() == "active"
+        for _ in range(30):
+            car.step(lambda: procs.err("ctl"))
+        d = diag(lambda s, v: v.get("lifecycle") == "active" and int(v["solves"]) > 0)
+        # OK, or WARN for a solve over the period (a loaded machine)
+        assert d["safe"] == "false" and (d["_level"] == b"\x00" or (
+            d["_level"] == b"\x01" and d["_message"].startswith("a solve took"))), d
+        assert float(d["solve_ms_max"]) > 0 and d["reference"] == "plan"
+        assert d["disturbance_d_u"] != "off" and d["adapt"] == "on"
+        # the adapted tires, as MPC.adapted_tires() names them (controller/adaptation.py)
+        from msagv.controller.adaptation import NAMES
+        assert all(f"tires_{k}" in d and f"tires_{k}_sd" in d for k in NAMES), d
+        assert d["tires_updates"].isdigit()
+        # at run time: weights and the speed (an integer for a double) taken; a structural
+        # parameter and a bad value refused with the reason; the node commands on
+        res = set_params(Parameter("Q", value=[100.0, 100.0, 500.0]),
+                         Parameter("plan_speed_kmh", Parameter.Type.INTEGER, 10))
+        assert res == [(True, "")] * 2, res
+        ok, why = set_params(Parameter("method", value="two"))[0]
+        assert not ok and "method" in why and "unconfigured" in why, why
+        ok, why = set_params(Parameter("stale_ms", value=-1.0))[0]
+        assert not ok and why == "stale_ms must be > 0, got -1", why
+        ok, why = set_params(Parameter("plan_accel", value="fast"))[0]
+        assert not ok and "plan_accel" in why and "number" in why, why
+        ok, why = set_params(Parameter("Q", value=[1.0, 2.0]))[0]  # the MPC's own check
+        assert not ok and "Q: need 3 finite weights" in why, why
+
+        def replan():  # Nav2: the rest of the path from the vehicle's position
+            here = car.plant.state_message()
+            i = int(np.argmin(np.hypot(x - here["x"], y - here["y"])))
+            car.plan(x[i:], y[i:], np.zeros(x.size - i))
+            peer.spin(0.3)
+            for _ in range(5):
+                car.step(lambda: procs.err("ctl"))
+        replan()  # the same route, timed afresh at the new speed
+        replan()  # the same route again: kept as timed (plans_same_route)
+        r = trigger("rearm")
+        assert not r.success and "not in the safe behaviour" in r.message, r.message
+        # stale after 0.5 s, then silence: the node goes safe by itself and commands the
+        # ramp-down on its timer
+        assert set_params(Parameter("stale_ms", value=500.0)) == [(True, "")]
+        car.got.clear()
+        assert peer.spin(60, until=lambda: "wheel" in car.got)
+        d = diag(lambda s, v: v.get("safe") == "true")
+        assert d["_level"] == b"\x03" and "no fresh odometry" in d["safe_reason"], d
+        assert set_params(Parameter("stale_ms", value=60000.0)) == [(True, "")]
+        car.step(lambda: procs.err("ctl"))  # fresh again, but far from 1000 periods
+        r = trigger("rearm")
+        assert r.success, r.message
+        d = diag(lambda s, v: v.get("safe") == "false")
+        r = trigger("reset")
+        assert r.success, r.message
+        d = diag(lambda s, v: v.get("reference") == "none")
+        car.plan(x - x[0] + car.plant.state_message()["x"], y, np.zeros(x.size))
+        peer.spin(0.3)
+        for _ in range(5):
+            st, tgt, wheels = car.step(lambda: procs.err("ctl"))
+        # deactivated: one stop, then nothing
+        car.got.clear()
+        assert transition(Transition.TRANSITION_DEACTIVATE)
+        assert peer.spin(60, until=lambda: "wheel" in car.got and "steer" in car.got)
+        assert car.got["wheel"] == [0.0] * vehicle.n_wheels
+        assert car.got["steer"] == [float(d) for d in st["delta"]]  # the last measured
+        assert state() == "inactive"
+        car.k += 1
+        car.publish()
+        assert silent()
+        assert transition(Transition.TRANSITION_CLEANUP)
+        assert state() == "unconfigured"
+        # configured again (its topics declared anew), then shut down from inactive
+        assert transition(Transition.TRANSITION_CONFIGURE)
+        assert state() == "inactive" and car.matched()
+        assert transition(Transition.TRANSITION_INACTIVE_SHUTDOWN)
+        assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-2000:]
+    finally:
+        peer.close()
+    s = procs.json("ctl")
+    assert s["lifecycle"] == "finalized"
+    assert [t["transition"] for t in s["transitions"]] == [
+        "configure", "activate", "deactivate", "cleanup", "configure", "shutdown"]
+    assert s["parameters"]["method"] == "ntwo" and s["parameters"]["Q"] == [100.0, 100.0, 500.0]
+    assert s["parameters"]["plan_speed_kmh"] == 10.0
+    assert s["parameters_refused"] == 5 and s["rearms"] == 1 and s["resets"] == 1
+    assert s["safe_events"] == 2  # the silence, then no plan after the reset
+    assert s["plans_same_route"] == 1  # the first replan after the speed's change was timed
+
+
+def test_a_stopped_controller_leaves_the_wheels_stopped(procs, ros_env, three_axle_file):
+    """SIGTERM to an active controller: its last command stops the wheels and holds the
+    steering at the last measured angles (a forward command controller would otherwise
+    hold the last wheel speeds it got), then the process ends."""
+    _ros()
+    import signal
+
+    from msagv.plant import Plant
+    from msagv.plant.vehicle import load_vehicle
+
+    vehicle = load_vehicle(three_axle_file)
+    ctl = procs.start("ctl", msagv("ros2", "controller", "--vehicle", three_axle_file,
+                                   "--speed", "8", "--stale-ms", "3000", "--json"))
+    peer = Peer("stopped_vehicle")
+    car = SimVehicle(peer, vehicle, Plant(vehicle, initial={"vx": 2.0}))
+    x, y = _s_curve()
+    try:
+        assert car.matched(), procs.err("ctl")[-2000:]
+        car.plan(x, y, np.zeros(x.size))
+        peer.spin(0.3)
+        for _ in range(20):
+            st, tgt, wheels = car.step(lambda: procs.err("ctl"))
+        assert min(wheels) > 0
+        car.got.clear()
+        ctl.send_signal(signal.SIGTERM)
+        assert peer.spin(60, until=lambda: "wheel" in car.got and "steer" in car.got), \
+            (car.got, procs.err("ctl")[-2000:])
+        assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-2000:]
+    finally:
+        peer.close()
+    assert car.got["wheel"] == [0.0] * vehicle.n_wheels, car.got
+    assert car.got["steer"] == [float(d) for d in st["delta"]], (car.got, st["delta"])
+    assert procs.json("ctl")["lifecycle"] == "finalized", procs.err("ctl")[-2000:]

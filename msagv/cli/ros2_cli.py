@@ -69,11 +69,14 @@ def _ros_error(prog: str, e: BaseException) -> int:
 
 # ---- msagv ros2 controller ------------------------------------------------------------------
 def controller_parser() -> argparse.ArgumentParser:
+    from msagv.ros2.controller_node import LOW_SPEED_KMH
+
     ap = argparse.ArgumentParser(
         prog="msagv ros2 controller",
         description="The MPC as a ROS 2 node: odom, joint_states and plan in; "
-                    "steering_controller/commands, wheel_controller/commands, predicted_path "
-                    "and wear out (docs/ROS2.md). Options after --ros-args go to ROS "
+                    "steering_controller/commands, wheel_controller/commands, predicted_path, "
+                    "wear_estimate and /diagnostics out; a managed (lifecycle) node with "
+                    "~/rearm and ~/reset (docs/ROS2.md). Options after --ros-args go to ROS "
                     "(remapping, -p NAME:=VALUE for the parameters).",
         epilog="Without --case, --trajectory or --scenario the node waits for a plan on "
                "'plan'; with one of them it tracks that reference from its first state (its "
@@ -84,6 +87,10 @@ def controller_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-age-ms", type=float, metavar="MS",
                     help="never send a command for a state received longer ago (default: none)")
     ap.add_argument("--node-name", default="msagv_controller", help="the ROS node's name")
+    ap.add_argument("--managed", action="store_true",
+                    help="start unconfigured and wait for the lifecycle transitions "
+                         "(configure, activate: Nav2's lifecycle_manager or ros2 lifecycle "
+                         "set); without it the node configures and activates itself")
     g = ap.add_argument_group("an unstamped plan (Nav2's): its speed profile and its goal")
     g.add_argument("--plan-accel", type=float, default=1.0, metavar="M/S2",
                    help="speeding up along the plan at most at this (default 1)")
@@ -92,6 +99,11 @@ def controller_parser() -> argparse.ArgumentParser:
                         "(default 1)")
     g.add_argument("--plan-lat-accel", type=float, default=1.5, metavar="M/S2",
                    help="at most this across the path in its curves (default 1.5)")
+    g.add_argument("--low-speed", type=float, default=LOW_SPEED_KMH, metavar="KMH",
+                   help="below this speed (the vehicle's and the reference's) the policy's "
+                        "plain feed-forward commands instead of the solver: the MPC's "
+                        "prediction misjudges the wear at walking pace (docs/ROS2.md; "
+                        f"default {LOW_SPEED_KMH:g}, 0: never)")
     g.add_argument("--goal-tolerance", type=float, default=0.05, metavar="M",
                    help="standing this close to the plan's goal (and within "
                         "--goal-yaw-tolerance) is reached: held, no MPC (default 0.05)")
@@ -133,7 +145,8 @@ def controller_main(argv: list[str]) -> int:
                     "plan_lat_accel": a.plan_lat_accel, "goal_tolerance": a.goal_tolerance,
                     "goal_yaw_tolerance_deg": a.goal_yaw_tolerance,
                     "stale_ms": a.stale_ms, "resume_periods": a.resume_periods,
-                    "safe_decel": a.safe_decel, "max_age_ms": a.max_age_ms}
+                    "safe_decel": a.safe_decel, "max_age_ms": a.max_age_ms,
+                    "low_speed_kmh": a.low_speed}
     except USAGE_ERRORS as e:
         return _ros_error(prog, e)
 
@@ -163,7 +176,7 @@ def controller_main(argv: list[str]) -> int:
                                  "transport": "ros2", "argv": list(argv)})
         cfg = RosControllerConfig(period=a.period, node_name=a.node_name)
         node = RosController(make_mpc, defaults, vehicle, cfg, ros_args, reference,
-                             recorder=rec, stop=sig.event)
+                             recorder=rec, stop=sig.event, managed=a.managed)
     except Ros2Unavailable as e:
         return _ros_error(prog, e)
     except USAGE_ERRORS as e:

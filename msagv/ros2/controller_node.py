@@ -29,7 +29,13 @@ identity (NavFn's), the goal's orientation turned to near the goal; a replan of 
 being driven leaves the reference as it is. A plan's end: past its last pose the reference
 holds that pose, and once its time is up with the vehicle at or past the goal the node
 holds it there without the MPC (:meth:`RosController._at_goal`) until a plan to another
-goal; an empty plan stops the vehicle as the safe behaviour does.
+goal; an empty plan stops the vehicle as the safe behaviour does. Below ``low_speed_kmh``
+the plain feed-forward commands instead of the MPC (:meth:`RosController._controller_for`).
+
+A managed node (``rclpy.lifecycle``: configure, activate, deactivate, cleanup, shutdown);
+parameters changed at run time where safe (:data:`RUNTIME`), refused with the reason where
+not; its status on ``/diagnostics`` (diagnostic_msgs) once a second; ``~/rearm`` and
+``~/reset`` (std_srvs/Trigger). docs/ROS2.md, "A managed node".
 """
 
 from __future__ import annotations
@@ -240,6 +246,7 @@ PARAMETERS = {
     "R": list, "plan_speed_kmh": float, "plan_accel": float, "plan_decel": float,
     "plan_lat_accel": float, "goal_tolerance": float, "goal_yaw_tolerance_deg": float,
     "stale_ms": float, "resume_periods": int, "safe_decel": float, "max_age_ms": float,
+    "low_speed_kmh": float,
 }
 
 
@@ -273,7 +280,12 @@ def declare_parameters(node, defaults: dict) -> dict:
     values in force (a ``-p`` override or a params file wins; an integer is taken for a
     double). 0 for ``deadline_ms``/``max_age_ms``: none. A parameter the node does not have
     (a misspelt name) is refused, naming it, before anything runs (the node is created with
-    ``automatically_declare_parameters_from_overrides``, so every override is visible)."""
+    ``automatically_declare_parameters_from_overrides``, so every override is visible).
+    Each is declared with dynamic typing, its kind checked by the node itself
+    (:meth:`RosController._on_set_parameters`): ``ros2 param set ... plan_speed_kmh 8``
+    sends an integer, which rclpy's static typing would refuse for a double."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
     given = node.list_parameters([], 10).names
     unknown = sorted(n for n in given if n not in PARAMETERS and n not in ROS_OWN
                      and not n.startswith("qos_overrides."))
@@ -292,14 +304,26 @@ def declare_parameters(node, defaults: dict) -> dict:
         else:
             d = str(d)
         if node.has_parameter(name):  # given: -p NAME:=VALUE or --params-file
-            out[name] = _parameter_value(name, kind, node.get_parameter(name).value)
-            continue
+            d = _parameter_value(name, kind, node.get_parameter(name).value)
+            node.undeclare_parameter(name)  # declared again below, dynamically typed
         try:
-            v = node.declare_parameter(name, d).value
+            v = node.declare_parameter(name, d, ParameterDescriptor(dynamic_typing=True)).value
         except Exception as e:  # noqa: BLE001 - rclpy's type errors, named
             raise ValueError(f"ROS parameter {name}: {e}") from None
         out[name] = _parameter_value(name, kind, v)
     return out
+
+
+# What may change while the node is configured (inactive or active); the others change the
+# optimiser's structure and are taken while it is unconfigured (lifecycle cleanup, set,
+# configure). Weights: the MPC is built again from them at once (for the annealer
+# and the feed-forward; IPOPT and acados build them into their problem at configure).
+WEIGHTS = ("Q", "L", "E", "R", "deadline_ms")
+PLAN = ("plan_speed_kmh", "plan_accel", "plan_decel", "plan_lat_accel")  # the next plan
+LIMITS = ("goal_tolerance", "goal_yaw_tolerance_deg", "low_speed_kmh", "stale_ms",
+          "resume_periods", "safe_decel", "max_age_ms")
+RUNTIME = WEIGHTS + PLAN + LIMITS
+REBUILT = ("sa", "ff")  # the solvers whose weights change at run time
 
 
 # ---- wear -----------------------------------------------------------------------------------------
@@ -341,6 +365,13 @@ class WearEstimate:
 
 
 # ---- the node ---------------------------------------------------------------------------------
+LOW_SPEED_KMH = 5.0  # below this (measured and asked) the policy's plain feed-forward commands
+DIAGNOSTICS = "/diagnostics"  # where diagnostic_updater publishes, absolute
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+DIAGNOSTICS_PERIOD = 1.0  # s, on a steady clock (diagnostic_updater's default period)
+STOP_ACK_S = 1.0  # s: the longest wait for the subscribers to acknowledge the last stop
+
+
 @dataclasses.dataclass
 class RosControllerConfig:
     period: float = CONTROL_PERIOD
@@ -354,6 +385,7 @@ class RosControllerConfig:
     goal_tolerance: float = 0.05
     goal_yaw_tolerance_deg: float = 2.0
     max_age_ms: float | None = None
+    low_speed_kmh: float = LOW_SPEED_KMH
     node_name: str = "msagv_controller"
     vehicle_id: str = "agv0"
 
@@ -362,49 +394,149 @@ class RosController:
     """The controller node (see the module docstring). ``make_mpc(parameters)`` builds the
     controller from the parameters in force (:data:`PARAMETERS`; ``defaults`` their
     command-line values); ``reference``: the reference to track from the first state on
-    (None: wait for a plan); ``recorder``: a recorder-like sink or None."""
+    (None: wait for a plan); ``recorder``: a recorder-like sink or None.
+
+    A managed node (``rclpy.lifecycle``): the parameters are declared (unknown ones
+    refused) when it is made; ``configure`` reads them, builds and warms the MPC and
+    declares the topics, services and timers; ``activate`` lets it command;
+    ``deactivate`` sends one stop (steering held, wheels 0) and stops commanding;
+    ``cleanup`` takes all of it down again; ``shutdown`` ends :meth:`run`. With
+    ``managed=False`` it configures and activates itself at once (a ValueError names a
+    bad value)."""
 
     def __init__(self, make_mpc: Callable[[dict], object], defaults: dict, vehicle,
                  cfg: RosControllerConfig, ros_args: list[str], reference: Reference | None,
-                 recorder=None, stop: threading.Event | None = None):
-        self.ctx = Context(cfg.node_name, ros_args)
+                 recorder=None, stop: threading.Event | None = None, managed: bool = False):
+        from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
+
+        self.ctx = Context(cfg.node_name, ros_args, lifecycle=True)
         self.params = declare_parameters(self.ctx.node, defaults)
-        p = self.params
-        cfg = dataclasses.replace(cfg, stale_ms=p["stale_ms"], resume_periods=p["resume_periods"],
-                                  safe_decel=p["safe_decel"], plan_speed_kmh=p["plan_speed_kmh"],
-                                  plan_accel=p["plan_accel"], plan_decel=p["plan_decel"],
-                                  plan_lat_accel=p["plan_lat_accel"],
-                                  goal_tolerance=p["goal_tolerance"],
-                                  goal_yaw_tolerance_deg=p["goal_yaw_tolerance_deg"],
-                                  max_age_ms=p["max_age_ms"] or None)
-        positive = ("stale_ms", "safe_decel", "plan_speed_kmh", "plan_accel", "plan_decel",
-                    "plan_lat_accel", "goal_tolerance", "goal_yaw_tolerance_deg")
-        bad = [f"{k}={getattr(cfg, k):g}" for k in positive
-               if not (math.isfinite(getattr(cfg, k)) and getattr(cfg, k) > 0)]
-        if bad or cfg.resume_periods < 1:
-            raise ValueError(f"{', '.join(positive)} must be > 0 and resume_periods >= 1, got "
-                             f"{', '.join(bad) or f'resume_periods={cfg.resume_periods}'}")
+        self.make_mpc = make_mpc
+        self.cfg0 = cfg
         self.cfg = cfg
         self.vehicle = vehicle
         self.nw = vehicle.n_wheels
-        self.mpc = make_mpc(p)
-        t0 = time.perf_counter()
-        self.mpc.warmup()  # compiled before any topic is declared: a plant that sees this
-        log.info("MPC warm (%.2f s)", time.perf_counter() - t0)  # node is answered at once
         self.rec = recorder if recorder is not None else NullRecorder()
         self.stop = stop or threading.Event()
         self.base_reference = reference
+        self.managed = managed
+        self.configured = False
+        self.active = False
+        self._ended = False
+        self.transitions: list = []  # (transition, result) in order
+        self.stats = {"answered": 0, "repeated": 0, "safe_events": 0, "safe_periods": 0,
+                      "resumes": 0, "plans": 0, "rejected": 0, "new_runs": 0,
+                      "dropped_stale": 0, "no_reference": 0, "goals_reached": 0,
+                      "held_at_goal": 0, "plans_at_goal": 0, "plans_same_route": 0,
+                      "low_speed": 0, "rearms": 0, "resets": 0, "parameter_changes": 0,
+                      "parameters_refused": 0}
+        self.solve_ms: list = []
+        self.goal_errors: list = []  # (distance [m], heading [deg]) at each goal reached
+        self.rej = M.Rejections("ros2 controller", log)
+        self.mpc = self.low = None
         self.reference: Reference | None = None
-        self.msgs = R.RunMessages(vehicle, cfg.period)
-        self.wear = WearEstimate(vehicle)
-        self._warm_extras(reference)
-        self.watch = CommandWatch(int(math.floor(cfg.stale_ms / 1000 / cfg.period + 1e-9)),
-                                  cfg.resume_periods, cfg.period)
-        self.ramp = cfg.safe_decel / vehicle.wheel_radius
+        self._safe = False
+        self._config_error: str | None = None
+        node = self.ctx.node
+        me = self
+        ok, fail = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+
+        class _Entity(ManagedEntity):  # the node's transitions (rclpy calls each entity's)
+            def on_configure(self, state):
+                return me._transition("configure", me._configure, ok, fail)
+
+            def on_activate(self, state):
+                return me._transition("activate", me._activate, ok, fail)
+
+            def on_deactivate(self, state):
+                return me._transition("deactivate", me._deactivate, ok, fail)
+
+            def on_cleanup(self, state):
+                return me._transition("cleanup", me._cleanup, ok, fail)
+
+            def on_shutdown(self, state):
+                return me._transition("shutdown", me._shutdown, ok, fail)
+
+            def on_error(self, state):
+                return me._transition("error", me._cleanup, ok, fail)
+
+        node.add_managed_entity(_Entity())
+        node.add_on_set_parameters_callback(self._on_set_parameters)
+        if not managed:  # configured and activated at once, as a plain node would be
+            node.trigger_configure()
+            if not self.configured:
+                self.close()
+                raise ValueError(self._config_error or "configure failed")
+            node.trigger_activate()
+
+    def _transition(self, name: str, fn, ok, fail):
+        try:
+            fn()
+        except Exception as e:  # noqa: BLE001 - a transition that fails says why, once
+            self._config_error = str(e)
+            if self.managed:  # else the command line says it (exit 2)
+                log.error("%s failed: %s", name, e)
+            self.transitions.append((name, "failure"))
+            return fail
+        self.transitions.append((name, "success"))
+        log.info("lifecycle: %s", name)
+        return ok
+
+    def _config_from(self, p: dict) -> RosControllerConfig:
+        """The node's configuration of the parameters ``p``, or ValueError naming the bad
+        value."""
+        cfg = dataclasses.replace(
+            self.cfg0, stale_ms=p["stale_ms"], resume_periods=p["resume_periods"],
+            safe_decel=p["safe_decel"], plan_speed_kmh=p["plan_speed_kmh"],
+            plan_accel=p["plan_accel"], plan_decel=p["plan_decel"],
+            plan_lat_accel=p["plan_lat_accel"], goal_tolerance=p["goal_tolerance"],
+            goal_yaw_tolerance_deg=p["goal_yaw_tolerance_deg"],
+            max_age_ms=p["max_age_ms"] or None, low_speed_kmh=p["low_speed_kmh"])
+        positive = ("stale_ms", "safe_decel", "plan_speed_kmh", "plan_accel", "plan_decel",
+                    "plan_lat_accel", "goal_tolerance", "goal_yaw_tolerance_deg")
+        bad = [f"{k} must be > 0, got {getattr(cfg, k):g}" for k in positive
+               if not (math.isfinite(getattr(cfg, k)) and getattr(cfg, k) > 0)]
+        if not (math.isfinite(cfg.low_speed_kmh) and cfg.low_speed_kmh >= 0):
+            bad.append(f"low_speed_kmh must be >= 0, got {cfg.low_speed_kmh:g}")
+        if cfg.max_age_ms is not None and not (math.isfinite(cfg.max_age_ms)
+                                               and cfg.max_age_ms > 0):
+            bad.append(f"max_age_ms must be > 0 (0: none), got {cfg.max_age_ms:g}")
+        if cfg.resume_periods < 1:
+            bad.append(f"resume_periods must be >= 1, got {cfg.resume_periods}")
+        if bad:
+            raise ValueError("; ".join(bad))
+        return cfg
+
+    def _low_speed_mpc(self, p: dict, cfg: RosControllerConfig):
+        """The feed-forward that commands at walking pace (:meth:`_controller_for`)."""
+        if cfg.low_speed_kmh > 0 and p["solver"] != "ff":
+            return self.make_mpc(dict(p, solver="ff"))
+        return None
+
+    # ---- the lifecycle ---------------------------------------------------------------------
+    def _configure(self) -> None:
+        """Read the parameters, build and warm the MPC (before any topic is declared: a
+        plant that sees this node is answered at once), declare the topics, services and
+        timers."""
+        p = self.params
+        cfg = self._config_from(p)
+        self.cfg = cfg
+        self.mpc = self.make_mpc(p)
+        self.low = self._low_speed_mpc(p, cfg)  # at walking pace (see _controller_for)
+        t0 = time.perf_counter()
+        for c in self._controllers():
+            c.warmup()
+        log.info("MPC warm (%.2f s)", time.perf_counter() - t0)
+        self.reference = None
+        self.msgs = R.RunMessages(self.vehicle, cfg.period)
+        self.wear = WearEstimate(self.vehicle)
+        self._warm_extras(self.base_reference)
+        self.watch = CommandWatch(self._max_missed(cfg), cfg.resume_periods, cfg.period)
         self.key_state = f"msagv/{cfg.vehicle_id}/state"
         self.key_cmd = f"msagv/{cfg.vehicle_id}/cmd"
         self._odom = None
         self._odom_rx = 0.0
+        self._fresh_rx: float | None = None  # when the newest fresh pair came (node clock)
         self._joints = None
         self._last_t: float | None = None  # the newest state solved
         self._last_cmd: tuple | None = None  # (t, steering targets, wheel speeds)
@@ -413,19 +545,17 @@ class RosController:
         self._fresh_tick: int | None = None
         self._plan_msg = None
         self._safe = False
+        self._safe_why = ""
         self._seq = 0
         self._cmd_seq = 0
         self._told_arc = False
+        self._retime = False  # the plan's limits changed: the next plan is timed afresh
+        self._restart = False  # ~/reset: the next state starts a new run
         self._goal_held: tuple | None = None  # the goal (x, y, phi) reached and held
         self._hold: tuple | None = None  # (steering held, wheel speeds ramping down)
-        self.goal_errors: list = []  # (distance [m], heading [deg]) at each goal reached
-        self.stats = {"answered": 0, "repeated": 0, "safe_events": 0, "safe_periods": 0,
-                      "resumes": 0, "plans": 0, "rejected": 0, "new_runs": 0,
-                      "dropped_stale": 0, "no_reference": 0, "goals_reached": 0,
-                      "held_at_goal": 0, "plans_at_goal": 0, "plans_same_route": 0}
-        self.solve_ms: list = []
-        self.rej = M.Rejections("ros2 controller", log)
+        self._diag_from = len(self.solve_ms)
         c = self.ctx
+        node = c.node
         self.pub_steer = c.publisher(R.STEERING_COMMANDS)
         self.pub_wheel = c.publisher(R.WHEEL_COMMANDS)
         self.pub_pred = c.publisher(R.PREDICTED_PATH)
@@ -439,11 +569,196 @@ class RosController:
         # staleness bound and every safe-state decision count its periods, so a simulator
         # slower or faster than real time is answered state by state, never stale for
         # being slow; otherwise the wall clock (a steady one)
-        self.sim_time = bool(c.node.get_parameter("use_sim_time").value)
-        self._clock = c.node.get_clock() if self.sim_time else None
-        self._timer = c.node.create_timer(
-            cfg.period, self._on_tick,
-            clock=self._clock if self.sim_time else Clock(clock_type=ClockType.STEADY_TIME))
+        self.sim_time = bool(node.get_parameter("use_sim_time").value)
+        self._clock = node.get_clock() if self.sim_time else None
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._timers = [node.create_timer(cfg.period, self._on_tick,
+                                          clock=self._clock if self.sim_time else steady)]
+        self._services = []
+        self.pub_diag = None
+        from .runtime import Ros2Unavailable, msg_class
+
+        try:  # diagnostics once a second on a steady clock (also when /clock stalls)
+            self.pub_diag = node.create_publisher(msg_class(DIAGNOSTICS_TYPE), DIAGNOSTICS,
+                                                  10)
+            self._timers.append(node.create_timer(DIAGNOSTICS_PERIOD, self._on_diagnostics,
+                                                  clock=steady))
+        except Ros2Unavailable as e:
+            log.warning("no %s: %s (pip install ros-diagnostic-msgs)", DIAGNOSTICS, e)
+        try:
+            import std_srvs.srv as srv
+
+            self._services = [node.create_service(srv.Trigger, "~/rearm", self._on_rearm),
+                              node.create_service(srv.Trigger, "~/reset", self._on_reset)]
+        except ImportError as e:
+            log.warning("no ~/rearm and ~/reset services: %s (pip install ros-std-srvs)", e)
+        self.configured = True
+
+    def _activate(self) -> None:
+        self._odom = self._joints = None  # only states received from now on are answered
+        self.active = True
+
+    def _deactivate(self) -> None:
+        """Stop commanding; one last command stops the wheels and holds the steering where
+        it is measured (a ros2_control forward command controller holds the last command
+        it got: left alone it would keep the wheels running)."""
+        if self.active and self._last_t is not None and self._delta is not None:
+            self._publish_cmd(self._delta, np.zeros(self.nw))
+            self._last_cmd = (self._last_t, self._delta, np.zeros(self.nw))
+            # delivered before the publishers go (cleanup, shutdown, a signal): a reliable
+            # writer destroyed at once may drop what its readers have not acknowledged
+            from rclpy.duration import Duration
+
+            for pub in (self.pub_steer, self.pub_wheel):
+                if not pub.wait_for_all_acked(Duration(seconds=STOP_ACK_S)):
+                    log.warning("the stop command was not acknowledged within %g s",
+                                STOP_ACK_S)
+        self.active = False
+
+    def _cleanup(self) -> None:
+        """Back to unconfigured: the topics, services, timers and the MPC taken down."""
+        if self.active:
+            self._deactivate()
+        if not self.configured:
+            return
+        node = self.ctx.node
+        for t in self._timers:
+            node.destroy_timer(t)
+        for sub in self._subs:
+            node.destroy_subscription(sub)
+        for sv in self._services:
+            node.destroy_service(sv)
+        for pub in (self.pub_steer, self.pub_wheel, self.pub_pred, self.pub_wear,
+                    self.pub_diag):
+            if pub is not None:
+                node.destroy_publisher(pub)
+        self._timers, self._subs, self._services = [], [], []
+        self.mpc = self.low = None
+        self.configured = False
+
+    def _shutdown(self) -> None:
+        self._cleanup()
+        self._ended = True
+        self.stop.set()
+
+    @staticmethod
+    def _max_missed(cfg: RosControllerConfig) -> int:
+        return int(math.floor(cfg.stale_ms / 1000 / cfg.period + 1e-9))
+
+    # ---- parameters at run time -----------------------------------------------------------
+    def _on_set_parameters(self, params):
+        """Every change of the parameters (``ros2 param set``, the SetParameters service):
+        checked all together and applied all together, or refused with the reason.
+        Unconfigured, any parameter (taken at the next configure); configured, those of
+        :data:`RUNTIME`: weights rebuild the MPC at once (the annealer's and the
+        feed-forward's; the disturbance estimate starts again), the plan's limits time the
+        next plan afresh (also a replan of the same route), the other limits apply from the
+        next period."""
+        from rcl_interfaces.msg import SetParametersResult
+
+        try:
+            new = dict(self.params)
+            for prm in params:
+                if prm.name in ROS_OWN:
+                    if prm.name == "use_sim_time" and self.configured:
+                        raise ValueError("use_sim_time: chooses the node's clock at "
+                                         "configure; set it while unconfigured")
+                    continue
+                if prm.name not in PARAMETERS:
+                    raise ValueError(f"{prm.name}: unknown")
+                new[prm.name] = _parameter_value(prm.name, PARAMETERS[prm.name], prm.value)
+            changed = [k for k in PARAMETERS if new[k] != self.params[k]]
+            if self.configured and changed:
+                self._apply(new, changed)
+            elif changed:
+                self._config_from(new)  # a value out of range is refused now, not at configure
+        except Exception as e:  # noqa: BLE001 - refused with its reason, nothing changed
+            reason = str(e).removeprefix("ROS parameter ")
+            self.stats["parameters_refused"] += 1
+            log.warning("parameter change refused: %s", reason)
+            return SetParametersResult(successful=False, reason=reason)
+        if changed:
+            self.stats["parameter_changes"] += 1
+            log.info("parameters changed: %s", ", ".join(f"{k}={new[k]}" for k in changed))
+        self.params = new
+        return SetParametersResult(successful=True)
+
+    def _apply(self, new: dict, changed: list) -> None:
+        """Apply a change while configured (see :meth:`_on_set_parameters`), or raise
+        before anything changed."""
+        fixed = [k for k in changed if k not in RUNTIME]
+        if fixed:
+            raise ValueError(f"{fixed[0]}: changes the optimiser's structure; set it while "
+                             f"the node is unconfigured (lifecycle cleanup, then configure)")
+        cfg = self._config_from(new)
+        mpc, low = self.mpc, self.low
+        weights = [k for k in changed if k in WEIGHTS]
+        if weights:
+            if new["solver"] not in REBUILT:
+                raise ValueError(f"{weights[0]}: the {new['solver']} solver builds the "
+                                 f"weights into its problem at configure; set it while the "
+                                 f"node is unconfigured (lifecycle cleanup, then configure)")
+            mpc = self.make_mpc(new)
+        if weights or "low_speed_kmh" in changed:
+            low = self._low_speed_mpc(new, cfg)
+        # nothing raised: apply
+        if mpc is not self.mpc or low is not self.low:
+            self.mpc, self.low = mpc, low
+            if self.reference is not None:
+                for c in self._controllers():
+                    c.set_reference(self.reference)
+        self.cfg = cfg
+        self.watch.max_missed = self._max_missed(cfg)
+        self.watch.resume_periods = cfg.resume_periods
+        if any(k in PLAN for k in changed):
+            self._retime = True
+
+    # ---- services --------------------------------------------------------------------------
+    def _on_rearm(self, request, response):
+        """``~/rearm`` (std_srvs/Trigger): leave the safe behaviour now, without waiting
+        ``resume_periods`` periods, when the inputs are fresh and there is a plan; refused
+        with the reason otherwise."""
+        why = None
+        if not self.active:
+            why = "not active"
+        elif not self._safe:
+            why = "not in the safe behaviour"
+        elif self.reference is None:
+            why = "no plan"
+        elif self._fresh_tick is None or self._tick - self._fresh_tick > self.watch.max_missed:
+            why = "the odometry and joint states are stale"
+        if why is not None:
+            response.success, response.message = False, f"rearm refused: {why}"
+            return response
+        self.watch = CommandWatch(self.watch.max_missed, self.watch.resume_periods,
+                                  self.cfg.period)
+        self._safe = False
+        self.stats["rearms"] += 1
+        log.warning("re-armed: commanding")
+        self.rec.event("safe", on=False, why="rearm")
+        response.success, response.message = True, "re-armed: commanding"
+        return response
+
+    def _on_reset(self, request, response):
+        """``~/reset`` (std_srvs/Trigger): forget the run - the MPC's warm start, its
+        disturbance estimate and adapted tires, the wear estimate, a goal reached, the
+        plan (the vehicle then stops as without a plan; a ``--case`` reference starts
+        again from the next state)."""
+        if not self.configured:
+            response.success, response.message = False, "reset refused: not configured"
+            return response
+        for c in self._controllers():
+            c.reset()
+        self.wear.reset()
+        self._goal_held = None
+        self._plan_msg = None
+        self.reference = None
+        self._restart = True  # the next state starts a new run; meanwhile, no plan: the
+        self.stats["resets"] += 1  # timer's safe behaviour ramps the wheels down
+        log.warning("reset: the run is forgotten; waiting for a plan")
+        self.rec.event("reset")
+        response.success, response.message = True, "reset: waiting for a plan"
+        return response
 
     def _warm_extras(self, reference) -> None:
         """Compile what runs after each command (the horizon's rollout, the tire model of
@@ -469,10 +784,14 @@ class RosController:
         return time.perf_counter()
 
     def _on_odom(self, msg) -> None:
+        if not self.active:
+            return  # inactive: states are not kept (one kept would be answered late)
         self._odom, self._odom_rx = msg, self._now()
         self._try()
 
     def _on_joints(self, msg) -> None:
+        if not self.active:
+            return
         self._joints = msg
         self._try()
 
@@ -482,7 +801,7 @@ class RosController:
 
     def _try(self, force: bool = False) -> None:
         o, j = self._odom, self._joints
-        if o is None or j is None:
+        if o is None or j is None or not self.active:
             return
         to = R.stamp_seconds(o.header.stamp)
         if self._last_t is not None and to == self._last_t:
@@ -515,6 +834,7 @@ class RosController:
             return
         cur = self.reference
         if (cur is not None and cur.name == "plan" and self._goal_held is None
+                and not self._retime
                 and self._same_goal((arrays[1][-1], arrays[2][-1], arrays[3][-1]),
                                     (cur.x[-1], cur.y[-1], cur.phi[-1]))
                 and off_path(arrays[1], arrays[2], cur.x, cur.y) <= REPLAN_SAME):
@@ -530,30 +850,32 @@ class RosController:
             self.rej.add(M.MessageError(M.BAD_VALUE, f"plan: {e}"), R.PLAN)
             return
         self._goal_held = None
+        self._retime = False
         if how.startswith("its arc") and not self._told_arc:
             log.warning("plan: the pose stamps do not increase (Nav2's planners leave them "
                         "zero): timing the path along %s", how)
             self._told_arc = True
-        self.reference = ref
-        self.mpc.set_reference(ref)
+        self._set_reference(ref)
         log.info("new plan: %d poses, %.1f m, t %.2f..%.2f s (timed by %s)", len(msg.poses),
                  float(np.hypot(np.diff(ref.x), np.diff(ref.y)).sum()), ref.t[0], ref.t[-1], how)
 
     # ---- the solve ---------------------------------------------------------------------
     def _solve(self, st: dict, rx_perf: float) -> None:
         t = st["t"]
-        if self._last_t is None or t < self._last_t:  # the first state, or a new run
-            self.mpc.reset()
+        if self._last_t is None or t < self._last_t or self._restart:  # a new run
+            self._restart = False
+            for c in self._controllers():
+                c.reset()
             self.wear.reset()
             self.stats["new_runs"] += 1
             self._goal_held = None
             self._seq = 0
             if self.base_reference is not None:
-                self.reference = shifted(self.base_reference, t)
-                self.mpc.set_reference(self.reference)
+                self._set_reference(shifted(self.base_reference, t))
         self._last_t = t
         self._delta = np.asarray(st["delta"], dtype=float)
         self._fresh_tick = self._tick
+        self._fresh_rx = rx_perf
         if self._plan_msg is not None:
             self._take_plan(st)
         seq = self._seq
@@ -566,7 +888,8 @@ class RosController:
             return  # the timer decides when the inputs are fresh again
         if self._at_goal(st):
             return
-        cmd = self.mpc.step(st, self.reference)
+        ctl = self._controller_for(st)
+        cmd = ctl.step(st, self.reference)
         self.solve_ms.append(cmd.solve_ms)
         if self.cfg.max_age_ms is not None and \
                 (self._now() - rx_perf) * 1000 > self.cfg.max_age_ms:
@@ -582,13 +905,41 @@ class RosController:
             cost=cmd.cost))
         self._cmd_seq += 1
         # after the commands: the horizon and the wear (not on the command's path)
-        poses = R.predicted_poses(self.mpc)
+        poses = R.predicted_poses(ctl)
         if poses is not None:
-            self.pub_pred.publish(R.encode(R.predicted_path(t, self.mpc.settings.dt, poses),
+            self.pub_pred.publish(R.encode(R.predicted_path(t, ctl.settings.dt, poses),
                                            R.TYPES[R.PREDICTED_PATH]))
-            self.rec.predicted_path(t, self.mpc.settings.dt, poses)
+            self.rec.predicted_path(t, ctl.settings.dt, poses)
         p, work = self.wear.update(st, cmd.omega_w, cmd.omega_s)
         self.pub_wear.publish(R.encode(self._wear_msg(p, work), R.TYPES[R.WEAR]))
+
+    def _controllers(self) -> list:
+        return [c for c in (self.mpc, self.low) if c is not None]
+
+    def _set_reference(self, ref: Reference) -> None:
+        self.reference = ref
+        for c in self._controllers():
+            c.set_reference(ref)
+
+    def _controller_for(self, st: dict):
+        """The solver's MPC, or below ``low_speed_kmh`` - the vehicle's speed and the
+        reference's both - the policy's plain feed-forward (``--solver ff``). At walking
+        pace the MPC's prediction misjudges the wear it minimises: it charges each
+        prediction step's slip wear at the step's first instant, held over its dt (0.1 s),
+        while at low speed the tires take up a wheel-speed change within milliseconds
+        (their relaxation time m v / (2n C)); so it scores the feed-forward's speeding up
+        from rest as dear and picks wheel speeds that fight each other, which the plant
+        wears for real (docs/ROS2.md, "What the profile costs in wear")."""
+        if self.low is None:
+            return self.mpc
+        lim = self.cfg.low_speed_kmh / 3.6
+        if math.hypot(st["vx"], st["vy"]) >= lim:
+            return self.mpc
+        r = self.reference.sample([st["t"]])[0]
+        if math.hypot(r[3], r[4]) >= lim:
+            return self.mpc
+        self.stats["low_speed"] += 1
+        return self.low
 
     def _same_goal(self, a, b) -> bool:
         """Two goals (x, y, phi) within the goal tolerances of each other."""
@@ -651,6 +1002,8 @@ class RosController:
 
     # ---- the timer: stale inputs -------------------------------------------------------
     def _on_tick(self) -> None:
+        if not self.active:
+            return
         self._tick += 1
         if self._odom is not None and self._now() - self._odom_rx > self.cfg.period / 2:
             self._try(force=True)  # joint states stamped differently: the newest ones
@@ -658,14 +1011,14 @@ class RosController:
             return  # nothing received yet: nothing to hold
         no_ref = self.reference is None
         d = self.watch.step(self._tick, None if no_ref else self._fresh_tick, True)
-        if d.resumed:
+        if d.resumed and self._safe:
             self._safe = False
             self.stats["resumes"] += 1
             log.warning("inputs fresh again: commanding")
             self.rec.event("safe", on=False)
         if d.state != SAFE:
             return
-        if d.entered_safe is not None:
+        if d.entered_safe is not None and not self._safe:
             self._safe = True
             self.stats["safe_events"] += 1
             age = self._tick - (self._fresh_tick or 0)
@@ -675,9 +1028,11 @@ class RosController:
             log.warning("SAFE: %s; holding the steering, ramping the wheels down at %g m/s^2",
                         why, self.cfg.safe_decel)
             self.rec.event("safe", on=True, why=why)
+            self._safe_why = why
         self.stats["safe_periods"] += 1
         held = self._last_cmd[2] if self._last_cmd is not None else np.zeros(self.nw)
-        w = np.maximum(held - self.ramp * self.cfg.period, 0.0)
+        w = np.maximum(held - self.cfg.safe_decel / self.vehicle.wheel_radius
+                       * self.cfg.period, 0.0)
         tgt = self._delta if self._delta is not None else np.zeros(self.nw)
         self._last_cmd = (self._last_t, tgt, w)
         self._publish_cmd(tgt, w)
@@ -691,11 +1046,85 @@ class RosController:
         return self.summary()
 
     def close(self) -> None:
-        self.ctx.close()
+        """Shut the node down (the lifecycle's shutdown: an active node sends its stop
+        first), then its context."""
+        try:
+            if not self._ended:
+                self.ctx.node.trigger_shutdown()
+        finally:
+            try:
+                if self.configured:  # the transition failed: taken down all the same
+                    self._cleanup()
+            finally:
+                self.ctx.close()
+
+    def state_label(self) -> str:
+        """The lifecycle state: unconfigured, inactive, active or finalized."""
+        if self._ended:
+            return "finalized"
+        return "active" if self.active else "inactive" if self.configured else "unconfigured"
+
+    # ---- diagnostics ---------------------------------------------------------------------
+    def diagnostics(self) -> tuple[int, str, dict]:
+        """``(level, message, values)`` of the node's diagnostic status now (see
+        docs/ROS2.md, "Diagnostics"): level 0 OK, 1 WARN, 3 STALE; values as strings."""
+        cfg = self.cfg
+        new = np.asarray(self.solve_ms[self._diag_from:], dtype=float)
+        self._diag_from = len(self.solve_ms)
+        age = None if self._fresh_rx is None else (self._now() - self._fresh_rx) * 1000
+        v = {"lifecycle": self.state_label(), "safe": str(self._safe).lower(),
+             "safe_reason": self._safe_why if self._safe else "",
+             "input_age_ms": "none" if age is None else f"{age:.1f}",
+             "stale_ms": f"{cfg.stale_ms:g}", "solves": str(new.size),
+             "solve_ms_p50": f"{np.percentile(new, 50):.3f}" if new.size else "none",
+             "solve_ms_max": f"{new.max():.3f}" if new.size else "none",
+             "period_ms": f"{cfg.period * 1000:g}",
+             "reference": "none" if self.reference is None else self.reference.name,
+             "goal": "reached" if self._goal_held is not None else "",
+             "answered": str(self.stats["answered"]),
+             "low_speed": str(self.stats["low_speed"]),
+             "safe_events": str(self.stats["safe_events"]),
+             "rejected": str(self.stats["rejected"])}
+        dist = self.mpc.disturbance() if self.mpc is not None else None
+        for k in ("d_u", "d_v", "d_r"):
+            v[f"disturbance_{k}"] = "off" if dist is None else f"{dist[k]:.6g}"
+        tires = self.mpc.adapted_tires() if self.mpc is not None else None
+        v["adapt"] = "off" if tires is None else "on"
+        for k, x in (tires or {}).items():
+            v[f"tires_{k}"] = f"{x:.6g}" if isinstance(x, float) else str(x)
+        if not self.active:
+            return 1, self.state_label(), v
+        if self._safe:
+            stale = self._fresh_tick is None or \
+                self._tick - self._fresh_tick > self.watch.max_missed
+            return (3 if stale else 1), f"safe: {self._safe_why}", v
+        if self.reference is None:
+            return 1, "waiting for a plan", v
+        if new.size and new.max() > cfg.period * 1000:
+            return 1, f"a solve took {new.max():.1f} ms, over the period", v
+        return 0, "goal reached" if self._goal_held is not None else "commanding", v
+
+    def _on_diagnostics(self) -> None:
+        from .runtime import msg_class
+
+        level, message, values = self.diagnostics()
+        st = msg_class("diagnostic_msgs/msg/DiagnosticStatus")()
+        st.level = bytes([level])
+        st.name = f"{self.ctx.node.get_name()}: controller"
+        st.message = message
+        st.hardware_id = self.vehicle.name
+        kv = msg_class("diagnostic_msgs/msg/KeyValue")
+        st.values = [kv(key=k, value=x) for k, x in values.items()]
+        m = msg_class(DIAGNOSTICS_TYPE)()
+        m.header.stamp = self.ctx.node.get_clock().now().to_msg()
+        m.status = [st]
+        self.pub_diag.publish(m)
 
     def summary(self) -> dict:
         return {"role": "ros2 controller", **self.stats,
                 "solve_ms": percentiles_ms(np.asarray(self.solve_ms) / 1000.0),
                 "rejected_by_reason": self.rej.summary(),
                 "goal_errors": [{"distance_m": d, "yaw_deg": y} for d, y in self.goal_errors],
-                "parameters": self.params, "safe": self._safe}
+                "parameters": self.params, "safe": self._safe,
+                "lifecycle": self.state_label(),
+                "transitions": [{"transition": n, "result": r} for n, r in self.transitions]}

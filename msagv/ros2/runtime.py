@@ -67,9 +67,10 @@ def qos(topic: str, subscriber: bool = False):
 class Context:
     """One rclpy context with one node and a single-threaded executor; signals are the
     caller's (rclpy's own SIGINT handler is not installed). ``ros_args`` starts with
-    ``--ros-args`` (or is empty). Close it with :meth:`close`."""
+    ``--ros-args`` (or is empty); ``lifecycle``: the node is an ``rclpy.lifecycle``
+    managed node. Close it with :meth:`close`."""
 
-    def __init__(self, node_name: str, ros_args: list[str]):
+    def __init__(self, node_name: str, ros_args: list[str], lifecycle: bool = False):
         rclpy = load()
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
@@ -87,8 +88,14 @@ class Context:
             signal.signal(signal.SIGTERM, handlers[1])
         # every -p / params-file value becomes a parameter, so that a node can refuse the
         # names it does not have (controller_node.declare_parameters) instead of ignoring them
-        self.node = rclpy.create_node(node_name, context=self.context,
+        if lifecycle:  # a managed node (rclpy.lifecycle): its state machine and services
+            from rclpy.lifecycle import LifecycleNode
+
+            self.node = LifecycleNode(node_name, context=self.context,
                                       automatically_declare_parameters_from_overrides=True)
+        else:
+            self.node = rclpy.create_node(node_name, context=self.context,
+                                          automatically_declare_parameters_from_overrides=True)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
