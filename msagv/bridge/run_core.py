@@ -10,8 +10,9 @@ plant (:class:`ros2.plant_node.RosPlant`: topics, steering targets) are its two 
 test drives it with a port of a few lines.
 
 Time is the injected :class:`Clock`: its ``now()`` paces the real-time steps, measures
-their lateness, bounds every wait (``wait_s``, ``timeout_s``, ``linger_s``) and the
-watchdog's deadline. :class:`WallClock` (the default) is the wall clock; the ROS 2 plant
+their lateness, bounds the waits (``wait_s``, ``timeout_s``) and the watchdog's deadline;
+the linger after the end state alone is wall time (a simulator's clock may stop with the
+run). :class:`WallClock` (the default) is the wall clock; the ROS 2 plant
 under ``use_sim_time`` gives ROS time (a simulator's ``/clock``, at whatever pace it runs).
 The staleness bound is counted in periods of that clock (:class:`bridge.loss.CommandWatch`),
 so a clock at 0.2x or 5x real time changes nothing but the wall time a run takes. The
@@ -70,11 +71,11 @@ class RunConfig:
         put the plant in its safe behaviour.
     safe_decel : realtime safe behaviour: wheel-speed ramp-down [m/s^2 at the rim].
     linger_s : after the end state, how long to go on taking messages (the last ones are
-        delivered, late commands still counted) before closing.
+        delivered, late commands still counted) before closing; wall-clock time.
     resume_periods : realtime: consecutive periods in which the controller keeps up (its
         newest command answers the current or the previous state) before the safe
         behaviour ends.
-    All times are on the run's clock (:class:`Clock`).
+    The other times are on the run's clock (:class:`Clock`).
     """
 
     run_mode: str = "lockstep"
@@ -323,8 +324,11 @@ class PlantRun:
             self.port.idle(c.wall(WAIT_ANSWER_S))
 
     def linger(self) -> None:
-        """After the end state: take messages for ``linger_s`` more."""
-        self._idle_until(self.clock.now() + self.cfg.linger_s)
+        """After the end state: take messages for ``linger_s`` more, of the wall clock (the
+        run's clock may stop with the run: a simulator's ``/clock``)."""
+        end = time.monotonic() + self.cfg.linger_s
+        while not self.stop.is_set() and (left := end - time.monotonic()) > 0:
+            self.port.idle(left)
 
     # ---- runs ----------------------------------------------------------------------------
     def run(self) -> None:
