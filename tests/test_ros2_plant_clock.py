@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import time
 
+import test_ros2_nodes as ros_nodes
 from helpers import msagv
-from test_ros2_nodes import Peer, _ros, _stamp, ros_env  # noqa: F401 - ros_env: a fixture
+from test_ros2_nodes import Peer, _ros, _stamp
 
 T = 0.01
+ros_env = ros_nodes.ros_env  # the fixture: loopback discovery, a domain of this test alone
 
 
 def test_a_realtime_plant_under_sim_time_steps_on_the_simulators_clock(procs, ros_env):

@@ -46,7 +46,7 @@ from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_hea
 from .run_core import (Command, PlantRun, PlantRunError, PlantStats, RunConfig, WallClock,
                        percentiles_ms)
 from .session import Keys, SessionError, SessionOptions
-from .transport import Query, Sample, Transport
+from .transport import Query, Sample, Transport, close_all
 from .zenoh_transport import ZenohTransport
 
 log = logging.getLogger("msagv.plant")
@@ -198,12 +198,7 @@ class PlantNode:
     def close(self) -> None:
         """Undeclare everything :meth:`open` declared (the transport stays open)."""
         self.core.close()
-        for obj in [self._token] + self._decls + [self._pub]:
-            if obj is not None:
-                try:
-                    obj.close()
-                except Exception:
-                    pass
+        close_all([self._token] + self._decls + [self._pub])
         self._token, self._decls, self._pub = None, [], None
 
     def _old_client(self, query: Query) -> None:
