@@ -74,7 +74,7 @@ class FakePort:
     def present(self) -> bool:
         return True
 
-    def idle(self, seconds: float) -> None:
+    def idle(self, seconds: float, wake: bool = True) -> None:
         c = self.clock
         c.t = min(c.t + seconds * c.rate, max(self._next_answer(), c.t))
 

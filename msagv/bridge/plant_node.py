@@ -484,7 +484,10 @@ class PlantNode:
     def present(self) -> bool:
         return self.controller_present
 
-    def idle(self, seconds: float) -> None:
+    def idle(self, seconds: float, wake: bool = True) -> None:
+        if not wake:  # commands are taken on the transport's threads meanwhile
+            time.sleep(seconds)
+            return
         self._wake.wait(seconds)
         self._wake.clear()
 

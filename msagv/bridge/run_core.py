@@ -165,9 +165,12 @@ class PlantPort(Protocol):
     def present(self) -> bool:
         """Whether the controller is present (a transport without presence: True)."""
 
-    def idle(self, seconds: float) -> None:
-        """Wait up to ``seconds`` (wall) for news (a command, the controller's presence),
-        running the transport's callbacks where it needs that."""
+    def idle(self, seconds: float, wake: bool = True) -> None:
+        """Wait up to ``seconds`` (wall), running the transport's callbacks where it needs
+        that; ``wake``: return early on news (a command, the controller's presence).
+        ``wake=False`` is the real-time step's wait for its time: the step reads the newest
+        command when it comes, so a transport whose callbacks run on threads of their own
+        may just sleep."""
 
     def unanswered(self, k: int, first: bool) -> None:
         """Called while the run waits for state ``k``'s answer (``first``: as it starts):
@@ -286,12 +289,12 @@ class PlantRun:
 
     # ---- waits ---------------------------------------------------------------------------
     def _idle_until(self, t: float) -> None:
-        """Wait (taking news) until the clock reaches ``t``, or the run is stopped."""
+        """Wait until the clock reaches ``t``, or the run is stopped."""
         while not self.stop.is_set():
             left = t - self.clock.now()
             if left <= 0:
                 return
-            self.port.idle(self.clock.wall(left))
+            self.port.idle(self.clock.wall(left), wake=False)
 
     def wait_controller(self) -> None:
         """Until the port is ready (a controller there); PlantRunError after ``wait_s``."""

@@ -176,8 +176,8 @@ class RosPlant:
     def present(self) -> bool:
         return True  # ROS 2 has no presence of ours: staleness alone decides
 
-    def idle(self, seconds: float) -> None:
-        self.ctx.spin_once(seconds)
+    def idle(self, seconds: float, wake: bool = True) -> None:
+        self.ctx.spin_once(seconds)  # the callbacks run only here: always spun
 
     def unanswered(self, k: int, first: bool) -> None:
         pass  # a state is sent once: a command names no state, it answers the newest
