@@ -45,7 +45,7 @@ from .ros_msgs import predicted_poses
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, freeze_heap
 from .recording import NullRecorder
 from .session import Keys, SessionError, SessionOptions
-from .transport import Sample, Transport
+from .transport import Sample, Transport, close_all
 from .zenoh_transport import ZenohTransport
 
 log = logging.getLogger("msagv.controller")
@@ -261,12 +261,7 @@ class ControllerNode:
             except Exception:
                 pass
             self.granted = False
-        for obj in [self._token] + self._decls + [self._pub]:
-            if obj is not None:
-                try:
-                    obj.close()
-                except Exception:
-                    pass
+        close_all([self._token] + self._decls + [self._pub])
         self._token, self._decls, self._pub = None, [], None
 
     def _on_plant_token(self, present: bool) -> None:

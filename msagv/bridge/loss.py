@@ -40,6 +40,13 @@ STALE_MS = 50.0
 (``msagv plant --stale-ms``), and a controller facing a realtime plant never sends a
 command for a state older than this (``msagv controller --max-age-ms``'s default)."""
 
+RESUME_PERIODS = 3
+"""The safe behaviour ends after this many consecutive periods in which the controller keeps
+up again (``--resume-periods``)."""
+
+SAFE_DECEL = 2.0
+"""The safe behaviour ramps the wheels down at this [m/s^2 at the rim] (``--safe-decel``)."""
+
 
 @dataclass
 class Decision:
@@ -52,7 +59,7 @@ class Decision:
 class CommandWatch:
     """The realtime plant's state machine over its commands (see the module)."""
 
-    def __init__(self, max_missed: int, resume_periods: int = 3,
+    def __init__(self, max_missed: int, resume_periods: int = RESUME_PERIODS,
                  period: float = CONTROL_PERIOD):
         if max_missed < 0:
             raise ValueError(f"max_missed must be >= 0, got {max_missed}")

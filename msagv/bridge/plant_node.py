@@ -34,27 +34,19 @@ started, losing the owner latches the vehicle until an operator re-arms it
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
-from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import numpy as np
-
-from msagv.controller.metrics import percentiles
-from msagv.plant.signals import BODY_FIELDS, WEAR_FIELDS, WHEEL_WEAR_FIELDS
-
-from msagv.plant.signals import CONTROL_PERIOD
 from . import messages as M
-from .loss import SAFE, STALE_MS, CommandWatch
 from .ownership import (BAD_ARM, BAD_CLAIM, CLAIM, LATCHED, Ownership, RearmPolicy,
                         decode_arm, decode_claim, encode_armed, encode_grant)
 from .presence import TokenSet
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_heap
-from .recording import NullRecorder
+from .run_core import (Command, PlantRun, PlantRunError, PlantStats, RunConfig, WallClock,
+                       percentiles_ms)
 from .session import Keys, SessionError, SessionOptions
-from .transport import Query, Sample, Transport
+from .transport import Query, Sample, Transport, close_all
 from .zenoh_transport import ZenohTransport
 
 log = logging.getLogger("msagv.plant")
@@ -70,38 +62,15 @@ OLD_CLIENT = ("msagv protocol 2 (docs/PROTOCOL.md): this query carried no identi
               "client of the first version asks; ask {key}/*/{{your identity}} instead")
 
 
-class PlantRunError(RuntimeError):
-    """The run cannot go on (no controller, a lockstep timeout, a failed step)."""
+__all__ = ["PlantConfig", "PlantNode", "PlantRunError", "percentiles_ms", "serve"]
 
 
 @dataclass
-class PlantConfig:
-    """How the plant process runs.
+class PlantConfig(RunConfig):
+    """How the plant process runs: the run's settings (:class:`bridge.run_core.RunConfig`:
+    run_mode, period, steps, timeout_s, wait_s, stale_ms, safe_decel, linger_s,
+    resume_periods; the vehicle time runs with the wall clock) and the Zenoh plant's own."""
 
-    run_mode : 'lockstep' or 'realtime'.
-    period : control period T [s]; state k has t = k T exactly.
-    steps : periods to run; the last state (seq = steps) carries ``end = true``.
-    timeout_s : lockstep: the longest wait for a command answering the current state;
-        realtime: for the first command (answering state 0). Exceeded: the run ends (exit 3).
-    wait_s : how long to wait for the controller's liveliness token at start (0: forever).
-    stale_ms : realtime: a command answering a state older than this [ms of vehicle time,
-        which runs with the wall clock] is stale and the plant goes safe.
-    safe_decel : realtime safe behaviour: wheel-speed ramp-down [m/s^2 at the rim].
-    linger_s : after the end state, how long to keep the session open (the last messages
-        are delivered, late commands still counted) before closing.
-    resume_periods : realtime: consecutive periods in which the owner keeps up (its newest
-        command answers the current or the previous state) before the safe behaviour ends.
-    """
-
-    run_mode: str = "lockstep"
-    period: float = CONTROL_PERIOD
-    steps: int = 100
-    timeout_s: float = 10.0
-    wait_s: float = 60.0
-    stale_ms: float = STALE_MS
-    safe_decel: float = 2.0
-    linger_s: float = 0.2
-    resume_periods: int = 3
     wheel_wear: str = "auto"  # per-wheel wear in the state: auto (when the owner's claim
     # asks for it, docs/PROTOCOL.md "Per-wheel wear") | on | off
     rearm: str = "manual"  # how a latched vehicle is driven again (RearmPolicy): manual |
@@ -109,22 +78,7 @@ class PlantConfig:
     resend_s: float = RESEND_S  # lockstep: republish an unanswered state after this long
 
     def __post_init__(self):
-        if self.run_mode not in M.RUN_MODES:
-            raise ValueError(f"run mode: expected lockstep or realtime, got '{self.run_mode}'")
-        if not (self.period > 0 and math.isfinite(self.period)):
-            raise ValueError(f"--period must be > 0, got {self.period}")
-        if self.steps < 1:
-            raise ValueError("--duration must be at least one period")
-        if not self.timeout_s > 0:
-            raise ValueError(f"--timeout must be > 0, got {self.timeout_s}")
-        if not self.wait_s >= 0:
-            raise ValueError(f"--wait must be >= 0, got {self.wait_s}")
-        if not self.stale_ms > 0:
-            raise ValueError(f"--stale-ms must be > 0, got {self.stale_ms}")
-        if not self.safe_decel > 0:
-            raise ValueError(f"--safe-decel must be > 0, got {self.safe_decel}")
-        if not 1 <= self.resume_periods <= 1000:
-            raise ValueError(f"--resume-periods must be 1..1000, got {self.resume_periods}")
+        super().__post_init__()
         if self.wheel_wear not in WHEEL_WEAR_MODES:
             raise ValueError(f"--wheel-wear: expected one of {', '.join(WHEEL_WEAR_MODES)}, "
                              f"got '{self.wheel_wear}'")
@@ -132,54 +86,24 @@ class PlantConfig:
         if not self.resend_s > 0:
             raise ValueError(f"resend_s must be > 0, got {self.resend_s}")
 
-    @property
-    def max_missed(self) -> int:
-        """Consecutive periods without an answer the realtime plant tolerates (DCP's maximum
-        consecutive missed PDUs): ``floor(stale_ms / T)``."""
-        return int(math.floor(self.stale_ms / 1000.0 / self.period + 1e-9))
 
-
-def percentiles_ms(values_s) -> dict:
-    """Percentiles in ms of durations given in s (:func:`controller.metrics.percentiles`)."""
-    return percentiles(values_s, scale=1000.0, count=True)
+@dataclass
+class _Cmd(Command):
+    seq: int = 0
+    rx_perf: float = 0.0
 
 
 @dataclass
-class _Cmd:
-    state_seq: int
-    seq: int
-    omega_w: list
-    omega_s: list
-    rx_perf: float
-
-
-@dataclass
-class PlantStats:
-    accepted: int = 0
-    stale: int = 0  # valid but older than the newest accepted (out of order)
-    duplicate: int = 0
-    after_end: int = 0  # valid answers to the end state (never applied)
-    late: int = 0  # realtime: accepted commands that arrived after their state's step
-    cmd_seq_gaps: int = 0
-    safe_events: int = 0
-    safe_periods: int = 0
-    resumes: int = 0
-    missed_periods: int = 0
-    clock_resyncs: int = 0
+class ZenohPlantStats(PlantStats):
     controller_losses: int = 0
-    watchdog_trips: int = 0  # the loop missed its deadline by more than stale_ms
-    watchdog_periods: int = 0  # periods of safe behaviour run by the watchdog
-    resent: int = 0  # states published again because their answer did not come
     old_clients: int = 0  # queries without an identity (clients of the first version)
-    latency_s: list = field(default_factory=list)  # state published -> command received, - solve
-    roundtrip_s: list = field(default_factory=list)  # state published -> command received
-    lateness_s: list = field(default_factory=list)  # state publication - its nominal time
-    pub_intervals_s: list = field(default_factory=list)
 
 
 class PlantNode:
-    """The plant process's logic: :meth:`open` it on a transport, :meth:`run`, :meth:`close`.
-    Everything it does on the bus goes through that :class:`bridge.transport.Transport`."""
+    """The Zenoh plant: the run (:class:`bridge.run_core.PlantRun`) on a transport.
+    :meth:`open` it on a transport, :meth:`run`, :meth:`close`. Everything it does on the bus
+    goes through that :class:`bridge.transport.Transport`; it is the run's
+    :class:`bridge.run_core.PlantPort`: ownership, claims, liveliness, re-sends."""
 
     def __init__(self, plant, keys: Keys, cfg: PlantConfig, recorder=None):
         self.plant = plant
@@ -189,46 +113,66 @@ class PlantNode:
         self.cfg = cfg
         self.transport: Transport | None = None  # open()
         self.recording = recorder is not None
-        self.rec = recorder if recorder is not None else NullRecorder()
+        self.core = PlantRun(plant, cfg, self, clock=WallClock(), recorder=recorder, log=log,
+                             stats=ZenohPlantStats())
+        self.rec = self.core.rec
+        self.stats = self.core.stats
+        self.watch = self.core.watch
+        self._lock = self.core.lock  # seq, the newest command, the answered states
+        self._plant_lock = self.core.plant_lock
         self.rej = M.Rejections(f"plant {keys.id}", log)
-        self.stats = PlantStats()
-        self.seq = -1  # newest published state
-        self._stepped = -1  # realtime: the newest step taken (its command chosen)
-        self._pub_perf: OrderedDict[int, float] = OrderedDict()
         self._answered: set[int] = set()
         self._newest: _Cmd | None = None
         self._last_cmd_seq: int | None = None
-        self._lock = threading.Lock()
-        self._cmd_event = threading.Event()
-        self._ctl_event = threading.Event()
-        self.stop = threading.Event()
+        self._wake = threading.Event()  # a command or the owner's presence changed
         self.controller_present = False
         self._ctl_generation = 0
-        self.safe = False
-        self.error: str | None = None
-        self.final_state: dict | None = None
+        self._resend: tuple[int, float] = (0, 0.0)  # (generation, sent) of the awaited state
         self._params = M.encode_params(keys.id, self.vehicle.to_dict(), cfg.period, cfg.run_mode,
                                        self.nw)
         self._pub = None
         self._decls = []
         self._token = None
-        self.ramp = cfg.safe_decel / self.vehicle.wheel_radius  # rad/s^2
         self.ownership = Ownership(on_change=self._on_owner_change,
                                    policy=RearmPolicy.parse(cfg.rearm), period=cfg.period,
                                    on_event=self._on_ownership_event)
-        self.watch = CommandWatch(cfg.max_missed, cfg.resume_periods, cfg.period)
         self._tokens: TokenSet | None = None
-        self._closed = threading.Event()
-        self._plant_lock = threading.Lock()  # the plant's inputs and step (loop, watchdog)
-        self._rt_due: float | None = None  # realtime: perf time the next period is due by
-        self._wd_trip: str | None = None  # set by the watchdog, taken by the loop
-        self._wd_active = False
         self._beat, self._last_stall = time.monotonic(), -1e9
         self._refused_logged = 0
         self._heard: tuple[str | None, float] = (None, 0.0)  # the owner's newest message
         # the per-wheel wear fields go out when on, or (auto) when the owner's claim asks
         # for them: a peer of the first protocol version rejects unknown fields
         self._wheel_wear_told = False  # the per-wheel wear last logged and recorded
+
+    # the run's state, as the node's
+    seq = property(lambda self: self.core.seq)
+    safe = property(lambda self: self.core.safe)
+    final_state = property(lambda self: self.core.final_state)
+
+    @property
+    def stop(self) -> threading.Event:
+        return self.core.stop
+
+    @stop.setter
+    def stop(self, event: threading.Event) -> None:
+        self.core.stop = event
+
+    @property
+    def _stepped(self) -> int:
+        return self.core.stepped
+
+    @_stepped.setter
+    def _stepped(self, k: int) -> None:
+        self.core.stepped = k
+
+    @property
+    def error(self) -> str | None:
+        return self.core.error
+
+    @error.setter
+    def error(self, why: str | None) -> None:
+        self.core.error = why
+
 
     # ---- transport ---------------------------------------------------------------------
     def open(self, transport: Transport) -> None:
@@ -253,13 +197,8 @@ class PlantNode:
 
     def close(self) -> None:
         """Undeclare everything :meth:`open` declared (the transport stays open)."""
-        self._closed.set()
-        for obj in [self._token] + self._decls + [self._pub]:
-            if obj is not None:
-                try:
-                    obj.close()
-                except Exception:
-                    pass
+        self.core.close()
+        close_all([self._token] + self._decls + [self._pub])
         self._token, self._decls, self._pub = None, [], None
 
     def _old_client(self, query: Query) -> None:
@@ -405,7 +344,7 @@ class PlantNode:
 
     def _heartbeat(self) -> None:
         """Notice this process's own stalls (its threads stopped for over STALL_S)."""
-        while not self._closed.wait(0.05):
+        while not self.core.closed.wait(0.05):
             now = time.monotonic()
             if now - self._beat > STALL_S:
                 self._last_stall = now
@@ -440,7 +379,7 @@ class PlantNode:
                 self.stats.controller_losses += 1
                 log.warning("controller %s gone (liveliness token lost)", self.keys.id)
             self.rec.event("controller_alive", present=present)
-        self._ctl_event.set()
+        self._wake.set()
 
     def _on_cmd_sample(self, sample: Sample) -> None:
         sender = sample.sender
@@ -500,18 +439,13 @@ class PlantNode:
             if self._last_cmd_seq is not None and c["seq"] > self._last_cmd_seq + 1:
                 self.stats.cmd_seq_gaps += c["seq"] - self._last_cmd_seq - 1
             self._last_cmd_seq = c["seq"]
-            self._newest = _Cmd(j, c["seq"], c["omega_w"], c["omega_s"], rx_perf)
+            self._newest = _Cmd(j, c["omega_w"], c["omega_s"], seq=c["seq"], rx_perf=rx_perf)
             self._answered.add(j)
             self.stats.accepted += 1
-            if j <= self._stepped:
+            if j <= self.core.stepped:
                 self.stats.late += 1  # arrived after the plant took the step of its state
-            tp = self._pub_perf.get(j)
-        if tp is not None:
-            rt = rx_perf - tp
-            self.stats.roundtrip_s.append(rt)
-            if "solve_ms" in c:
-                self.stats.latency_s.append(rt - c["solve_ms"] / 1000.0)
-        self._cmd_event.set()
+            self.core.answered(j, rx_perf, c.get("solve_ms"))
+        self._wake.set()
         return c
 
     def _not_owner(self, sender: str | None) -> str:
@@ -521,272 +455,118 @@ class PlantNode:
                     f"(docs/PROTOCOL.md)")
         return f"from {sender}, which does not own the vehicle"
 
-    # ---- state -------------------------------------------------------------------------
+    # ---- the run's port (bridge.run_core.PlantPort) ------------------------------------
     def publish_state(self, seq: int, end: bool = False) -> None:
-        st = self.plant.state_message()
-        st["t"] = seq * self.cfg.period  # t = seq T exactly (DESIGN.md: time never drifts)
+        self.core.publish_state(seq, end)
+
+    def send_state(self, seq: int, st: dict, end: bool) -> None:
         payload = M.encode_state(seq, st, safe=self.safe if self.cfg.run_mode == "realtime" else None,
                                  end=True if end else None, wheel_wear=self.wheel_wear)
-        now = time.perf_counter()
-        with self._lock:
-            self.seq = seq
-            self._pub_perf[seq] = now
-            while len(self._pub_perf) > 4096:
-                self._pub_perf.popitem(last=False)
         if seq == 0:
             self.ownership.start()  # from now on a lost owner latches the vehicle
         if end:
             self.ownership.end()  # from now on the owner's release is the normal end
         self._pub.put(payload, seq)
         self.rec.message("tx", self.keys.state, payload)
-        if end:
-            self.final_state = st
 
-    def _apply(self, omega_w, omega_s) -> None:
-        from msagv.plant.stepping import PlantError
+    def ready(self) -> bool:
+        """The owner's token is present and it subscribes to our state."""
+        return self.controller_present and self._pub.matching
 
-        try:
-            with self._plant_lock:
-                self.plant.set_inputs(omega_w, omega_s)
-                self.plant.do_step(self.plant.t, self.cfg.period)
-        except PlantError as e:
-            raise PlantRunError(f"step at t = {self.plant.t:.2f} s failed: {e}") from None
+    def answer(self, k: int) -> _Cmd | None:
+        with self._lock:
+            n = self._newest
+        return n if n is not None and n.state_seq == k else None
 
-    # ---- waiting for the controller ----------------------------------------------------
-    def _wait_controller(self) -> None:
-        """Block until the controller's token is present and it subscribes to our state."""
-        t0 = time.monotonic()
-        waited_msg = False
-        while not self.stop.is_set():
-            if self.controller_present and self._pub.matching:
-                return
-            if not waited_msg and time.monotonic() - t0 > 1.0:
-                log.info("waiting for a controller: its token on %s/* and its claim on "
-                         "%s/%s/* (up to %s)", self.keys.alive_controller, self.keys.claim,
-                         self.transport.id if self.transport is not None else "*",
-                         f"{self.cfg.wait_s:g} s" if self.cfg.wait_s else "forever")
-                waited_msg = True
-            if self.cfg.wait_s and time.monotonic() - t0 > self.cfg.wait_s:
-                raise PlantRunError(f"no controller for vehicle '{self.keys.id}' within "
-                                    f"{self.cfg.wait_s:g} s (no liveliness token on "
-                                    f"{self.keys.alive_controller}/*); start msagv controller "
-                                    f"--id {self.keys.id} with matching --connect/--listen")
-            self._ctl_event.wait(0.02)
-            self._ctl_event.clear()
+    def newest(self) -> _Cmd | None:
+        return self._newest
 
-    def _wait_answer(self, k: int, timeout_s: float) -> _Cmd | None:
-        """Wait for the command answering state k (lockstep: every k; realtime: k = 0). A
-        controller that (re)appears meanwhile is sent state k again, and so is the owner
-        every ``resend_s`` while it does not answer (a state, or its answer, lost with a
-        link that was closed: a plant or controller stopped beyond the lease). None if
-        stopped."""
-        t0 = sent = time.monotonic()
-        gen = self._ctl_generation
-        while True:
-            with self._lock:
-                n = self._newest
-            if n is not None and n.state_seq == k:
-                return n
-            if self.stop.is_set():
-                return None
-            if time.monotonic() - t0 > timeout_s:
-                who = "present" if self.controller_present else "gone"
-                raise PlantRunError(f"{self.cfg.run_mode}: no command answering state {k} (t = "
-                                    f"{k * self.cfg.period:.2f} s) within {timeout_s:g} s "
-                                    f"(controller token {who}); ending the run")
-            if self._ctl_generation != gen and self.controller_present:
-                gen = self._ctl_generation
-                m0 = time.monotonic()
-                while not self._pub.matching and time.monotonic() - m0 < 1.0:
-                    time.sleep(0.005)
-                log.info("controller (re)appeared: sending state %d again", k)
-                self.publish_state(k)
-                sent = time.monotonic()
-            elif self.controller_present and time.monotonic() - sent >= self.cfg.resend_s:
-                self.stats.resent += 1
-                n = self.stats.resent
-                if n <= 5 or n % 100 == 0:
-                    log.info("no answer to state %d for %.1f s: sending it again (%d resent)",
-                             k, time.monotonic() - sent, n)
-                self.publish_state(k)
-                sent = time.monotonic()
-            self._cmd_event.wait(0.05)
-            self._cmd_event.clear()
+    def present(self) -> bool:
+        return self.controller_present
+
+    def idle(self, seconds: float, wake: bool = True) -> None:
+        if not wake:  # commands are taken on the transport's threads meanwhile
+            time.sleep(seconds)
+            return
+        self._wake.wait(seconds)
+        self._wake.clear()
+
+    def applied(self, k: int, omega_w, omega_s, commanded: bool) -> None:
+        pass  # commands are recorded as they come (handle_cmd)
+
+    def unanswered(self, k: int, first: bool) -> None:
+        """A controller that (re)appears while state k is unanswered is sent it again, and
+        so is the owner every ``resend_s`` (a state, or its answer, lost with a link that
+        was closed: a plant or controller stopped beyond the lease)."""
+        if first:
+            self._resend = (self._ctl_generation, time.monotonic())
+            return
+        gen, sent = self._resend
+        if self._ctl_generation != gen and self.controller_present:
+            m0 = time.monotonic()
+            while not self._pub.matching and time.monotonic() - m0 < 1.0:
+                time.sleep(0.005)
+            log.info("controller (re)appeared: sending state %d again", k)
+            self.publish_state(k)
+            self._resend = (self._ctl_generation, time.monotonic())
+        elif self.controller_present and time.monotonic() - sent >= self.cfg.resend_s:
+            self.stats.resent += 1
+            n = self.stats.resent
+            if n <= 5 or n % 100 == 0:
+                log.info("no answer to state %d for %.1f s: sending it again (%d resent)",
+                         k, time.monotonic() - sent, n)
+            self.publish_state(k)
+            self._resend = (gen, time.monotonic())
+
+    def waiting(self) -> str:
+        return (f"waiting for a controller: its token on {self.keys.alive_controller}/* and "
+                f"its claim on {self.keys.claim}/"
+                f"{self.transport.id if self.transport is not None else '*'}/* (up to "
+                f"{f'{self.cfg.wait_s:g} s' if self.cfg.wait_s else 'forever'})")
+
+    def no_controller(self) -> str:
+        return (f"no controller for vehicle '{self.keys.id}' within {self.cfg.wait_s:g} s (no "
+                f"liveliness token on {self.keys.alive_controller}/*); start msagv controller "
+                f"--id {self.keys.id} with matching --connect/--listen")
+
+    def no_answer(self, k: int, timeout_s: float) -> str:
+        who = "present" if self.controller_present else "gone"
+        return (f"{self.cfg.run_mode}: no command answering state {k} (t = "
+                f"{k * self.cfg.period:.2f} s) within {timeout_s:g} s (controller token {who}); "
+                f"ending the run")
 
     # ---- runs --------------------------------------------------------------------------
     def run(self) -> dict:
         """Run to the end (or until :attr:`stop`); returns the summary. Raises
         PlantRunError on a timeout or a failed step."""
-        try:
-            self._wait_controller()
-            if not self.stop.is_set():
-                if self.cfg.run_mode == "lockstep":
-                    self._run_lockstep()
-                else:
-                    self._run_realtime()
-        except PlantRunError as e:
-            self.error = str(e)
-            raise
-        finally:
-            if self.final_state is None:
-                st = self.plant.state_message()
-                st["t"] = max(self.seq, 0) * self.cfg.period
-                self.final_state = st
+        self.core.run()
         return self.summary()
-
-    def _run_lockstep(self) -> None:
-        cfg = self.cfg
-        self.publish_state(0)
-        for k in range(cfg.steps):
-            c = self._wait_answer(k, cfg.timeout_s)
-            if c is None:
-                return
-            self._apply(c.omega_w, c.omega_s)
-            self.publish_state(k + 1, end=k + 1 == cfg.steps)
-            self.rec.maybe_flush()
-        self._linger()
-
-    def _run_realtime(self) -> None:
-        cfg, T, st = self.cfg, self.cfg.period, self.stats
-        self.publish_state(0)
-        # the clock starts with the first command (the controller is warm by then); a
-        # controller that (re)appears meanwhile is sent state 0 again, as in lockstep
-        if self._wait_answer(0, cfg.timeout_s) is None:
-            return
-        w0 = time.perf_counter()
-        last_pub = w0
-        self._rt_due = w0 + 2 * T
-        watchdog = threading.Thread(target=self._watchdog, daemon=True, name="plant watchdog")
-        watchdog.start()
-        for k in range(cfg.steps):
-            target = w0 + (k + 1) * T
-            now = time.perf_counter()
-            if target - now > 0:
-                time.sleep(target - now)
-            elif now - target > 10 * T:  # stalled (e.g. the machine froze): re-anchor
-                st.clock_resyncs += 1
-                w0 += (now - target)
-                target = now
-            if self.stop.is_set():
-                return
-            with self._lock:
-                n = self._newest
-                present = self.controller_present
-                self._stepped = k
-            trip, self._wd_trip = self._wd_trip, None
-            if trip is not None:
-                d = self.watch.force_safe(trip)
-            else:
-                d = self.watch.step(k, n.state_seq if n is not None else None, present)
-            if d.resumed:
-                self.safe = False
-                st.resumes += 1
-                log.warning("resumed normal operation at t = %.2f s (the owner kept up for %d "
-                            "periods; newest command answers state %d)", k * T,
-                            cfg.resume_periods, n.state_seq)
-                self.rec.event("safe", on=False, t=k * T)
-            if d.use_command:
-                u_w, u_s = n.omega_w, n.omega_s
-            else:
-                if d.entered_safe is not None:
-                    self.safe = True
-                    st.safe_events += 1
-                    log.warning("SAFE at t = %.2f s: %s; holding steering, ramping the wheels "
-                                "down at %g m/s^2", k * T, d.entered_safe, cfg.safe_decel)
-                    self.rec.event("safe", on=True, t=k * T, why=d.entered_safe)
-                st.safe_periods += 1
-                held_w, _ = self.plant.inputs
-                u_w = np.maximum(np.asarray(held_w) - self.ramp * T, 0.0)
-                u_s = np.zeros(self.nw)
-            self._apply(u_w, u_s)
-            self.publish_state(k + 1, end=k + 1 == cfg.steps)
-            done = time.perf_counter()
-            st.lateness_s.append(done - target)
-            st.pub_intervals_s.append(done - last_pub)
-            last_pub = done
-            if done - target > T:
-                st.missed_periods += 1
-            # the next period is due one period after its target (a loop that is behind, and
-            # catches up or re-anchors its clock next, gets two periods from now)
-            self._rt_due = max(w0 + (k + 3) * T, done + 2 * T)
-            self._wd_active = False
-            self.rec.maybe_flush()
-        self._rt_due = None
-        self._linger()
-
-    def _watchdog(self) -> None:
-        """Realtime: while the loop is more than ``stale_ms`` past a period's deadline, run
-        the safe behaviour here (steering held, wheels ramped down at ``--safe-decel``),
-        one period at a time. It touches the plant (under the plant's own lock) and the
-        log, nothing of Zenoh: a loop stuck in the bus does not stop it."""
-        T, bound = self.cfg.period, self.cfg.stale_ms / 1000.0
-        st = self.stats
-        while not (self.stop.wait(T) or self._closed.is_set()):
-            due = self._rt_due
-            if due is None:
-                if self.final_state is not None:
-                    return
-                continue
-            late = time.perf_counter() - due
-            if late <= bound:
-                continue
-            if not self._wd_active:
-                self._wd_active = True
-                why = (f"the plant's own loop is {late * 1000:.0f} ms past its deadline "
-                       f"(bound {self.cfg.stale_ms:g} ms): the watchdog runs the safe "
-                       f"behaviour")
-                self._wd_trip = why
-                self.safe = True
-                st.watchdog_trips += 1
-                log.warning("SAFE (watchdog) at t = %.2f s: %s", max(self.seq, 0) * T, why)
-            if self._plant_lock.acquire(timeout=T):
-                try:
-                    held_w, _ = self.plant.inputs
-                    self.plant.set_inputs(np.maximum(np.asarray(held_w) - self.ramp * T, 0.0),
-                                          np.zeros(self.nw))
-                    st.watchdog_periods += 1
-                except Exception as e:  # the plant refused: said once per trip, loop decides
-                    log.error("watchdog: the safe behaviour failed: %s", e)
-                finally:
-                    self._plant_lock.release()
-
-    def _linger(self) -> None:
-        self.stop.wait(self.cfg.linger_s)
 
     # ---- results -----------------------------------------------------------------------
     def summary(self) -> dict:
-        st, T = self.stats, self.cfg.period
-        steps_done = max(self.seq, 0)
+        st, r = self.stats, self.core.summary()
+        steps_done = r["steps"]
         with self._lock:
             answered = set(self._answered)
         lost = sum(1 for j in range(steps_done) if j not in answered)
-        jit = [abs(d - T) for d in st.pub_intervals_s]
-        fs = self.final_state or {}
         return {
-            "role": "plant", "id": self.keys.id, "run_mode": self.cfg.run_mode,
-            "period": T, "steps": steps_done, "t_end": steps_done * T,
-            "completed": steps_done == self.cfg.steps and self.error is None,
-            "error": self.error,
-            "missed_periods": st.missed_periods, "clock_resyncs": st.clock_resyncs,
-            "latency_ms": percentiles_ms(st.latency_s),
-            "roundtrip_ms": percentiles_ms(st.roundtrip_s),
-            "lateness_ms": percentiles_ms(st.lateness_s),
-            "period_jitter_ms": percentiles_ms(jit),
+            "role": "plant", "id": self.keys.id,
+            **{k: r[k] for k in ("run_mode", "period", "steps", "t_end", "completed", "error",
+                                 "missed_periods", "clock_resyncs", "latency_ms",
+                                 "roundtrip_ms", "lateness_ms", "period_jitter_ms")},
             "commands": {"accepted": st.accepted, "stale": st.stale, "duplicate": st.duplicate,
                          "late": st.late, "lost": lost, "seq_gaps": st.cmd_seq_gaps,
                          "after_end": st.after_end},
-            "safe": {"events": st.safe_events, "periods": st.safe_periods, "resumes": st.resumes,
-                     "watchdog_trips": st.watchdog_trips,
-                     "watchdog_periods": st.watchdog_periods},
+            "safe": r["safe"],
             "controller_losses": st.controller_losses, "resent_states": st.resent,
             "old_clients": st.old_clients,
-            "periods": (self.watch.summary() if self.cfg.run_mode == "realtime" else None),
+            "periods": r["periods"],
             "ownership": self.ownership.summary(),
             "presence": self._tokens.summary() if self._tokens is not None else None,
             "rejected": self.rej.summary(),
-            "final_state": {k: fs[k] for k in ("t",) + BODY_FIELDS + WEAR_FIELDS
-                            + WHEEL_WEAR_FIELDS if k in fs},
+            "final_state": r["final_state"],
         }
+
 
 
 # ---- the process ------------------------------------------------------------------------

@@ -156,3 +156,15 @@ class Transport(Protocol):
 
     def close(self) -> None:
         """Undeclare everything and leave the bus (this endpoint's tokens disappear)."""
+
+
+def close_all(declarations) -> None:
+    """Close each of ``declarations`` (publishers, subscribers, queryables, tokens; None
+    passed over), quietly: one that fails to close (its session already gone) stops
+    none of the others."""
+    for obj in declarations:
+        if obj is not None:
+            try:
+                obj.close()
+            except Exception:
+                pass

@@ -83,6 +83,40 @@ def open_recording(a, header: dict):
 
 
 # ---- msagv plant --------------------------------------------------------------------------
+def add_run_args(ap: argparse.ArgumentParser) -> None:
+    """The run's options of ``msagv plant`` and ``msagv ros2 plant``: their defaults from
+    :class:`bridge.run_core.RunConfig`, where they are written once."""
+    from msagv.bridge.run_core import RunConfig
+
+    d = RunConfig()
+    ap.add_argument("--period", type=float, default=d.period,
+                    help=f"control period T [s] (default {d.period:g})")
+    ap.add_argument("--timeout", type=float, default=d.timeout_s, metavar="S",
+                    help="lockstep: longest wait for a command; realtime: for the first one "
+                         f"(default {d.timeout_s:g})")
+    ap.add_argument("--wait", type=float, default=d.wait_s, metavar="S",
+                    help="wait this long for a controller at start, 0 = forever "
+                         f"(default {d.wait_s:g})")
+    ap.add_argument("--stale-ms", type=float, default=d.stale_ms,
+                    help="realtime: more than stale-ms/T consecutive periods without an "
+                         f"answer put the plant in its safe behaviour (default {d.stale_ms:g})")
+    ap.add_argument("--resume-periods", type=int, default=d.resume_periods, metavar="N",
+                    help="realtime: the safe behaviour ends after N consecutive periods in "
+                         f"which the controller keeps up (default {d.resume_periods})")
+    ap.add_argument("--safe-decel", type=float, default=d.safe_decel, metavar="M/S2",
+                    help="realtime safe behaviour: wheel ramp-down at the rim "
+                         f"(default {d.safe_decel:g})")
+
+
+def run_options(a, duration: float) -> dict:
+    """The run's settings (:class:`bridge.run_core.RunConfig`'s fields) from the options of
+    :func:`add_run_args` and ``--run-mode``, for a run of ``duration`` s."""
+    return dict(run_mode=a.run_mode, period=a.period,
+                steps=int(round(duration / a.period)) if duration > 0 else 0,
+                timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
+                safe_decel=a.safe_decel, resume_periods=a.resume_periods)
+
+
 def plant_parser() -> argparse.ArgumentParser:
     from msagv.bridge.plant_node import WHEEL_WEAR_MODES, PlantConfig
 
@@ -100,23 +134,7 @@ def plant_parser() -> argparse.ArgumentParser:
                     help="start at rest at the origin (+ --initial), as 'plant replay', "
                          "instead of on the reference")
     add_fmu_args(ap, positional=False)
-    ap.add_argument("--period", type=float, default=d.period,
-                    help=f"control period T [s] (default {d.period:g})")
-    ap.add_argument("--timeout", type=float, default=d.timeout_s, metavar="S",
-                    help="lockstep: longest wait for a command; realtime: for the first one "
-                         f"(default {d.timeout_s:g})")
-    ap.add_argument("--wait", type=float, default=d.wait_s, metavar="S",
-                    help="wait this long for a controller at start, 0 = forever "
-                         f"(default {d.wait_s:g})")
-    ap.add_argument("--stale-ms", type=float, default=d.stale_ms,
-                    help="realtime: more than stale-ms/T consecutive periods without an "
-                         f"answer put the plant in its safe behaviour (default {d.stale_ms:g})")
-    ap.add_argument("--resume-periods", type=int, default=d.resume_periods, metavar="N",
-                    help="realtime: the safe behaviour ends after N consecutive periods in "
-                         f"which the owner keeps up (default {d.resume_periods})")
-    ap.add_argument("--safe-decel", type=float, default=d.safe_decel, metavar="M/S2",
-                    help="realtime safe behaviour: wheel ramp-down at the rim "
-                         f"(default {d.safe_decel:g})")
+    add_run_args(ap)
     ap.add_argument("--wheel-wear", choices=list(WHEEL_WEAR_MODES), default=d.wheel_wear,
                     help="per-wheel wear work in the state (W_s_ij, ...): auto = when the "
                          "owner's claim asks for it, on, off "
@@ -154,11 +172,7 @@ def plant_main(argv: list[str]) -> int:
         for w in scenario.check(vehicle, ref, initial):  # a speed no wheel reaches: exit 2
             log.warning("%s", w)
         duration = scenario.run_duration(ref)
-        cfg = PlantConfig(run_mode=a.run_mode, period=a.period,
-                          steps=int(round(duration / a.period)) if duration > 0 else 0,
-                          timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
-                          safe_decel=a.safe_decel, resume_periods=a.resume_periods,
-                          wheel_wear=a.wheel_wear, rearm=a.rearm)
+        cfg = PlantConfig(**run_options(a, duration), wheel_wear=a.wheel_wear, rearm=a.rearm)
         from msagv.experiments.results import scenario_info
 
         header = {"role": "plant", "id": opts.id, "vehicle": vehicle.to_dict(),

@@ -15,14 +15,14 @@ import logging
 import sys
 import threading
 
-from msagv.bridge.loss import STALE_MS
+from msagv.bridge.loss import RESUME_PERIODS, SAFE_DECEL, STALE_MS
 from msagv.bridge.process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, setup_logging
 
 from msagv.plant.signals import CONTROL_PERIOD
 from .args import (OptionError, add_case_args, add_common_args, add_mpc_args,
                    scenario_from_args)
 from .errors import USAGE_ERRORS
-from .nodes import add_record_args, check_record_args, open_recording
+from .nodes import add_record_args, add_run_args, check_record_args, open_recording, run_options
 
 USAGE = ("usage: msagv ros2 {controller,plant} [options] [--ros-args ...]\n"
          "  controller  the MPC as a ROS 2 node (odom, joint_states, plan in; "
@@ -50,10 +50,11 @@ def _safety_args(ap: argparse.ArgumentParser, who: str) -> None:
     ap.add_argument("--stale-ms", type=float, default=STALE_MS,
                     help=f"{who}: more than this without fresh input starts the safe behaviour "
                          f"(default {STALE_MS:g})")
-    ap.add_argument("--resume-periods", type=int, default=3, metavar="N",
-                    help="the safe behaviour ends after N periods of fresh input (default 3)")
-    ap.add_argument("--safe-decel", type=float, default=2.0, metavar="M/S2",
-                    help="safe behaviour: wheel ramp-down at the rim (default 2)")
+    ap.add_argument("--resume-periods", type=int, default=RESUME_PERIODS, metavar="N",
+                    help="the safe behaviour ends after N periods of fresh input "
+                         f"(default {RESUME_PERIODS})")
+    ap.add_argument("--safe-decel", type=float, default=SAFE_DECEL, metavar="M/S2",
+                    help=f"safe behaviour: wheel ramp-down at the rim (default {SAFE_DECEL:g})")
 
 
 def _foxglove_args(ap: argparse.ArgumentParser) -> None:
@@ -226,6 +227,7 @@ def _placeholder():
 # ---- msagv ros2 plant ---------------------------------------------------------------------------
 def plant_parser() -> argparse.ArgumentParser:
     from msagv.bridge import messages as M
+    from msagv.bridge.run_core import RunConfig
 
     from .args import add_fmu_args
 
@@ -235,19 +237,15 @@ def plant_parser() -> argparse.ArgumentParser:
                     "joint_states, tf, wear and markers out; steering_controller/commands and "
                     "wheel_controller/commands in (docs/ROS2.md). Options after --ros-args go "
                     "to ROS (remapping).")
-    ap.add_argument("--run-mode", choices=list(M.RUN_MODES), default="lockstep",
+    ap.add_argument("--run-mode", choices=list(M.RUN_MODES), default=RunConfig.run_mode,
                     help="lockstep: step when both command topics answer the current state "
-                         "(as fast as the controller); realtime: step on the wall clock at 1/T "
-                         "(default lockstep)")
+                         "(as fast as the controller); realtime: step at 1/T on the wall "
+                         "clock, on /clock's time under use_sim_time (default lockstep)")
     add_case_args(ap)
     ap.add_argument("--from-rest", action="store_true",
                     help="start at rest at the origin (+ --initial) instead of on the reference")
     add_fmu_args(ap, positional=False)
-    _safety_args(ap, "realtime")
-    ap.add_argument("--timeout", type=float, default=10.0, metavar="S",
-                    help="lockstep: the longest wait for the commands of a state (default 10)")
-    ap.add_argument("--wait", type=float, default=60.0, metavar="S",
-                    help="wait this long for the first commands, 0 = forever (default 60)")
+    add_run_args(ap)
     ap.add_argument("--node-name", default="msagv_plant", help="the ROS node's name")
     add_record_args(ap)
     _foxglove_args(ap)
@@ -277,11 +275,7 @@ def plant_main(argv: list[str]) -> int:
         duration = scenario.run_duration(ref)
         from msagv.ros2.plant_node import RosPlantConfig
 
-        cfg = RosPlantConfig(run_mode=a.run_mode, period=a.period,
-                             steps=int(round(duration / a.period)) if duration > 0 else 0,
-                             timeout_s=a.timeout, wait_s=a.wait, stale_ms=a.stale_ms,
-                             safe_decel=a.safe_decel, resume_periods=a.resume_periods,
-                             node_name=a.node_name)
+        cfg = RosPlantConfig(**run_options(a, duration), node_name=a.node_name)
     except USAGE_ERRORS as e:
         if plant is not None:
             plant.close()

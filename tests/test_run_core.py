@@ -1,0 +1,201 @@
+"""The plant's run core (bridge/run_core.py) on an injected clock, with no transport.
+
+The clock here is a discrete-event one: its time moves only while the run waits (the
+port's ``idle``), by the wall time waited times its rate, and never past the next answer,
+so a run takes no wall time at all and every figure is exact. A controller that needs a
+fixed wall time per answer is, on a clock at 0.2x real time, on time every period, and on a
+clock at 5x ten periods late: the run steps, ages the commands and goes safe on the clock
+it is given, and the counts below are worked out by hand from that alone.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msagv.bridge.run_core import Command, PlantRun, PlantRunError, RunConfig
+from msagv.plant import Plant, default_vehicle
+
+T = 0.01
+W = 8.0  # the controller's wheel speeds [rad/s]
+
+
+class SimClock:
+    """Run time that passes only in :meth:`FakePort.idle`: ``rate`` clock seconds per wall
+    second (0.2: a simulator slower than real time; 5: faster)."""
+
+    def __init__(self, rate: float):
+        self.rate = rate
+        self.t = 0.0
+
+    def now(self) -> float:
+        return self.t
+
+    def wall(self, dt: float) -> float:
+        return dt / self.rate
+
+
+class FakePort:
+    """A controller that answers every state ``solve_wall`` s of wall time after it was
+    sent (pipelined), with wheel speeds W and no steering; ``answers=False``: never."""
+
+    def __init__(self, clock: SimClock, solve_wall: float, answers: bool = True,
+                 ready: bool = True):
+        self.clock, self.delay = clock, solve_wall * clock.rate  # in clock time
+        self.answers, self.is_ready = answers, ready
+        self.sent: dict[int, float] = {}  # state -> clock time sent
+        self.states: dict[int, dict] = {}
+        self.steps: list[tuple[int, np.ndarray, bool]] = []  # (k, omega_w, commanded)
+
+    def _visible(self) -> list[int]:
+        now = self.clock.now()
+        return [k for k, t in self.sent.items() if self.answers and t + self.delay <= now]
+
+    def _next_answer(self) -> float:
+        pending = [t + self.delay for t in self.sent.values()
+                   if self.answers and t + self.delay > self.clock.now()]
+        return min(pending, default=float("inf"))
+
+    # the port
+    def ready(self) -> bool:
+        return self.is_ready
+
+    def send_state(self, k, st, end):
+        self.sent[k] = self.clock.now()
+        self.states[k] = st
+
+    def answer(self, k):
+        return Command(k, [W] * 4, [0.0] * 4) if k in self._visible() else None
+
+    def newest(self):
+        v = self._visible()
+        return Command(max(v), [W] * 4, [0.0] * 4) if v else None
+
+    def present(self) -> bool:
+        return True
+
+    def idle(self, seconds: float, wake: bool = True) -> None:
+        c = self.clock
+        c.t = min(c.t + seconds * c.rate, max(self._next_answer(), c.t))
+
+    def unanswered(self, k, first):
+        pass
+
+    def applied(self, k, omega_w, omega_s, commanded):
+        self.steps.append((k, np.array(omega_w, dtype=float), commanded))
+
+    def waiting(self) -> str:
+        return "waiting"
+
+    def no_controller(self) -> str:
+        return "no controller"
+
+    def no_answer(self, k, timeout) -> str:
+        return f"no answer to state {k}"
+
+
+def _run(rate: float, solve_wall: float, steps: int = 40, **cfg):
+    vehicle = default_vehicle()
+    clock = SimClock(rate)
+    port = FakePort(clock, solve_wall)
+    cfg = RunConfig(run_mode="realtime", period=T, steps=steps, stale_ms=50.0,
+                    resume_periods=3, **cfg)
+    run = PlantRun(Plant(vehicle, initial={"vx": 4.0}), cfg, port, clock=clock)
+    try:
+        run.run()
+    finally:
+        run.close()
+    return run, port, vehicle
+
+
+@pytest.mark.parametrize("rate", [0.2, 5.0])
+def test_the_run_steps_and_goes_safe_on_the_clock_it_is_given(rate):
+    """The same controller (21 ms of wall time per answer) against a run on a clock at
+    ``rate`` times real time: 4.2 ms of clock time at 0.2x, every state answered within
+    its period; 105 ms at 5x, more than the 50 ms staleness bound (5 periods)."""
+    n = 40
+    run, port, vehicle = _run(rate, 0.021, steps=n)
+    s = run.summary()
+    d = 0.021 * rate
+    assert s["completed"] and s["steps"] == n and s["t_end"] == pytest.approx(n * T)
+    # the clock starts with the answer to state 0 (d after it was sent) and state k + 1 is
+    # sent at the clock's w0 + (k + 1) T exactly: time as the clock says, nothing late
+    w0 = d
+    for k in range(1, n + 1):
+        assert port.sent[k] == pytest.approx(w0 + k * T, abs=1e-12)
+        assert port.states[k]["t"] == pytest.approx(k * T, abs=1e-15)
+    assert s["missed_periods"] == 0 and s["lateness_ms"]["max"] == pytest.approx(0.0, abs=1e-9)
+    assert [k for k, _, _ in port.steps] == list(range(n))
+    ramp = run.cfg.safe_decel / vehicle.wheel_radius * T
+    if rate == 0.2:
+        # step k at w0 + (k + 1) T: the answer to state k (sent at w0 + k T) came d < T
+        # later, so the newest command answers the current state every period
+        assert s["periods"]["on_time"] == n and s["periods"]["held"] == 0
+        assert s["safe"]["events"] == 0 and s["safe"]["periods"] == 0
+        assert all(c and np.all(w == W) for _, w, c in port.steps)
+    else:
+        # d = 10.5 periods: up to step 9 the newest answer is state 0's (age k), then state
+        # k - 10's (age 10). Age 0 at step 0 runs, ages 1..5 hold (bound 5 periods), age 6
+        # at step 6 goes safe, and an age of 10 never resumes (it needs age <= 1)
+        assert s["periods"]["on_time"] == 1 and s["periods"]["held"] == 5
+        assert s["periods"]["safe"] == n - 6 and s["periods"]["max_consecutive_missed"] == 6
+        assert s["safe"]["events"] == 1 and s["safe"]["periods"] == n - 6
+        assert s["safe"]["resumes"] == 0
+        for k, w, commanded in port.steps:
+            if k < 6:
+                assert commanded and np.all(w == W)
+            else:  # steering held, wheels ramped down from W at safe_decel, period by period
+                assert not commanded
+                assert np.allclose(w, max(W - (k - 5) * ramp, 0.0), atol=1e-12)
+
+
+@pytest.mark.parametrize("rate", [0.2, 5.0])
+def test_the_lockstep_timeout_and_the_wait_count_the_clocks_time(rate):
+    """A controller that never answers: the run ends after ``timeout_s`` of the clock's
+    time, not the wall's (at 0.2x that is five times as long on the wall); one that never
+    comes: after ``wait_s``."""
+    vehicle = default_vehicle()
+    clock = SimClock(rate)
+    port = FakePort(clock, 0.0, answers=False)
+    run = PlantRun(Plant(vehicle), RunConfig(run_mode="lockstep", steps=5, timeout_s=2.0),
+                   port, clock=clock)
+    with pytest.raises(PlantRunError, match="no answer to state 0"):
+        run.run()
+    assert 2.0 < clock.now() <= 2.0 + 0.05 + 1e-9  # the last look came within one wait
+    assert run.summary()["error"] == "no answer to state 0" and not run.summary()["completed"]
+
+    clock = SimClock(rate)
+    port = FakePort(clock, 0.0, ready=False)
+    run = PlantRun(Plant(vehicle), RunConfig(wait_s=3.0, steps=5), port, clock=clock)
+    with pytest.raises(PlantRunError, match="no controller"):
+        run.run()
+    assert 3.0 < clock.now() <= 3.0 + 0.02 + 1e-9
+    assert port.sent == {}  # no state before a controller
+
+
+def test_a_lockstep_run_applies_each_answer_to_its_state():
+    """Lockstep on the injected clock: state k + 1 goes out when state k's answer came, its
+    time k T whatever the clock says; the inputs applied are the controller's."""
+    clock = SimClock(1.0)
+    port = FakePort(clock, 0.003)
+    run = PlantRun(Plant(default_vehicle(), initial={"vx": 4.0}),
+                   RunConfig(run_mode="lockstep", steps=10, linger_s=0.0), port, clock=clock)
+    run.run()
+    s = run.summary()
+    assert s["completed"] and s["periods"] is None and s["safe"]["events"] == 0
+    for k in range(1, 11):  # answered 3 ms after it was sent, the next one sent then
+        assert port.sent[k] == pytest.approx(k * 0.003, abs=1e-12)
+        assert port.states[k]["t"] == pytest.approx(k * T, abs=1e-15)
+    assert [(k, c) for k, _, c in port.steps] == [(k, True) for k in range(10)]
+
+
+def test_bad_run_settings_are_refused_with_one_line():
+    for kw, says in ((dict(run_mode="fast"), "run mode"), (dict(period=0.0), "--period"),
+                     (dict(steps=0), "--duration"), (dict(timeout_s=-1.0), "--timeout"),
+                     (dict(stale_ms=float("nan")), "--stale-ms"), (dict(wait_s=-1), "--wait"),
+                     (dict(resume_periods=0), "--resume-periods"),
+                     (dict(safe_decel=0.0), "--safe-decel")):
+        with pytest.raises(ValueError, match=says) as e:
+            RunConfig(**kw)
+        assert "\n" not in str(e.value)
+    assert RunConfig(stale_ms=50.0, period=0.01).max_missed == 5
