@@ -51,7 +51,7 @@ import numpy as np
 
 from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
-from msagv.bridge.loss import SAFE, STALE_MS, CommandWatch
+from msagv.bridge.loss import RESUME_PERIODS, SAFE, SAFE_DECEL, STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
 from msagv.bridge.recording import NullRecorder
 from msagv.controller.reference import Reference, from_samples
@@ -376,8 +376,8 @@ STOP_ACK_S = 1.0  # s: the longest wait for the subscribers to acknowledge the l
 class RosControllerConfig:
     period: float = CONTROL_PERIOD
     stale_ms: float = STALE_MS
-    resume_periods: int = 3
-    safe_decel: float = 2.0
+    resume_periods: int = RESUME_PERIODS
+    safe_decel: float = SAFE_DECEL
     plan_speed_kmh: float = 15.0
     plan_accel: float = 1.0
     plan_decel: float = 1.0
