@@ -211,7 +211,8 @@ class MPC:
         return self.horizon.poses(*self._last, self.z)
 
     def warmup(self, state: Mapping | None = None) -> float:
-        """Compile the kernels (first call) with a throw-away solve, then time up to
+        """Compile the kernels (first call) with a throw-away solve and the rollout of
+        :meth:`predicted_poses`, then time up to
         :data:`BUDGET_SOLVES` solves from the same state (at most :data:`BUDGET_SECONDS`):
         if their p99 exceeds the control period the controller warns (:meth:`budget`).
         Returns the seconds it took. The warm start and random stream are reset
@@ -228,6 +229,7 @@ class MPC:
         observer, self.on_solve = self.on_solve, None
         try:
             self.step(st, ref)
+            self.predicted_poses()  # its rollout compiled too (a node draws the horizon)
             times = []
             t_end = time.perf_counter() + BUDGET_SECONDS
             t = float(st.get("t", 0.0))

@@ -530,7 +530,7 @@ class RosController:
         self.reference = None
         self.msgs = R.RunMessages(self.vehicle, cfg.period)
         self.wear = WearEstimate(self.vehicle)
-        self._warm_extras(self.base_reference)
+        self._warm_extras()
         self.watch = CommandWatch(self._max_missed(cfg), cfg.resume_periods, cfg.period)
         self.key_state = f"msagv/{cfg.vehicle_id}/state"
         self.key_cmd = f"msagv/{cfg.vehicle_id}/cmd"
@@ -760,19 +760,13 @@ class RosController:
         response.success, response.message = True, "reset: waiting for a plan"
         return response
 
-    def _warm_extras(self, reference) -> None:
-        """Compile what runs after each command (the horizon's rollout, the tire model of
-        the wear estimate) before any topic is declared: compiled at the first state, it
-        held that state's successor for seconds."""
+    def _warm_extras(self) -> None:
+        """Compile what runs after each command beside the MPC (whose ``warmup`` compiles
+        its horizon's rollout): the tire model of the wear estimate, before any topic is
+        declared (compiled at the first state, it held that state's successor for
+        seconds)."""
         st = {"t": 0.0, "x": 0.0, "y": 0.0, "phi": 0.0, "vx": 1.0, "vy": 0.0, "r": 0.0,
               "delta": [0.0] * self.nw, "omega_w": [0.0] * self.nw}
-        ref = reference if reference is not None else getattr(self.mpc, "reference", None)
-        horizon = getattr(self.mpc, "horizon", None)
-        if ref is not None and horizon is not None:
-            s = self.mpc.settings
-            x0 = np.r_[[st[k] for k in ("x", "y", "phi", "vx", "vy", "r")], st["delta"]]
-            horizon.poses(x0, np.ascontiguousarray(ref.sample(s.dt * np.arange(s.N_p + 1))),
-                          self.mpc.z)
         self.wear.update(st, [1.0] * self.nw, [0.0] * self.nw)
         self.wear.reset()
 
