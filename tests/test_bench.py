@@ -30,3 +30,26 @@ def test_unknown_section_exits_2(capsys):
     assert "unknown section" in capsys.readouterr().err
     assert set(SECTIONS) == {"plant", "rollout", "controller", "optimality", "nmpc", "transport",
                              "fmu"}
+
+
+@pytest.mark.timeout(300)
+def test_controller_bench_takes_a_vehicle_file(capsys):
+    """``--vehicle FILE`` measures that vehicle (labelled by its name, its wheel count from
+    the file); a missing file or no vehicle at all is a one-line usage error."""
+    from pathlib import Path
+
+    from msagv.benchmarks.controller_bench import main as cb
+
+    f = Path(__file__).resolve().parents[1] / "scenarios" / "vehicles" / "agv-3axle.toml"
+    assert cb(["--axles", "", "--vehicle", str(f), "--seconds", "0.1", "--repeats", "1"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert list(d["axles"]) == ["agv-3axle"]
+    r = d["axles"]["agv-3axle"]
+    assert r["n_wheels"] == 6 and r["solves"] == 10
+    assert 0 < r["solve_ms"]["p50"] <= r["solve_ms"]["max"]
+    for bad in (["--vehicle", "no-such.toml"], ["--axles", ""]):
+        with pytest.raises(SystemExit) as e:
+            cb(bad)
+        assert e.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert "error:" in err[-1] and len([x for x in err if "error" in x]) == 1
