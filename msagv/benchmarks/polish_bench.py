@@ -13,7 +13,13 @@ M residuals): one damped step (Cholesky and the two triangular solves), the Gaus
 Hessian, Broyden's update. Percentiles over ``repeats`` passes over the states (the first
 pass, which loads the kernels, is not counted).
 
-Run ``python -m msagv.benchmarks.polish_bench [--axles 2,4,6,8] [--vehicle FILE] [--states 12]``.
+``--variants`` instead solves the same states with other splits of the polish's tile
+(:data:`VARIANTS`: fewer damping factors, more step lengths; no refresh of the Jacobian)
+and reports each one's cost over the default's per state and its solve time: what fewer
+factorisations or differences per solve would cost in optimality.
+
+Run ``python -m msagv.benchmarks.polish_bench [--axles 2,4,6,8] [--vehicle FILE] [--states 12]
+[--variants]``.
 """
 
 from __future__ import annotations
@@ -27,6 +33,13 @@ import numpy as np
 from . import BENCH_METHOD
 
 PARTS = ("anneal", "start", "jacobian", "steps")
+# name: (damping factors, step lengths, refreshes) of the polish (sa_kernel.GN_MUS,
+# GN_ALPHAS, GN_REFRESH); each fills the same tile of GN_CANDIDATES candidates
+VARIANTS = {"default": ((1e-2, 0.1, 1.0, 10.0), (1.0, 0.3), 1),
+            "no refresh": ((1e-2, 0.1, 1.0, 10.0), (1.0, 0.3), 0),
+            "2 factors x 4 lengths": ((1e-2, 1.0), (1.0, 0.6, 0.3, 0.1), 1),
+            "2 x 4, no refresh": ((1e-2, 1.0), (1.0, 0.6, 0.3, 0.1), 0),
+            "1 factor x 8 lengths": ((0.03,), (1.0, 0.7, 0.5, 0.35, 0.25, 0.15, 0.1, 0.05), 1)}
 
 
 def _time(f, *a, repeats: int = 200) -> float:
@@ -109,6 +122,47 @@ def bench_polish(vehicle, n_states: int = 12, repeats: int = 3) -> dict:
     return out
 
 
+def bench_variants(vehicle, n_states: int = 12, repeats: int = 2) -> dict:
+    """Each of :data:`VARIANTS` on the same states (module docstring): solve time p50 and
+    its cost over the default's (both lifted by the optimality bench's cost floor)."""
+    from msagv.controller import MPCSettings
+    from msagv.controller import sa_kernel as sk
+
+    from .optimality_bench import CASE_RUNS, CASE_SECONDS, make_solver, prime, ratio, references, sample_states
+
+    s = MPCSettings(method=BENCH_METHOD)
+    samples = sample_states(n_states, s, seconds=CASE_SECONDS, vehicle=vehicle, runs=CASE_RUNS)
+    refs = references(vehicle, CASE_RUNS)
+    m = make_solver(s, vehicle=vehicle)
+    m.warmup()
+    saved = sk.GN_MUS, sk.GN_ALPHAS, sk.GN_REFRESH
+    costs: dict[str, list] = {}
+    times: dict[str, list] = {}
+    try:
+        for _ in range(repeats):
+            for name, (mus, alphas, refresh) in VARIANTS.items():
+                assert len(mus) * len(alphas) == sk.GN_CANDIDATES
+                sk.GN_MUS, sk.GN_ALPHAS = np.array(mus), np.array(alphas)
+                sk.GN_REFRESH = refresh
+                cs = []
+                for i, smp in enumerate(samples):
+                    prime(m, smp["z"], seed=1000 + i)
+                    c = m.step(smp["state"], refs[smp["run"]])
+                    cs.append(c.cost)
+                    times.setdefault(name, []).append(c.solve_ms)
+                costs[name] = cs  # (deterministic: the same every pass)
+    finally:
+        sk.GN_MUS, sk.GN_ALPHAS, sk.GN_REFRESH = saved
+    out = {"vehicle": vehicle.name, "axles": vehicle.n_axles, "states": len(samples)}
+    for name in VARIANTS:
+        r = np.array([ratio(a, b) for a, b in zip(costs[name], costs["default"])])
+        out[name] = {"solve_ms_p50": float(np.median(times[name])),
+                     "cost_over_default": {"p50": float(np.median(r)),
+                                           "p90": float(np.percentile(r, 90)),
+                                           "max": float(r.max()), "min": float(r.min())}}
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.polish_bench",
                                  description=__doc__.splitlines()[0])
@@ -117,6 +171,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="a vehicle file measured after the axle counts (repeatable)")
     ap.add_argument("--states", type=int, default=12, help="sampled states per vehicle")
     ap.add_argument("--repeats", type=int, default=3, help="timed passes over the states")
+    ap.add_argument("--variants", action="store_true",
+                    help="the polish's variants against the default instead (VARIANTS)")
     a = ap.parse_args(argv)
     from msagv.plant import VehicleError, default_vehicle, load_vehicle, n_axle_vehicle
 
@@ -128,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(e).splitlines()[0] if str(e) else repr(e))
     if not vs or a.states < 1 or a.repeats < 1:
         ap.error("nothing to measure: give --axles or --vehicle, --states and --repeats >= 1")
-    print(json.dumps({v.name: bench_polish(v, a.states, a.repeats) for v in vs}, indent=2))
+    f = bench_variants if a.variants else bench_polish
+    print(json.dumps({v.name: f(v, a.states, a.repeats) for v in vs}, indent=2))
     return 0
 
 
