@@ -11,7 +11,10 @@ refreshes inside them (``_gn_run``); with the steps and refreshes taken. Then th
 polish's linear algebra alone on random data of the same size (D decision variables,
 M residuals): one damped step (Cholesky and the two triangular solves), the Gauss-Newton
 Hessian, Broyden's update. Percentiles over ``repeats`` passes over the states (the first
-pass, which loads the kernels, is not counted).
+pass, which loads the kernels, is not counted). Each part is timed twice: its wall time
+(``*_ms``) and the CPU time of this thread (``*_cpu_ms``, ``time.thread_time``): on a
+shared machine the wall time of a long call grows with every preemption (at load 10 on
+2 cores a 2 ms call took several times its CPU time), its CPU time far less.
 
 ``--variants`` instead solves the same states with other splits of the polish's tile
 (:data:`VARIANTS`: fewer damping factors, more step lengths; no refresh of the Jacobian)
@@ -88,11 +91,12 @@ def bench_polish(vehicle, n_states: int = 12, repeats: int = 3) -> dict:
 
     def timed(name, f):
         def g(*a, **kw):
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.thread_time()
             try:
                 return f(*a, **kw)
             finally:
                 spent[name] = spent.get(name, 0.0) + time.perf_counter() - t
+                spent[name + "_cpu"] = spent.get(name + "_cpu", 0.0) + time.thread_time() - c
         return g
 
     k.solve = timed("anneal", k.solve)
@@ -104,17 +108,21 @@ def bench_polish(vehicle, n_states: int = 12, repeats: int = 3) -> dict:
         for i, smp in enumerate(samples):
             spent.clear()
             prime(m, smp["z"], seed=1000 + i)
+            cpu = time.thread_time()
             c = m.step(smp["state"], refs[smp["run"]])
+            cpu = time.thread_time() - cpu
             if rep:
-                rows.append({"solve_ms": c.solve_ms, **{p: 1e3 * spent.get(p, 0.0) for p in PARTS},
+                rows.append({"solve_ms": c.solve_ms, "solve_cpu_ms": 1e3 * cpu,
+                             **{p: 1e3 * spent.get(p, 0.0) for p in PARTS},
+                             **{p + "_cpu": 1e3 * spent.get(p + "_cpu", 0.0) for p in PARTS},
                              "polish_steps": float(k._gn_state[1]),
                              "refreshes": float(k._gn_state[3])})
     D, M = m.model.dim, 6 * s.N_p
     out = {"vehicle": vehicle.name, "axles": vehicle.n_axles, "D": D, "M": M,
            "states": len(samples), "solves": len(rows)}
-    for key in ("solve_ms",) + PARTS:
+    for key in ("solve_ms", "solve_cpu_ms") + PARTS + tuple(p + "_cpu" for p in PARTS):
         v = np.array([r[key] for r in rows])
-        out[key if key == "solve_ms" else key + "_ms"] = {
+        out[key if key.endswith("_ms") else key + "_ms"] = {
             "p50": float(np.median(v)), "mean": float(v.mean()), "p99": float(np.percentile(v, 99))}
     out["polish_steps_mean"] = float(np.mean([r["polish_steps"] for r in rows]))
     out["refreshes_mean"] = float(np.mean([r["refreshes"] for r in rows]))
