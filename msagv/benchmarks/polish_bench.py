@@ -78,7 +78,8 @@ def bench_polish(vehicle, n_states: int = 12, repeats: int = 3) -> dict:
     from msagv.controller import MPCSettings
     from msagv.controller.sa_kernel import CompiledAnnealer
 
-    from .optimality_bench import CASE_RUNS, CASE_SECONDS, make_solver, prime, references, sample_states
+    from .optimality_bench import (CASE_RUNS, CASE_SECONDS, make_solver, prime, references,
+                                   sample_states)
 
     s = MPCSettings(method=BENCH_METHOD)
     samples = sample_states(n_states, s, seconds=CASE_SECONDS, vehicle=vehicle, runs=CASE_RUNS)
@@ -136,7 +137,8 @@ def bench_variants(vehicle, n_states: int = 12, repeats: int = 2) -> dict:
     from msagv.controller import MPCSettings
     from msagv.controller import sa_kernel as sk
 
-    from .optimality_bench import CASE_RUNS, CASE_SECONDS, make_solver, prime, ratio, references, sample_states
+    from .optimality_bench import (CASE_RUNS, CASE_SECONDS, make_solver, prime, ratio,
+                                   references, sample_states)
 
     s = MPCSettings(method=BENCH_METHOD)
     samples = sample_states(n_states, s, seconds=CASE_SECONDS, vehicle=vehicle, runs=CASE_RUNS)

@@ -191,8 +191,8 @@ ITERATE = {(pred.name, kind, parallel): _make_iterate(
 # The horizon cost is a sum of squares (the pose errors, the quadratic wear term's powers),
 # a linear part (the wear-energy term) and a quadratic form of the decision vector (the
 # smoothing and the ridge): J(z) = |r(z)|^2 + e(z) + z'Az + b'z + c. The polish takes the
-# residuals' Jacobian Jr (stored by residual: JrT) by forward differences once (D perturbed candidates: D / LANES
-# tiles of the SIMD prediction), then steps: the Gauss-Newton model's gradient
+# residuals' Jacobian Jr (stored by residual, JrT) by forward differences once (D perturbed
+# candidates: D / LANES tiles of the SIMD prediction), then steps: the Gauss-Newton model's gradient
 # g = 2 Jr'r + grad e + 2Az + b and Hessian H = 2 Jr'Jr + 2A, the Levenberg-Marquardt
 # steps (H + mu diag H) dz = -g for the damping factors GN_MUS, each at the lengths
 # GN_ALPHAS: clipped to the box, these LANES candidates are one tile; the best is kept if
@@ -272,7 +272,8 @@ def residuals(poses, wear, ref, Q, Lw, row, r, rrow):
 # running dot products, whose single chain of dependent additions cannot be split without
 # changing the result; the Jacobian is stored by residual (JrT (M, D)) so that its rows
 # are those of the products. Measured at 8 axles (D = 96): the factorisation 82 -> 40 us,
-# the Hessian 143 -> 60 us (docs/PERFORMANCE.md, issue 31).
+# the Hessian 143 -> 60 us (python -m msagv.benchmarks.polish_bench, "linear_algebra";
+# docs/PERFORMANCE.md, issue 31).
 @njit(cache=True, inline="always", error_model="numpy")
 def _axpy(y, x, a):
     """``y += a x`` (views of equal length)."""
