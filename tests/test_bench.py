@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from msagv.benchmarks.suite import SECTIONS
@@ -30,3 +31,53 @@ def test_unknown_section_exits_2(capsys):
     assert "unknown section" in capsys.readouterr().err
     assert set(SECTIONS) == {"plant", "rollout", "controller", "optimality", "nmpc", "transport",
                              "fmu"}
+
+
+@pytest.mark.timeout(300)
+def test_controller_bench_takes_a_vehicle_file(capsys):
+    """``--vehicle FILE`` measures that vehicle (labelled by its name, its wheel count from
+    the file); a missing file or no vehicle at all is a one-line usage error."""
+    from pathlib import Path
+
+    from msagv.benchmarks.controller_bench import main as cb
+
+    f = Path(__file__).resolve().parents[1] / "scenarios" / "vehicles" / "agv-3axle.toml"
+    assert cb(["--axles", "", "--vehicle", str(f), "--seconds", "0.1", "--repeats", "1"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert list(d["axles"]) == ["agv-3axle"]
+    r = d["axles"]["agv-3axle"]
+    assert r["n_wheels"] == 6 and r["solves"] == 10
+    assert 0 < r["solve_ms"]["p50"] <= r["solve_ms"]["max"]
+    for bad in (["--vehicle", "no-such.toml"], ["--axles", ""]):
+        with pytest.raises(SystemExit) as e:
+            cb(bad)
+        assert e.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert "error:" in err[-1] and len([x for x in err if "error" in x]) == 1
+
+
+@pytest.mark.timeout(600)
+def test_polish_bench_parts_and_variants():
+    """polish_bench: each part of a solve is timed inside the solve (their sum at most the
+    solve's time at the median), the steps and refreshes counted; the variants are solved
+    on the same states, the default's cost over itself exactly 1 (the solve is
+    deterministic) and every variant restores the polish's settings."""
+    from msagv.benchmarks.polish_bench import PARTS, VARIANTS, bench_polish, bench_variants
+    from msagv.controller import sa_kernel as sk
+    from msagv.plant import default_vehicle
+
+    v = default_vehicle()
+    r = bench_polish(v, n_states=2, repeats=1)
+    assert (r["D"], r["M"], r["solves"]) == (24, 60, 2)
+    assert sum(r[p + "_ms"]["mean"] for p in PARTS) <= r["solve_ms"]["mean"]
+    assert sum(r[p + "_cpu_ms"]["mean"] for p in PARTS) <= r["solve_cpu_ms"]["mean"]
+    assert all(r[p + "_cpu_ms"]["mean"] <= r[p + "_ms"]["mean"] * 1.05 + 0.05 for p in PARTS)
+    assert all(r[p + "_ms"]["p50"] > 0 for p in ("anneal", "jacobian", "steps"))
+    assert r["polish_steps_mean"] >= 1 and 0 <= r["refreshes_mean"] <= sk.GN_REFRESH
+    assert all(t > 0 for t in r["linear_algebra"].values())
+    before = (sk.GN_MUS.copy(), sk.GN_ALPHAS.copy(), sk.GN_REFRESH)
+    w = bench_variants(v, n_states=2, repeats=1)
+    assert set(VARIANTS) <= set(w)
+    assert w["default"]["cost_over_default"] == {"p50": 1.0, "p90": 1.0, "max": 1.0, "min": 1.0}
+    assert np.array_equal(sk.GN_MUS, before[0]) and np.array_equal(sk.GN_ALPHAS, before[1])
+    assert sk.GN_REFRESH == before[2]

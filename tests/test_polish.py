@@ -82,6 +82,40 @@ def test_damped_step_solves_and_refuses_indefinite():
     assert not sk.damped_step(H, g, 0.1, Lc, dz)
 
 
+@pytest.mark.parametrize("D", [5, 24, 96])
+def test_linear_algebra_is_numpys(D):
+    """The polish's products (Jacobian stored by residual, ``JrT`` (M, D)) against numpy:
+    the gradient, the Gauss-Newton Hessian, Broyden's update of the Jacobian and the
+    Hessian with it, the quadratic form, and the damped step at D = 96 (8 axles)."""
+    rng = np.random.default_rng(D)
+    M = 60
+    JrT = rng.normal(size=(M, D))
+    B = rng.normal(size=(D, D))
+    A = B @ B.T / D
+    z, b, r0, ge = (rng.normal(size=n) for n in (D, D, M, D))
+    g, H = np.empty(D), np.empty((D, D))
+    sk.gauss_newton_gradient(JrT, r0, ge, A, z, b, g)
+    assert np.allclose(g, 2 * JrT.T @ r0 + ge + 2 * A @ z + b, rtol=1e-12, atol=1e-12)
+    sk.gauss_newton_hessian(JrT, A, H)
+    assert np.array_equal(H, H.T)
+    assert np.allclose(H, 2 * JrT.T @ JrT + 2 * A, rtol=1e-12, atol=1e-11)
+    assert sk.quadratic_value(A, b, 0.5, z) == pytest.approx(z @ A @ z + b @ z + 0.5, rel=1e-12)
+    dz, dr = 1e-2 * rng.normal(size=D), rng.normal(size=M)
+    J1, ge1, H1 = JrT.copy(), ge.copy(), H.copy()
+    sk.broyden_update(J1, ge1, H1, dz, dr, 0.3)
+    t = (dr - JrT @ dz) / (dz @ dz)
+    want = JrT + np.outer(t, dz)
+    assert np.allclose(J1, want, rtol=1e-10, atol=1e-10)
+    assert np.allclose(J1 @ dz, dr, rtol=1e-9, atol=1e-9)  # the secant condition
+    assert np.allclose(ge1, ge + (0.3 - ge @ dz) * dz / (dz @ dz), rtol=1e-10, atol=1e-12)
+    assert np.allclose(H1, 2 * want.T @ want + 2 * A, rtol=1e-9, atol=1e-8)
+    Lc, x = np.empty((D, D)), np.empty(D)
+    for mu in (0.0, 0.01, 10.0):
+        assert sk.damped_step(H, g, mu, Lc, x)
+        assert np.allclose(x, np.linalg.solve(H + mu * np.diag(np.diag(H)), -g), rtol=1e-8,
+                           atol=1e-10)
+
+
 def test_reference_polish_solves_linear_least_squares_in_one_step():
     """Linear residuals r = M z - y in a box wide enough: the undamped step is the
     least-squares solution (the Gauss-Newton model is then exact)."""

@@ -11,7 +11,11 @@ spread of the per-repeat p50 and p99 over the repeats, the time per solve divide
 2-axle time (so "no worse than linear" reads as ratio <= n / 2), and the tracking error of
 the runs (a check that the timed controller is the working one).
 
-Run ``python -m msagv.benchmarks.controller_bench [--axles 2,4,6] [--seconds 5] [--repeats 3]``.
+A vehicle file (``--vehicle FILE``, repeatable; e.g. ``scenarios/vehicles/agv-16axle.toml``)
+is measured after the axle counts, labelled by its name.
+
+Run ``python -m msagv.benchmarks.controller_bench [--axles 2,4,6] [--vehicle FILE] [--seconds 5]
+[--repeats 3]``.
 """
 
 from __future__ import annotations
@@ -31,13 +35,16 @@ T = CONTROL_PERIOD  # s, control period
 SPEED_KMH = 25.0
 
 
-def _vehicle(n: int):
+def _vehicle(n):
+    """An axle count (2: the paper's vehicle, others its relatives) or a Vehicle as is."""
     from msagv.plant import default_vehicle, n_axle_vehicle
 
+    if not isinstance(n, int):
+        return n
     return default_vehicle() if n == 2 else n_axle_vehicle(n)
 
 
-def run_once(n_axles: int, seconds: float, settings=None) -> dict:
+def run_once(n_axles, seconds: float, settings=None) -> dict:
     """One closed-loop run; returns its solve times [ms] and e_bar."""
     from dataclasses import asdict
 
@@ -54,7 +61,8 @@ def run_once(n_axles: int, seconds: float, settings=None) -> dict:
 
 def bench_controller(axles=(2, 4, 6, 8), seconds: float = 5.0, repeats: int = 3,
                      settings=None) -> dict:
-    """Solve-time percentiles per axle count (see the module docstring)."""
+    """Solve-time percentiles per axle count (see the module docstring); an item of
+    ``axles`` may be a :class:`plant.Vehicle` (labelled by its name)."""
     from msagv.controller import MPCSettings
     from msagv.controller.metrics import percentiles
 
@@ -77,26 +85,37 @@ def bench_controller(axles=(2, 4, 6, 8), seconds: float = 5.0, repeats: int = 3,
             p50s.append(float(np.percentile(r["solve_ms"], 50)))
             p99s.append(float(np.percentile(r["solve_ms"], 99)))
             ebar.append(r["e_bar"])
-        res = {"n_wheels": 2 * n, "solve_ms": percentiles(allv), "p50_over_repeats": _spread(p50s),
+        v = _vehicle(n)
+        res = {"n_wheels": v.n_wheels, "solve_ms": percentiles(allv), "p50_over_repeats": _spread(p50s),
                "p99_over_repeats": _spread(p99s), "solves": len(allv),
                "within_period": float(np.mean(np.asarray(allv) <= T * 1000.0)),
                "e_bar": _spread(ebar)}
         if base is None:
-            base = (n, res["solve_ms"]["p50"])
+            base = (v.n_axles, res["solve_ms"]["p50"])
         res["p50_ratio_to_%d_axles" % base[0]] = res["solve_ms"]["p50"] / base[1]
-        res["linear_ratio"] = n / base[0]
-        out["axles"][str(n)] = res
+        res["linear_ratio"] = v.n_axles / base[0]
+        out["axles"][str(n) if isinstance(n, int) else v.name] = res
     return out
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.controller_bench",
                                  description=__doc__.splitlines()[0])
-    ap.add_argument("--axles", default="2,4,6,8", help="comma-separated axle counts")
+    ap.add_argument("--axles", default="2,4,6,8", help="comma-separated axle counts ('': none)")
+    ap.add_argument("--vehicle", action="append", default=[], metavar="FILE",
+                    help="a vehicle file measured after the axle counts (repeatable)")
     ap.add_argument("--seconds", type=float, default=5.0, help="vehicle seconds per run")
     ap.add_argument("--repeats", type=int, default=3)
     a = ap.parse_args(argv)
-    axles = tuple(int(x) for x in a.axles.split(",") if x.strip())
+    from msagv.plant import VehicleError, load_vehicle
+
+    try:
+        axles = tuple(int(x) for x in a.axles.split(",") if x.strip())
+        axles += tuple(load_vehicle(f) for f in a.vehicle)
+    except (ValueError, OSError, VehicleError) as e:
+        ap.error(str(e).splitlines()[0] if str(e) else repr(e))
+    if not axles:
+        ap.error("nothing to measure: give --axles or --vehicle")
     print(json.dumps(bench_controller(axles, a.seconds, a.repeats), indent=2))
     return 0
 

@@ -191,8 +191,8 @@ ITERATE = {(pred.name, kind, parallel): _make_iterate(
 # The horizon cost is a sum of squares (the pose errors, the quadratic wear term's powers),
 # a linear part (the wear-energy term) and a quadratic form of the decision vector (the
 # smoothing and the ridge): J(z) = |r(z)|^2 + e(z) + z'Az + b'z + c. The polish takes the
-# residuals' Jacobian Jr by forward differences once (D perturbed candidates: D / LANES
-# tiles of the SIMD prediction), then steps: the Gauss-Newton model's gradient
+# residuals' Jacobian Jr (stored by residual, JrT) by forward differences once (D perturbed
+# candidates: D / LANES tiles of the SIMD prediction), then steps: the Gauss-Newton model's gradient
 # g = 2 Jr'r + grad e + 2Az + b and Hessian H = 2 Jr'Jr + 2A, the Levenberg-Marquardt
 # steps (H + mu diag H) dz = -g for the damping factors GN_MUS, each at the lengths
 # GN_ALPHAS: clipped to the box, these LANES candidates are one tile; the best is kept if
@@ -266,119 +266,147 @@ def residuals(poses, wear, ref, Q, Lw, row, r, rrow):
     return e * _ro.KW / Np
 
 
+# The polish's linear algebra is written so that LLVM vectorises it without reassociating
+# a sum (IEEE, see below): the inner loops are updates y += a x over rows (views indexed
+# from 0: a loop over range(lo, hi) kept numba's index checks and stayed scalar), never
+# running dot products, whose single chain of dependent additions cannot be split without
+# changing the result; the Jacobian is stored by residual (JrT (M, D)) so that its rows
+# are those of the products. Measured at 8 axles (D = 96): the factorisation 82 -> 40 us,
+# the Hessian 143 -> 60 us (python -m msagv.benchmarks.polish_bench, "linear_algebra";
+# docs/PERFORMANCE.md, issue 31).
+@njit(cache=True, inline="always", error_model="numpy")
+def _axpy(y, x, a):
+    """``y += a x`` (views of equal length)."""
+    for j in range(y.shape[0]):
+        y[j] += a * x[j]
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _dot(x, y):
+    """``x . y`` in index order."""
+    t = 0.0
+    for j in range(x.shape[0]):
+        t += x[j] * y[j]
+    return t
+
+
+@njit(cache=True, error_model="numpy")
+def symmetric_product(A, z, u):
+    """``u = A z`` for a symmetric ``A`` (by rows of A: ``sum_j A[j] z_j``)."""
+    for i in range(u.shape[0]):
+        u[i] = 0.0
+    for j in range(z.shape[0]):
+        _axpy(u, A[j], z[j])
+
+
 @njit(cache=True, error_model="numpy")
 def quadratic_value(A, b, c, z):
-    """``z'Az + b'z + c``."""
+    """``z'Az + b'z + c`` (``A`` symmetric)."""
     D = z.shape[0]
+    u = np.empty(D)
+    symmetric_product(A, z, u)
     J = c
     for i in range(D):
-        t = b[i]
-        for j in range(D):
-            t += A[i, j] * z[j]
-        J += t * z[i]
+        J += (b[i] + u[i]) * z[i]
     return J
 
 
 @njit(cache=True, error_model="numpy")
-def gauss_newton_gradient(Jr, r0, ge, A, z, b, g):
-    """``g = 2 Jr r0 + ge + 2 A z + b`` (``Jr`` (D, M): the residuals' derivatives by row)."""
-    D, M = Jr.shape
+def gauss_newton_gradient(JrT, r0, ge, A, z, b, g):
+    """``g = 2 Jr' r0 + ge + 2 A z + b`` (``JrT`` (M, D): row m, the derivatives of
+    residual m by every variable)."""
+    D = g.shape[0]
+    t = np.zeros(D)
+    for m in range(JrT.shape[0]):
+        _axpy(t, JrT[m], r0[m])
+    u = np.empty(D)
+    symmetric_product(A, z, u)
     for i in range(D):
-        t = 0.0
+        g[i] = 2.0 * t[i] + ge[i] + 2.0 * u[i] + b[i]
+
+
+@njit(cache=True, error_model="numpy")
+def gauss_newton_hessian(JrT, A, H):
+    """``H = 2 Jr' Jr + 2 A`` (``JrT`` (M, D)): each row's upper part as updates by the
+    residuals' rows, then mirrored."""
+    M, D = JrT.shape
+    for i in range(D):
+        Hi = H[i, i:]
+        for j in range(Hi.shape[0]):
+            Hi[j] = 0.0
         for m in range(M):
-            t += Jr[i, m] * r0[m]
-        u = 0.0
-        for j in range(D):
-            u += A[i, j] * z[j]
-        g[i] = 2.0 * t + ge[i] + 2.0 * u + b[i]
-
-
-@njit(cache=True, error_model="numpy")
-def gauss_newton_hessian(Jr, A, H):
-    """``H = 2 Jr Jr' + 2 A``."""
-    D, M = Jr.shape
+            _axpy(Hi, JrT[m, i:], JrT[m, i])
     for i in range(D):
-        for j in range(i + 1):
-            t = 0.0
-            for m in range(M):
-                t += Jr[i, m] * Jr[j, m]
-            H[i, j] = H[j, i] = 2.0 * t + 2.0 * A[i, j]
+        for j in range(i, D):
+            H[i, j] = H[j, i] = 2.0 * H[i, j] + 2.0 * A[i, j]
 
 
 @njit(cache=True, error_model="numpy")
-def broyden_update(Jr, ge, H, dz, dr, de):
-    """Broyden's rank-one update of the Jacobian ``Jr`` (D, M) and the linear term's
-    gradient ``ge`` after the step ``dz`` that changed the residuals by ``dr`` and the
-    linear term by ``de``: ``Jr += dz t'``, ``t = (dr - Jr' dz) / dz'dz`` (likewise
-    ``ge``), and ``H = 2 Jr Jr' + 2A`` with it, in O(D M + D^2):
-    ``H += 2 (u dz' + dz u' + t't dz dz')``, ``u = Jr t`` (before the update)."""
-    D, M = Jr.shape
-    ss = 0.0
-    for j in range(D):
-        ss += dz[j] * dz[j]
+def broyden_update(JrT, ge, H, dz, dr, de):
+    """Broyden's rank-one update of the Jacobian (``JrT`` (M, D), by residual) and the
+    linear term's gradient ``ge`` after the step ``dz`` that changed the residuals by
+    ``dr`` and the linear term by ``de``: ``Jr += t dz'``, ``t = (dr - Jr dz) / dz'dz``
+    (likewise ``ge``), and ``H = 2 Jr'Jr + 2A`` with it, in O(D M + D^2):
+    ``H += 2 (u dz' + dz u' + t't dz dz')``, ``u = Jr' t`` (before the update)."""
+    M, D = JrT.shape
+    ss = _dot(dz, dz)
     if not ss > 0.0:
         return
     t = np.empty(M)
     tt = 0.0
+    u = np.zeros(D)
     for m in range(M):
-        v = dr[m]
-        for j in range(D):
-            v -= Jr[j, m] * dz[j]
-        t[m] = v / ss
+        t[m] = (dr[m] - _dot(JrT[m], dz)) / ss
         tt += t[m] * t[m]
-    u = np.empty(D)
-    for j in range(D):
-        v = 0.0
-        for m in range(M):
-            v += Jr[j, m] * t[m]
-        u[j] = v
+        _axpy(u, JrT[m], t[m])
     for i in range(D):
-        for j in range(D):
-            H[i, j] += 2.0 * (u[i] * dz[j] + dz[i] * u[j] + tt * dz[i] * dz[j])
-        for m in range(M):
-            Jr[i, m] += dz[i] * t[m]
-    v = de
-    for j in range(D):
-        v -= ge[j] * dz[j]
-    v /= ss
-    for j in range(D):
-        ge[j] += v * dz[j]
+        Hi = H[i]
+        _axpy(Hi, dz, 2.0 * u[i] + 2.0 * tt * dz[i])
+        _axpy(Hi, u, 2.0 * dz[i])
+    for m in range(M):
+        _axpy(JrT[m], dz, t[m])
+    v = (de - _dot(ge, dz)) / ss
+    _axpy(ge, dz, v)
 
 
 @njit(cache=True, error_model="numpy")
-def damped_step(H, g, mu, Lc, dz):
-    """Solve ``(H + mu diag H) dz = -g`` by Cholesky (``Lc`` (D, D) scratch); False when the
-    matrix is not positive definite (then ``dz`` is undefined)."""
+def damped_step(H, g, mu, U, dz):
+    """Solve ``(H + mu diag H) dz = -g`` by Cholesky, ``U'U`` with ``U`` (D, D) upper
+    triangular (scratch; the right-looking form: each pivot row updates the rows below
+    it); False when the matrix is not positive definite (then ``dz`` is undefined)."""
     D = H.shape[0]
-    for j in range(D):
-        s = H[j, j] * (1.0 + mu)
-        for k in range(j):
-            s -= Lc[j, k] * Lc[j, k]
+    for i in range(D):
+        Ui = U[i]
+        Hi = H[i]
+        for j in range(D):
+            Ui[j] = Hi[j]
+        Ui[i] *= 1.0 + mu
+    for k in range(D):
+        Uk = U[k]
+        s = Uk[k]
         if not s > 0.0:
             return False
         d = math.sqrt(s)
-        Lc[j, j] = d
-        for i in range(j + 1, D):
-            t = H[i, j]
-            for k in range(j):
-                t -= Lc[i, k] * Lc[j, k]
-            Lc[i, j] = t / d
-    for i in range(D):  # L y = -g
-        t = -g[i]
-        for k in range(i):
-            t -= Lc[i, k] * dz[k]
-        dz[i] = t / Lc[i, i]
-    for i in range(D - 1, -1, -1):  # L' dz = y
-        t = dz[i]
-        for k in range(i + 1, D):
-            t -= Lc[k, i] * dz[k]
-        dz[i] = t / Lc[i, i]
+        Uk[k] = d
+        row = Uk[k + 1:]
+        inv = 1.0 / d
+        for j in range(row.shape[0]):
+            row[j] *= inv
+        for i in range(k + 1, D):
+            _axpy(U[i, i:], Uk[i:], -Uk[i])
+    for i in range(D):  # U' y = -g, by the rows of U
+        dz[i] = -g[i]
+    for k in range(D):
+        dz[k] /= U[k, k]
+        _axpy(dz[k + 1:], U[k, k + 1:], -dz[k])
+    for i in range(D - 1, -1, -1):  # U dz = y
+        dz[i] = (dz[i] - _dot(U[i, i + 1:], dz[i + 1:])) / U[i, i]
     return True
 
 
 def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, lin, Zfd,
-                 poses, wear, cmds, Jr, ge, H):
-    """The residuals' Jacobian ``Jr`` (D, M; row d: the derivatives by z_d) and the linear
+                 poses, wear, cmds, JrT, ge, H):
+    """The residuals' Jacobian ``JrT`` (M, D; row m: residual m's derivatives) and the linear
     term's gradient ``ge`` at ``z`` by forward differences (backward at the upper bound),
     from the residuals ``r[0]`` and linear term ``lin[0]`` of ``z``; ``r[1]`` is scratch;
     and the Gauss-Newton Hessian ``H`` from them. ``rollout`` is a global bound by
@@ -394,22 +422,22 @@ def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, 
         e = residuals(poses, wear, ref, Q, Lw, d, r, 1)
         inv = 1.0 / (Zfd[d, d] - z[d])
         for m in range(M):
-            Jr[d, m] = (r[1, m] - r[0, m]) * inv
+            JrT[m, d] = (r[1, m] - r[0, m]) * inv
         ge[d] = (e - lin[0]) * inv
-    gauss_newton_hessian(Jr, A, H)
+    gauss_newton_hessian(JrT, A, H)
 
 
 def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, mus, alphas,
-             z, J, r, lin, poses, wear, cmds, Jr, ge, g, H, Lc, dz, Zc):
+             z, J, r, lin, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc):
     """One polish step from ``z`` (cost ``J``, residuals ``r[0]``, linear term ``lin[0]``,
-    Jacobian ``Jr``, ``ge``, Hessian ``H``): the candidates of the damped steps, predicted
+    Jacobian ``JrT``, ``ge``, Hessian ``H``): the candidates of the damped steps, predicted
     in one call; the best, if it is below ``J``, becomes ``z`` (with its residuals) and
     updates the Jacobian and the Hessian (:func:`broyden_update`). Returns the cost after
     the step. ``rollout`` is a global bound by :func:`_make_gn`."""
     D = z.shape[0]
     M = r.shape[1]
     na = alphas.shape[0]
-    gauss_newton_gradient(Jr, r[0], ge, A, z, b, g)
+    gauss_newton_gradient(JrT, r[0], ge, A, z, b, g)
     for k in range(mus.shape[0]):
         ok = damped_step(H, g, mus[k], Lc, dz)
         for a in range(na):
@@ -434,7 +462,7 @@ def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, 
         dz[j] = Zc[best, j] - z[j]
     for m in range(M):
         r[1, m] -= r[0, m]  # (the change of the residuals)
-    broyden_update(Jr, ge, H, dz, r[1], e - lin[0])
+    broyden_update(JrT, ge, H, dz, r[1], e - lin[0])
     for m in range(M):
         r[1, m] += r[0, m]
     for m in range(M):
@@ -454,7 +482,7 @@ def _gn_start(model, x0, ref, block, P, S, wx, wy, Q, Lw, z, r, lin, Zfd, poses,
 
 
 def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, h, mus, alphas,
-            tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, Jr, ge, g, H, Lc, dz, Zc):
+            tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc):
     """Up to ``n`` polish steps (:func:`_gn_step`) from the state ``st`` = [cost, steps
     taken, Jacobian fresh (1) or updated (0), refreshes, stopped]: a step that lowers the
     cost by less than ``tol`` of it stops the polish if the Jacobian is fresh from the
@@ -465,7 +493,7 @@ def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, h
     fresh = st[2] > 0.0
     for _ in range(n):
         Jn = gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c,  # noqa: F821
-                     lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds, Jr, ge, g,
+                     lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds, JrT, ge, g,
                      H, Lc, dz, Zc)
         st[1] += 1.0
         stalled = not Jn < J or J - Jn < tol * J
@@ -476,7 +504,7 @@ def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, h
                 break
             # the updated Jacobian has stopped helping: differences again, at z
             gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A,  # noqa: F821
-                        upper, h, z, r, lin, Zfd, poses, wear, cmds, Jr, ge, H)
+                        upper, h, z, r, lin, Zfd, poses, wear, cmds, JrT, ge, H)
             st[3] += 1.0
             fresh = True
         else:
@@ -571,7 +599,7 @@ class CompiledAnnealer:
         self._gn_out = (np.empty((rows, Np, lay.N_POSE)), np.empty((rows, Np, lay.N_WEAR)),
                         np.empty((rows, 2, model.n_wheels)))
         self._gn_r, self._gn_lin, self._gn_Zfd = np.empty((2, M)), np.empty(1), np.empty((D, D))
-        self._gn_J = (np.empty((D, M)), np.empty(D))  # Jr, ge
+        self._gn_J = (np.empty((M, D)), np.empty(D))  # JrT (by residual), ge
         self._gn_la = (np.empty(D), np.empty((D, D)), np.empty((D, D)), np.empty(D),
                        np.empty((GN_CANDIDATES, D)))  # g, H, Lc, dz, Zc
         self._A, self._b = np.empty((D, D)), np.empty(D)
