@@ -1,29 +1,26 @@
-"""An independent lower bound on a path's tire wear: a direct transcription solved by IPOPT.
+"""The wear floor checked by a second transcription, solved by IPOPT.
 
-The wear floors of :mod:`controller.floors` allocate the forces of an exactly tracking
-vehicle sample by sample. This checks them from the other side (issue 29): the least wear
-work ``W_tw = int (P_s + P_alpha + P_t) dt`` of the plant's own equations (eq. 4-21: the
+The wear floor of :mod:`controller.floors` is the least wear work ``W_tw = int (P_s +
+P_alpha + P_t) dt`` of the plant's equations over a window, for a vehicle within ``tol`` of
+the path's position (and optionally ``tol_phi`` of its heading). This writes the same
+problem a second time, independently (issue 29): world-frame states ``x, y, phi, vx, vy,
+r, delta_i`` at the nodes (the floor's are body-frame), commands per interval,
+``|omega_s|`` split into two non-negative parts (the floor bounds it by an epigraph
+variable), built with casadi's Opti (the floor with ``nlpsol`` on mapped functions); the
 rigid body, the Magic Formula tires of eq. 11-12 at the constant loads ``m g / (2n)``, the
-wear powers of eq. 13-15) over a window ``[t0, t1]``, with the path as a hard constraint:
-the position within ``tol`` of the reference at every node; the heading, the velocities
-and the wheel angles free in between, and at the window's ends the reference's (heading,
-velocities, every wheel at the quasi-steady angle: along its velocity plus the slip angle
-of :mod:`controller.floors`' allocation there; a window should start and end where the
-path is steady, where a tracking run is in that state), the commands within the vehicle's
-limits (``0 <= omega_w <= omega_w_max``, ``omega_s`` within its rate limits, ``delta``
-within its stops). No run that keeps within ``tol`` of the path can wear less (to the
-transcription's accuracy: trapezoidal collocation at ``dt``, commands held over each
-interval), so a floor above this optimum is not a floor.
+wear powers of eq. 13-15 (``P_s = F_x (omega_w r_w - v_wx) >= 0`` and ``P_alpha = -F_y
+v_wy >= 0``: the force has the slip's sign), trapezoidal collocation at ``dt`` with each
+command held over its interval, the commands within the vehicle's limits. The ends are
+free (the floor's problem), or with ``fixed_start`` the start's heading and velocities the
+reference's (the floor's default, as a run starts), or with ``fixed_ends`` both ends' the
+reference's with every wheel along its velocity. Started from the reference's kinematics.
 
-The transcription: states ``x, y, phi, vx, vy, r, delta_i`` at the nodes, commands per
-interval, ``|omega_s|`` split into two non-negative parts (so the cost is smooth);
-``P_s = F_x (omega_w r_w - v_wx) >= 0`` and ``P_alpha = -F_y v_wy >= 0`` need no absolute
-value (the force has the slip's sign). Started from the reference's kinematics.
-
-``python -m msagv.benchmarks.floor_bound SCENARIO.toml T0 T1 [--tol-cm 1] [--dt 0.02]``
-prints the optimum, the floor of :func:`controller.floors.wear_floors` over the same
-window, and with ``--log RUN.csv`` (a ``msagv run --log``) that run's wear over it, as
-JSON. CPU-heavy: a few seconds of path take a minute or more.
+``python -m msagv.benchmarks.floor_bound SCENARIO.toml T0 T1 [--tol-cm 1] [--tol-deg 2]
+[--dt 0.05] [--fixed-start] [--log RUN.csv]`` prints the bound, the floor over the same
+window and with ``--log`` (a ``msagv run --log``) that run's wear over it, as JSON;
+``--sweep`` compares floor and bound on 20 transient scenarios at 2-8 axles and prints a
+Markdown table (docs/WEAR.md, "Wear floors"). Both are IPOPT's local optima of a problem
+that is not convex: agreeing, they check each other's equations, not global optimality.
 """
 
 from __future__ import annotations
@@ -191,7 +188,8 @@ def sweep_scenarios():
         add(f"random path {seed} {n}-axle {kmh:g} km/h", v, random_path(v, kmh, seed))
     root = Path(__file__).resolve().parents[2] / "scenarios"
     for toml, veh_file in (("s-curve-4axle.toml", None), ("s-curve-4axle.toml", "agv-8axle.toml"),
-                           ("lane-change-3axle.toml", None), ("lane-change-3axle.toml", "agv-6axle.toml"),
+                           ("lane-change-3axle.toml", None),
+                           ("lane-change-3axle.toml", "agv-6axle.toml"),
                            ("tight-turn-6axle.toml", None)):
         sc = Scenario.from_file(root / toml)
         if veh_file is not None:
@@ -243,7 +241,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="heading tolerance [deg] (default 2, the floor's; 0: free)")
     ap.add_argument("--dt", type=float, default=0.05, help="collocation step [s]")
     ap.add_argument("--fixed-start", action="store_true",
-                    help="the bound's heading and velocities at t0 the reference's (as the floor's)")
+                    help="the bound's heading and velocities at t0 the reference's "
+                         "(as the floor's)")
     ap.add_argument("--fixed-ends", action="store_true",
                     help="the bound's heading, velocities and wheel angles at the window's ends "
                          "the reference's (default: free, the floor's problem)")
