@@ -142,7 +142,7 @@ def lower_bound(reference, vehicle, t0: float, t1: float, tol: float = 0.01,
     opti.set_initial(U[n:2 * n, :], np.maximum(rate, 0.0).T)
     opti.set_initial(U[2 * n:, :], np.maximum(-rate, 0.0).T)
     opti.solver("ipopt", {"print_time": False},
-                {"print_level": 0, "max_iter": max_iter, "tol": 1e-8,
+                {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": 1e-8,
                  "acceptable_tol": 1e-6})
     t_start = time.process_time()
     sol = opti.solve()

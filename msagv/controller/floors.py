@@ -158,7 +158,8 @@ def _plant_function(vehicle: Vehicle):
 def _solve_window(reference, vehicle: Vehicle, t0: float, t1: float, tol: float, dt: float,
                   max_iter: int, tol_phi: float | None = None, guess=None,
                   fixed_start: bool = False):
-    """One window's optimum: (t, P (N+1, 3), delta (N+1, 2n), (W_s, W_alpha, W_t), cpu)."""
+    """One window's optimum: (t, P (N+1, 3), delta (N+1, 2n), (W_s, W_alpha, W_t), cpu, the
+    states (N+1, 6+2n), the commands (N, 6n))."""
     import casadi as ca
 
     n = vehicle.n_wheels
