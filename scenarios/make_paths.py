@@ -53,6 +53,24 @@ def lane_change_path():
     return arc, x, y, phi
 
 
+def double_lane_change_path():
+    """Two lane changes of 3.5 m, to the left and back, each over 40 m and shaped as
+    :func:`lane_change_path`'s (1 - cos) / 2 step, between 20 m, 15 m and 20 m of straight
+    (a double lane change, issue 29: the curvature steps at each change's ends)."""
+    s = np.arange(0.0, 135.0 + DS, DS)
+    x = s.copy()
+    y = np.zeros_like(x)
+    dy = np.zeros_like(x)
+    for start, sign in ((20.0, 1.0), (75.0, -1.0)):
+        u = np.clip((x - start) / 40.0, 0.0, 1.0)
+        y += sign * 3.5 * (1 - np.cos(math.pi * u)) / 2
+        dy += np.where((x > start) & (x < start + 40.0),
+                       sign * 3.5 * math.pi / 80.0 * np.sin(math.pi * u), 0.0)
+    phi = np.arctan(dy)
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    return arc, x, y, phi
+
+
 def drive(s, x, y, phi, speed_kmh, name):
     v = speed_kmh / 3.6
     t = np.arange(0.0, s[-1] / v + 1e-9, DT)
@@ -70,6 +88,7 @@ def drive(s, x, y, phi, speed_kmh, name):
 def main():
     HERE.mkdir(exist_ok=True)
     drive(*lane_change_path(), 15.0, "lane-change")
+    drive(*double_lane_change_path(), 20.0, "double-lane-change")
     # S-curve: left then right, 30 m radius arcs of about 50 deg with 10 m clothoids
     R = 30.0
     drive(*curvature_path([(15.0, 0, 0), (10.0, 0, 1 / R), (16.0, 1 / R, 1 / R),

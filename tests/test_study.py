@@ -35,38 +35,47 @@ def _one_narrow_axle(vehicle):
     return vehicle_from_dict(d)
 
 
-@pytest.mark.parametrize("speed_kmh, radius", [(20.0, 40.0), (10.0, 15.0)])
-def test_floor_on_a_circle_is_the_hand_computed_slip_angle_wear(speed_kmh, radius):
-    """On a circle of radius R at speed v each of the 2n wheels must carry m v^2 / (2n R)
-    of lateral force (one axle at the centre of mass, wheels along the body's x axis),
-    at the slip angle alpha with f_lat(alpha) = F, dissipating F v tan(alpha) (eq. 14):
-    W_alpha = 2n F v tan(alpha) T over T seconds; the wheels do not turn: W_t = 0."""
-    v_ = _one_narrow_axle(VEH)
-    ref = path_from_curvature(np.full(int(200.0 / 0.02), 1.0 / radius), speed_kmh, "circle")
+def _circle_hand(v_, speed_kmh, radius):
+    """Each of the 2n wheels of a narrow axle on a circle carries F = m v^2 / (2n R) of
+    lateral force at the slip angle alpha with f_lat(alpha) = F (bisection by hand) and
+    dissipates F v sin(alpha) (eq. 14, v_wy = v sin alpha): the steady power [W]."""
     v = speed_kmh / 3.6
     F = v_.mass * v * v / radius / v_.n_wheels
     la = v_.tire_lateral
     D = la.mu * v_.normal_load
-    lo, hi = 0.0, 0.5  # bisection for f(alpha) = F by hand (f increasing below its peak)
+    lo, hi = 0.0, 0.5  # f increasing below its peak
     for _ in range(80):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if magic_formula(mid, la.B, la.C, D, la.E) < F else (lo, mid)
-    alpha = 0.5 * (lo + hi)
-    T = 4.0
-    f = wear_floors(ref, v_, 3.0, 3.0 + T, dt=0.05)
-    want = v_.n_wheels * F * v * math.tan(alpha) * T
-    assert f.W_alpha == pytest.approx(want, rel=2e-3)
-    assert f.W_s < 1e-3 * want and f.W_t < 1e-3 * want
-    # and the floor's steering angles are the velocity's plus that slip angle
-    assert np.allclose(f.delta[:, 0] - f.delta[0, 0], 0.0, atol=1e-6)
+    return v_.n_wheels * F * v * math.sin(0.5 * (lo + hi))
 
 
-def test_floor_is_zero_on_a_straight_line_and_rejects_an_empty_window():
+@pytest.mark.parametrize("speed_kmh, radius", [(20.0, 40.0), (10.0, 15.0)])
+def test_floor_on_a_circle_is_the_hand_computed_slip_angle_wear(speed_kmh, radius):
+    """On a circle, held to 0.2 mm and 0.02 deg, the floor (the least wear of any motion
+    that close, starting with the reference's velocities) is the steady motion's hand
+    computation within 1 %, and not above it (the steady motion is one such motion); a
+    looser tolerance never raises it (its motions include the tighter one's)."""
+    v_ = _one_narrow_axle(VEH)
+    ref = path_from_curvature(np.full(int(200.0 / 0.02), 1.0 / radius), speed_kmh, "circle")
+    T = 3.0
+    want = _circle_hand(v_, speed_kmh, radius) * T
+    f = wear_floors(ref, v_, 3.0, 3.0 + T, tol=2e-4, tol_phi_deg=0.02)
+    assert want * 0.99 <= f.W_tw <= want * (1 + 1e-3)
+    assert f.W_alpha > 0.98 * f.W_tw  # slip-angle wear: the wheels hardly turn
+    loose = wear_floors(ref, v_, 3.0, 3.0 + T, tol=0.01)
+    assert loose.W_tw <= f.W_tw * (1 + 1e-6)
+
+
+def test_floor_is_zero_on_a_straight_line_and_rejects_a_bad_window():
     ref = path_from_curvature(np.zeros(int(100 / 0.02)), 20.0, "line")
-    f = wear_floors(ref, VEH, 1.0, 5.0)
+    f = wear_floors(ref, VEH, 1.0, 3.0)
     assert f.W_tw < 1e-6
     with pytest.raises(ValueError, match="window"):
         wear_floors(ref, VEH, 5.0, 5.0)
+    for bad in ({"tol": 0.0}, {"dt": -0.05}, {"tol_phi_deg": 0.0}):
+        with pytest.raises(ValueError, match="need dt > 0"):
+            wear_floors(ref, VEH, 1.0, 3.0, **bad)
     # the report divides by a floor only where there is one: a line's W / floor is n/a
     from msagv.experiments.study_analysis import _row
 
@@ -81,35 +90,57 @@ def test_floor_is_zero_on_a_straight_line_and_rejects_an_empty_window():
     assert row["W_over_floor"] == pytest.approx(2.0)
 
 
+@pytest.mark.parametrize("make, n, speed, t0, t1", [
+    (lane_change, 2, 20.0, 2.0, 6.0),  # the lane change's first bend
+    (tight_turn, 3, 15.0, 1.0, 5.0),  # the clothoid into the turn
+])
+def test_floor_is_never_above_the_independent_bound_on_a_transient(make, n, speed, t0, t1):
+    """The floor (controller/floors.py: body-frame states, |omega_s| by an epigraph) against
+    benchmarks/floor_bound.py (world-frame states, |omega_s| split in two parts), the same
+    problem written twice: on a transient the floor is never above the bound (beyond the
+    solvers' tolerance) and within 1 % of it."""
+    pytest.importorskip("casadi")
+    from msagv.benchmarks.floor_bound import lower_bound
+
+    v_ = n_axle_vehicle(n, base=VEH)
+    ref = make(v_, speed)
+    f = wear_floors(ref, v_, t0, t1)
+    b = lower_bound(ref, v_, t0, t1, tol=0.01, dt=0.05, tol_phi=math.radians(2.0),
+                    fixed_start=True)
+    assert b["status"] == "Solve_Succeeded"
+    assert f.W_tw > 1.0  # a transient: there is a floor
+    assert 0.99 * b["W_tw"] <= f.W_tw <= b["W_tw"] * (1 + 1e-5)
+
+
 def test_broken_floor_by_hand():
-    """A run below 0.995 of a floor is flagged, part by part: W_tw, the slip wear W_s +
-    W_alpha (the sum the allocation bounds, not either alone) and W_t; at or above 0.995
-    nothing is."""
+    """A run below 0.995 of its W_tw floor is flagged; at or above 0.995 it is not, and a
+    part below the optimum's share of it is no broken floor (the split is the optimum's:
+    a run may trade steering for slip)."""
     from msagv.controller.floors import broken_floor, broken_floor_warning
     from msagv.experiments.study_analysis import _row, broken_floor_warnings
 
     fl = {"W_s_floor": 100.0, "W_alpha_floor": 300.0, "W_t_floor": 600.0, "W_tw_floor": 1000.0}
-    # W_alpha 250 < 300 but W_s + W_alpha = 400 = its floor: a trade, not a broken floor
-    ok = {"W_s": 150.0, "W_alpha": 250.0, "W_t": 597.0, "W_tw": 997.0}
+    # W_t 500 < 600 but W_tw 996 >= 0.995 x 1000: a trade, not a broken floor
+    ok = {"W_s": 150.0, "W_alpha": 346.0, "W_t": 500.0, "W_tw": 996.0}
     assert broken_floor(ok, fl) == []
     low = {"W_s": 100.0, "W_alpha": 290.0, "W_t": 590.0, "W_tw": 980.0}
     b = broken_floor(low, fl)
-    assert [p["part"] for p in b] == ["W_tw", "W_slip", "W_t"]
-    assert [p["ratio"] for p in b] == pytest.approx([0.98, 390.0 / 400.0, 590.0 / 600.0])
+    assert [p["part"] for p in b] == ["W_tw"]
+    assert [p["ratio"] for p in b] == pytest.approx([0.98])
     line = broken_floor_warning(b)
     assert "\n" not in line and line.startswith("broken floor:") and "0.980" in line
     assert broken_floor(low, {"W_tw_floor": 0.0}) == []  # no floor (a line): no ratio
     assert broken_floor({"W_tw": 1e-7}, {"W_tw_floor": 1e-4}) == []  # a line's rounding
-    # the study: the row names the parts, and one warning per scenario says how many runs
+    # the study: the row names the part, and one warning per scenario says how many runs
     tags = {"family": "TWO", "lever": "L", "level": 1.0, "aware": True, "scenario": "lane",
             "class": "lane", "plant": "nominal", "seed": 0, "path_key": "p"}
     runs = [{"spec": {"tags": tags, "label": f"TWO {i}"}, "status": "ok", "key": str(i),
              "metrics": dict(m, e_lat_rms_cm=0.1)} for i, m in enumerate((ok, low))]
     rows = [_row(r, {"p": {"floors": fl}}) for r in runs]
     assert rows[0]["floor_broken"] is None
-    assert rows[1]["floor_broken"] == ["W_tw", "W_slip", "W_t"]
+    assert rows[1]["floor_broken"] == ["W_tw"]
     (w,) = broken_floor_warnings(rows)
-    assert w.startswith("broken floor: lane: 1 of 2 runs") and "lowest W_slip 0.975" in w
+    assert w.startswith("broken floor: lane: 1 of 2 runs") and "lowest W_tw 0.980" in w
 
 
 @pytest.mark.parametrize("make", [lane_change, tight_turn,
@@ -137,11 +168,12 @@ def test_random_paths_are_seeded():
 
 def test_floor_of_a_tabulated_circle_that_ends_with_the_run():
     """A trajectory CSV ends with its last row, where the reference goes on straight (yaw
-    rate 0): the floor must not see that jump (it once added a yaw moment of I_vz r / 0.01 s
-    to the last samples, 20x the steady power). A circle tabulated at 10 Hz over exactly
-    the window: its floor power is the hand computation of the test above, and nowhere
-    above it (its first and last 0.3 s are lower: the first and last rows' velocities are
-    one-sided differences, along the chord, which the floor follows as any run does)."""
+    rate 0): the floor must not see that jump (the former floor once added a yaw moment of
+    I_vz r / 0.01 s to the last samples, 20x the steady power). A circle tabulated at 10 Hz
+    over exactly the window: the floor is at most the steady motion's hand-computed wear
+    (one motion within the tolerances), its power nowhere above the steady power by more
+    than 10 % (the optimum shifts some force in time within the tolerance and the free
+    end: 5 % here, 0.4 s before the end)."""
     v_ = _one_narrow_axle(VEH)
     radius, speed_kmh, T = 20.0, 15.0, 6.0
     v = speed_kmh / 3.6
@@ -149,18 +181,11 @@ def test_floor_of_a_tabulated_circle_that_ends_with_the_run():
     th = v * t / radius
     ref = from_samples(t, radius * np.sin(th), radius * (1 - np.cos(th)), th)
     ref = ref.with_after_end("continue")
-    F = v_.mass * v * v / radius / v_.n_wheels
-    la = v_.tire_lateral
-    D = la.mu * v_.normal_load
-    lo, hi = 0.0, 0.5
-    for _ in range(80):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if magic_formula(mid, la.B, la.C, D, la.E) < F else (lo, mid)
-    want = v_.n_wheels * F * v * math.tan(0.5 * (lo + hi))  # W
-    f = wear_floors(ref, v_, 0.0, T, dt=0.05)
-    inner = (f.t > 0.3) & (f.t < T - 0.3)
-    assert f.P[inner, 1] == pytest.approx(np.full(inner.sum(), want), rel=3e-3)
-    assert f.P[:, 1].max() <= want * 1.03 and f.W_t < 0.1 * f.W_alpha
+    want = _circle_hand(v_, speed_kmh, radius)  # W
+    f = wear_floors(ref, v_, 0.0, T)
+    assert f.W_tw <= want * T * (1 + 1e-3)
+    P = f.P.sum(axis=1)
+    assert P.max() <= want * 1.10
 
 
 # ---- the wear-blind side's accuracy lever: the reference smoothed along its path ---------------
@@ -479,7 +504,8 @@ def test_the_transcribed_lower_bound_on_a_circle_is_the_hand_computed_wear():
         lo, hi = (mid, hi) if magic_formula(mid, la.B, la.C, D, la.E) < F else (lo, mid)
     alpha = 0.5 * (lo + hi)
     want = v_.n_wheels * F * v * math.sin(alpha) * T  # |F_y v_wy|, v_wy = v sin(alpha)
-    tight = lower_bound(ref, v_, 3.0, 3.0 + T, tol=2e-4, dt=0.05, tol_phi=math.radians(0.02))
+    tight = lower_bound(ref, v_, 3.0, 3.0 + T, tol=2e-4, dt=0.05, tol_phi=math.radians(0.02),
+                        fixed_start=True)
     assert tight["status"] == "Solve_Succeeded"
     assert tight["W_tw"] == pytest.approx(want, rel=1e-2)
     loose = lower_bound(ref, v_, 3.0, 3.0 + T, tol=0.01, dt=0.05)

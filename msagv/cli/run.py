@@ -210,9 +210,10 @@ def _run(a, scenario, built, view, fox=None):
 
 
 def _floors(scenario, vehicle, ref, ran: float, metrics: dict):
-    """The wear floors of exact tracking over the ``ran`` seconds of the run
+    """The wear floor (the least wear within 1 cm of the path) over the ``ran`` seconds of
+    the run
     (:func:`controller.floors.wear_floors`, as the study's, with the plant's vehicle) and
-    the floors the run's ``metrics`` lie below 0.995 x of: ``(floors, broken)``;
+    the floor the run's ``metrics`` lie below 0.995 x of: ``(floors, broken)``;
     ``(None, [])`` for a run too short to have any (under 0.3 s)."""
     from msagv.controller.floors import broken_floor, wear_floors
 
@@ -255,7 +256,7 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     doc["disturbance"] = dist() if dist is not None else None  # offset-free estimate at the end
     tires = getattr(built.controller, "adapted_tires", None)
     doc["adapted_tires"] = tires() if tires is not None else None  # --adapt's factors
-    doc["floors"] = floors  # the wear floors of exact tracking over the run (controller.floors)
+    doc["floors"] = floors  # the wear floor over the run (controller.floors)
     doc["broken_floor"] = broken  # the floors the run wears less than 0.995 x of
     if a.log:
         log.to_csv(a.log)
@@ -280,8 +281,9 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     print("\n".join(format_wheel_wear(wear) + format_per_km(wear)))
     if floors is not None:
         print(f"  floor      W_tw [J] {floors['W_tw_floor']:.4g}   (W_s {floors['W_s_floor']:.3g}, "
-              f"W_alpha {floors['W_alpha_floor']:.3g}, W_t {floors['W_t_floor']:.3g}): exact "
-              f"tracking{'; BROKEN: the run wears less' if broken else ''}")
+              f"W_alpha {floors['W_alpha_floor']:.3g}, W_t {floors['W_t_floor']:.3g}): the least "
+              f"wear within 1 cm and 2 deg of the path"
+              f"{'; BROKEN: the run wears less' if broken else ''}")
     for k, path in (("log", a.log), ("plot", a.plot), ("wear plot", a.wear_plot),
                     ("view", a.view_save), ("json", a.json_out)):
         if path:

@@ -1,75 +1,76 @@
-"""Wear floors of a path: the tire wear that tracking the reference exactly cannot avoid.
+"""Wear floors of a path: the least tire wear of any motion that keeps to the path.
 
 Part of every run's wear is fixed by the path, whatever the controller does: to follow a
 curve at speed the tires must produce the centripetal force, and producing a lateral force
 with a tire takes a slip angle, which dissipates ``|F_y v_wy|`` (paper eq. 14); and the
 wheels must turn to follow the curve, which costs ``k_t F_N |omega_s|`` (eq. 15). Only the
-wear above these floors is the controller's to save, and that is where a wear term in the
-MPC can act (docs/RESULTS.md reports every run's wear above them).
+wear above this floor is the controller's to save, and that is where a wear term in the
+MPC can act (docs/RESULTS.md reports every run's wear above it).
 
-Derivation (docs/RESULTS.md, "Wear floors"), for the vehicle tracking the reference
-exactly and quasi-steadily (tire forces follow the slips at once, as in the paper's
-model), at every sample of the reference:
+The floor is the least wear work ``W_tw = int (P_s + P_alpha + P_t) dt`` of the plant's own
+equations over a window ``[t0, t1]`` (eq. 4-17: the rigid body; the Magic Formula tires of
+eq. 9-12 at the paper's constant loads ``F_N = m g / (2n)``, with the plant's regularised
+``|v_wx|``; the wear powers of eq. 13-15) for a vehicle whose centre stays within ``tol``
+(1 cm) of the reference's position and whose heading stays within ``tol_phi`` (2 deg) of
+the reference's at every node, with its velocities, wheel angles and commands free within
+the vehicle's limits (``0 <= omega_w <= omega_w_max``, ``omega_s`` within its rates,
+``delta`` within its stops); it starts with the reference's heading and velocities (as a
+run does) and ends free. Any run that keeps within these tolerances is such a motion, so
+it cannot wear less, to the transcription's accuracy and as far as IPOPT's optimum is the
+least (the problem is not convex: docs/WEAR.md "Wear floors" measures both).
 
-1. The body force and yaw moment the motion needs, from the reference's accelerations in
-   the body frame: ``F_B = m (u' - r v, v' + r u)`` (eq. 17 read backwards, with (u, v) the
-   reference velocity in B; it contains the centripetal force ``m v^2 kappa``) and
-   ``M_z = I_vz r'``, the derivatives by a Savitzky-Golay filter over 0.2 s.
-2. Each wheel moves with the velocity the rigid body gives it (eq. 6-7), at speed ``v_i``
-   and heading ``theta_i``. A wheel producing a lateral force ``F_y`` (perpendicular to
-   its velocity) runs at the slip angle ``alpha = f_lat^-1(F_y)`` and dissipates
-   ``P_alpha = |F_y| v_i tan|alpha|`` (eq. 14 with ``v_wy = v_wx tan alpha``); a
-   longitudinal force ``F_x`` needs the slip ratio ``s = f_lon^-1(F_x)`` and dissipates
-   ``P_s = |F_x| v_i |s|`` (eq. 13). Both are convex and increasing in the force.
-3. The floor is the least total dissipation over all per-wheel force allocations whose
-   sum is ``(F_B, M_z)``, with each wheel's forces along and across its velocity (the
-   slip angles are small, so the wheel's own axes are taken as its velocity's; they
-   differ by ``alpha``, a few degrees at most): a small convex problem per sample, solved
-   with scipy (SLSQP). Loads are the paper's constant ``F_N = m g / (2n)``.
-4. The steering floor: each wheel must point along its velocity plus its slip angle,
-   ``delta_i = theta_i + alpha_i``; following that angle costs
-   ``W_t = sum_i k_t F_N integral |d delta_i / dt| dt`` (eq. 15), the least steering
-   travel of an exactly tracking vehicle.
+Why an optimum and not a formula (issue 29, measured in docs/WEAR.md): the floor of exact,
+quasi-steady tracking (the reference's heading and accelerations, the forces allocated
+sample by sample) was beaten by up to a third by real runs on lane changes: a vehicle
+within a millimetre of the path may yaw less than the reference, spread a curvature step's
+yaw acceleration over a longer time and let its slip angles cancel part of its steering.
+Those are trajectory choices, coupled in time; the least wear over them is the optimum of
+a trajectory problem, here a direct transcription (trapezoidal collocation at ``dt``, each
+command held over its interval) solved by IPOPT through casadi. ``benchmarks/floor_bound.py``
+checks it against an independent transcription (world-frame states, another steering
+split) on transient paths at 2-8 axles.
 
-So ``W_alpha_floor`` is the slip-angle wear of the centripetal (and yaw) forces,
-``W_s_floor`` the slip-ratio wear of the longitudinal forces (the cornering drag of the
-slip angles, and the path's own acceleration), ``W_t_floor`` the steering-travel wear.
-These bound a controller that tracks exactly; one that cuts corners (large tracking error)
-can go below them, which is why wear is compared at matched accuracy.
+A window longer than ``window`` seconds is solved in equal parts, each with free ends: the
+sum of the parts' optima is at most the whole's (the whole's optimum, cut at the joints, is
+feasible for every part), so it stays a lower bound; what it gives away is the cost of
+carrying state across a joint (measured in docs/WEAR.md).
+
+The split of the optimum's slip wear between ``W_s`` and ``W_alpha`` is the optimum's, not a
+bound on either: a run may trade one for the other (``broken_floor`` compares their sum).
+A run that cuts corners (more than ``tol`` from the path) can go below the floor, which is
+why wear is compared at matched accuracy.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
-from scipy.signal import savgol_filter
 
-from msagv.plant.tire import magic_formula
-from msagv.plant.vehicle import G_ACCEL, Vehicle
+from msagv.plant.vehicle import Vehicle
 
 
 BROKEN_RATIO = 0.995  # a run's wear below this times its floor: the floor is broken
-NO_FLOOR_J = 1.0  # J: a floor below this (a straight path: the allocation's rounding) is none
+NO_FLOOR_J = 1.0  # J: a floor below this (a straight path: the solver's rounding) is none
+FLOOR_TOL_M = 0.01  # m: the floor holds the path to this (the study's "within 1 cm")
+FLOOR_TOL_PHI_DEG = 2.0  # deg: and the heading to this (runs track it within a fraction)
+FLOOR_WINDOW_S = 30.0  # s: longer windows are solved in equal parts (free ends, a relaxation)
 
 
 def broken_floor(metrics: dict, floors: dict, ratio: float = BROKEN_RATIO) -> list[dict]:
-    """The floors a run's wear ``metrics`` (``W_tw``, ``W_s``, ``W_alpha``, ``W_t`` [J]) lies
-    below ``ratio`` times of (``floors``: :meth:`Floors.as_dict`), as ``[{part, W, floor,
-    ratio}]`` (empty: none). The parts: ``W_tw``; ``W_slip`` = W_s + W_alpha, the sum the
-    force allocation bounds (its split between W_s and W_alpha is the floor's optimum, not
-    a bound on either: a run may trade one for the other); ``W_t``, the steering travel's.
-    A floor of exact tracking bounds a run that tracks: a run below it means the floor is
-    not a lower bound on this path (or the run cut the path short: see its error). Floors
-    under ``NO_FLOOR_J`` (a straight path's, 1e-4 J of rounding) are not compared."""
-    parts = (("W_tw", metrics.get("W_tw"), floors.get("W_tw_floor")),
-             ("W_slip", _sum(metrics.get("W_s"), metrics.get("W_alpha")),
-              _sum(floors.get("W_s_floor"), floors.get("W_alpha_floor"))),
-             ("W_t", metrics.get("W_t"), floors.get("W_t_floor")))
-    return [{"part": name, "W": w, "floor": f, "ratio": w / f} for name, w, f in parts
-            if w is not None and f is not None and f >= NO_FLOOR_J and w < ratio * f]
+    """The floor a run's wear ``metrics`` (``W_tw`` [J]) lies below ``ratio`` times of
+    (``floors``: :meth:`Floors.as_dict`), as ``[{part, W, floor, ratio}]`` (empty: none).
+    Only ``W_tw`` is compared: the floor is the least total wear, and its split between
+    ``W_s``, ``W_alpha`` and ``W_t`` is the optimum's, not a bound on any one of them (a
+    run may trade slip for steering: docs/WEAR.md). A run below it within ``tol`` of the
+    path means the floor is not a lower bound there (or the run cut the path: see its
+    error). Floors under ``NO_FLOOR_J`` (a straight path's rounding) are not compared."""
+    w, f = metrics.get("W_tw"), floors.get("W_tw_floor")
+    if w is None or f is None or f < NO_FLOOR_J or not w < ratio * f:
+        return []
+    return [{"part": "W_tw", "W": w, "floor": f, "ratio": w / f}]
 
 
 def _sum(a, b):
@@ -80,21 +81,25 @@ def broken_floor_warning(broken: list[dict], what: str = "the run") -> str:
     """A one-line warning for :func:`broken_floor`'s (non-empty) result."""
     parts = ", ".join(f"{p['part']} {p['W']:.4g} J = {p['ratio']:.3f} x its floor "
                       f"{p['floor']:.4g} J" for p in broken)
-    return (f"broken floor: {what} wears less than {BROKEN_RATIO} x the wear floor of exact "
-            f"tracking ({parts}): the floor is not a lower bound here (docs/RESULTS.md, "
+    return (f"broken floor: {what} wears less than {BROKEN_RATIO} x the wear floor of any motion "
+            f"within 1 cm of the path ({parts}): the floor is not a lower bound here "
+            f"(docs/WEAR.md, "
             f"Wear floors)")
 
 
 @dataclass(frozen=True)
 class Floors:
-    """The wear floors of a reference over a time window [J], and their time series."""
+    """The wear floor of a reference over a time window [J], and its optimum's series."""
 
     W_s: float
     W_alpha: float
     W_t: float
-    t: np.ndarray  # sample times [s]
-    P: np.ndarray  # (len(t), 3) floor powers P_s, P_alpha, P_t [W]
-    delta: np.ndarray  # (len(t), 2n) the floor's steering angles [rad]
+    t: np.ndarray  # node times [s]
+    P: np.ndarray  # (len(t), 3) the optimum's powers P_s, P_alpha, P_t [W]
+    delta: np.ndarray  # (len(t), 2n) the optimum's steering angles [rad]
+    tol: float = FLOOR_TOL_M  # the position tolerance it holds the path to [m]
+    tol_phi_deg: float | None = FLOOR_TOL_PHI_DEG  # and the heading's [deg] (None: free)
+    cpu_s: float = 0.0  # the solver's CPU time [s]
 
     @property
     def W_tw(self) -> float:
@@ -105,132 +110,157 @@ class Floors:
                 "W_tw_floor": self.W_tw}
 
 
-def _inverse_mf(F, B, C, D, E, xmax):
-    """The slip ``xi`` in [0, xmax] with ``f(xi) = F`` (F >= 0, f increasing there), by
-    bisection; F beyond the peak gives xmax (the force cannot be produced)."""
-    lo = np.zeros_like(F)
-    hi = np.full_like(F, xmax)
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        below = magic_formula(mid, B, C, D, E) < F
-        lo = np.where(below, mid, lo)
-        hi = np.where(below, hi, mid)
-    return 0.5 * (lo + hi)
+def _mf(xi, B, C, D, E, ca):
+    """The Magic Formula (eq. 11-12) on casadi symbols."""
+    Bx = B * xi
+    return D * ca.sin(C * ca.atan(Bx - E * (Bx - ca.atan(Bx))))
 
 
-def _peak(B, C, D, E, xmax):
-    """The slip of the Magic Formula's peak within (0, xmax] (a fine grid, then its cell)."""
-    xs = np.linspace(0.0, xmax, 4001)
-    f = magic_formula(xs, B, C, D, E)
-    return float(xs[int(np.argmax(f))])
+def _plant_function(vehicle: Vehicle):
+    """A casadi function (X, U) -> (dX/dt, P_s, P_alpha) of the plant's equations in the
+    body frame: X = (x, y, phi, u, v, r, delta_1..2n), (u, v) the velocity in B; U =
+    (omega_w, omega_s, b) per wheel, b >= |omega_s| the steering rate's bound."""
+    import casadi as ca
+
+    from msagv.plant.dynamics import V_EPS_DEFAULT
+
+    n = vehicle.n_wheels
+    wx, wy = vehicle.wheel_x, vehicle.wheel_y
+    m, Iz, rw = vehicle.mass, vehicle.yaw_inertia, vehicle.wheel_radius
+    FN = vehicle.normal_load
+    lo, la = vehicle.tire_longitudinal, vehicle.tire_lateral
+    X = ca.SX.sym("X", 6 + n)
+    U = ca.SX.sym("U", 3 * n)
+    phi, u, v, r = X[2], X[3], X[4], X[5]
+    fx = fy = mz = ps = pa = 0
+    for i in range(n):
+        d, om = X[6 + i], U[i]
+        cd, sd = ca.cos(d), ca.sin(d)
+        bx, by = u - r * wy[i], v + r * wx[i]  # eq. (6)-(7)
+        vwx, vwy = cd * bx + sd * by, -sd * bx + cd * by  # in the wheel's frame
+        den = ca.sqrt(vwx * vwx + V_EPS_DEFAULT * V_EPS_DEFAULT)  # the plant's |v_wx|
+        slip = om * rw - vwx
+        Fx = _mf(slip / den, lo.B, lo.C, lo.mu * FN, lo.E, ca)  # eq. (10)-(11)
+        Fy = _mf(-ca.atan(vwy / den), la.B, la.C, la.mu * FN, la.E, ca)  # eq. (9), (12)
+        ps += Fx * slip  # eq. (13): >= 0, the force has the slip's sign
+        pa -= Fy * vwy  # eq. (14): >= 0 likewise
+        Fbx, Fby = cd * Fx - sd * Fy, sd * Fx + cd * Fy  # eq. (4)
+        fx += Fbx
+        fy += Fby
+        mz += wx[i] * Fby - wy[i] * Fbx  # eq. (5)
+    c, s = ca.cos(phi), ca.sin(phi)
+    dX = ca.vertcat(c * u - s * v, s * u + c * v, r,
+                    fx / m + r * v, fy / m - r * u, mz / Iz,  # eq. (17) in the body frame
+                    U[n:2 * n])
+    return ca.Function("plant", [X, U], [dX, ps, pa])
 
 
-class _Tire:
-    """Dissipation of one wheel producing a longitudinal / lateral force (convex curves
-    tabulated once, interpolated in the optimisation)."""
+def _solve_window(reference, vehicle: Vehicle, t0: float, t1: float, tol: float, dt: float,
+                  max_iter: int, tol_phi: float | None = None, guess=None,
+                  fixed_start: bool = False):
+    """One window's optimum: (t, P (N+1, 3), delta (N+1, 2n), (W_s, W_alpha, W_t), cpu, the
+    states (N+1, 6+2n), the commands (N, 6n))."""
+    import casadi as ca
 
-    def __init__(self, vehicle: Vehicle, n_grid: int = 400):
-        FN = vehicle.normal_load
-        lo, la = vehicle.tire_longitudinal, vehicle.tire_lateral
-        self.s_peak = _peak(lo.B, lo.C, lo.mu * FN, lo.E, 1.0)
-        self.a_peak = _peak(la.B, la.C, la.mu * FN, la.E, 0.5 * math.pi)
-        self.Fx_max = float(magic_formula(self.s_peak, lo.B, lo.C, lo.mu * FN, lo.E))
-        self.Fy_max = float(magic_formula(self.a_peak, la.B, la.C, la.mu * FN, la.E))
-        self.Fx = np.linspace(0.0, self.Fx_max, n_grid)
-        self.Fy = np.linspace(0.0, self.Fy_max, n_grid)
-        self.s = _inverse_mf(self.Fx, lo.B, lo.C, lo.mu * FN, lo.E, self.s_peak)
-        self.alpha = _inverse_mf(self.Fy, la.B, la.C, la.mu * FN, la.E, self.a_peak)
-        # dissipation per unit wheel speed: |F| |s| and |F| tan|alpha|
-        self.qx = self.Fx * self.s
-        self.qy = self.Fy * np.tan(self.alpha)
-
-    def slip_angle(self, Fy):
-        return np.sign(Fy) * np.interp(np.abs(Fy), self.Fy, self.alpha)
-
-    def cost(self, Fx, Fy, v):
-        """(P_s, P_alpha) [W] of forces Fx, Fy at wheel speeds v, with their gradients."""
-        ax, ay = np.abs(Fx), np.abs(Fy)
-        qx = np.interp(ax, self.Fx, self.qx)
-        qy = np.interp(ay, self.Fy, self.qy)
-        dqx = np.interp(ax, self.Fx[1:], np.diff(self.qx) / np.diff(self.Fx)) * np.sign(Fx)
-        dqy = np.interp(ay, self.Fy[1:], np.diff(self.qy) / np.diff(self.Fy)) * np.sign(Fy)
-        return v * qx, v * qy, v * dqx, v * dqy
-
-
-def wear_floors(reference, vehicle: Vehicle, t0: float, t1: float, dt: float = 0.02) -> Floors:
-    """The wear floors of tracking ``reference`` exactly with ``vehicle`` over [t0, t1]
-    (module docstring). ``dt``: the sample step of the integral [s]."""
-    if not t1 > t0:
-        raise ValueError(f"wear_floors: empty window [{t0}, {t1}]")
-    # the motion's accelerations from a fine sampling of the reference, differentiated in
-    # the body frame (the speed along and across the heading varies slowly, unlike vx, vy)
-    # with a Savitzky-Golay filter over 0.2 s: finite differences of the linearly
-    # interpolated table would add noise, and noise adds dissipation (the costs are convex)
-    # The filter's window stays within the reference's table: past its last row a reference
-    # continues straight (yaw rate 0) or stops, a jump no vehicle tracking the table makes
-    # (it put a spurious yaw moment into the floor of a trajectory CSV that ends with the
-    # run); the filter fits its polynomial up to the table's ends instead.
-    fine = 0.01
-    lo = max(t0 - 0.2, float(reference.t[0]))
-    hi = max(min(t1 + 0.2, float(reference.t[-1])), lo + 0.3)
-    tf = np.arange(lo, hi + 0.5 * fine, fine)
-    Rf = reference.sample(tf)
-    phi_f, r_f = Rf[:, 2], Rf[:, 5]
-    cf, sf = np.cos(phi_f), np.sin(phi_f)
-    u_f = cf * Rf[:, 3] + sf * Rf[:, 4]
-    v_f = -sf * Rf[:, 3] + cf * Rf[:, 4]
-    win = 21
-    du = savgol_filter(u_f, win, 3, deriv=1, delta=fine)
-    dv = savgol_filter(v_f, win, 3, deriv=1, delta=fine)
-    dr_f = savgol_filter(r_f, win, 3, deriv=1, delta=fine)
-    t = np.arange(t0, t1 + 0.5 * dt, dt)
+    n = vehicle.n_wheels
+    N = max(int(math.ceil((t1 - t0) / dt - 1e-9)), 1)
+    h = (t1 - t0) / N
+    t = t0 + h * np.arange(N + 1)
     R = reference.sample(t)
+    f = _plant_function(vehicle)
+    nx, nu = 6 + n, 3 * n
+    X = ca.MX.sym("X", nx, N + 1)
+    U = ca.MX.sym("U", nu, N)
+    fm = f.map(N)
+    d0, ps0, pa0 = fm(X[:, :N], U)
+    d1, ps1, pa1 = fm(X[:, 1:], U)
+    kt_FN = vehicle.steer_loss_kt * vehicle.normal_load
+    J_s = 0.5 * h * ca.sum2(ps0 + ps1)
+    J_a = 0.5 * h * ca.sum2(pa0 + pa1)
+    J_t = h * kt_FN * ca.sum1(ca.sum2(U[2 * n:, :]))  # eq. (15) with b = |omega_s|
+    xr, yr = ca.DM(R[:, 0]).T, ca.DM(R[:, 1]).T
+    g = ca.vertcat(ca.vec(X[:, 1:] - X[:, :N] - 0.5 * h * (d0 + d1)),  # trapezoidal
+                   ca.vec((X[0, :] - xr) ** 2 + (X[1, :] - yr) ** 2),  # within tol
+                   ca.vec(U[2 * n:, :] - U[n:2 * n, :]), ca.vec(U[2 * n:, :] + U[n:2 * n, :]))
+    lbg = np.zeros(nx * N + (N + 1) + 2 * n * N)
+    ubg = np.concatenate([np.zeros(nx * N), np.full(N + 1, tol * tol), np.full(2 * n * N, np.inf)])
+    if tol_phi is not None:  # the heading within tol_phi of the reference's
+        g = ca.vertcat(g, ca.vec(X[2, :] - ca.DM(np.unwrap(R[:, 2])).T))
+        lbg = np.concatenate([lbg, np.full(N + 1, -tol_phi)])
+        ubg = np.concatenate([ubg, np.full(N + 1, tol_phi)])
+    lim = vehicle.limits
+    inf = np.inf
+    lbx = np.concatenate([np.tile(np.r_[np.full(6, -inf), np.full(n, lim.delta_min)], N + 1),
+                          np.tile(np.r_[np.zeros(n), np.full(n, lim.omega_s_min), np.zeros(n)], N)])
+    ubx = np.concatenate([np.tile(np.r_[np.full(6, inf), np.full(n, lim.delta_max)], N + 1),
+                          np.tile(np.r_[np.full(n, lim.omega_w_max), np.full(n, lim.omega_s_max),
+                                        np.full(n, inf)], N)])
+    # the start of the search: the reference's motion, each wheel along its velocity
     phi, r = R[:, 2], R[:, 5]
     c, s = np.cos(phi), np.sin(phi)
-    ub = c * R[:, 3] + s * R[:, 4]
-    vb = -s * R[:, 3] + c * R[:, 4]
-    m, Iz = vehicle.mass, vehicle.yaw_inertia
-    FBx = m * (np.interp(t, tf, du) - r * vb)  # eq. (17) in B: m (u' - r v)
-    FBy = m * (np.interp(t, tf, dv) + r * ub)  # m (v' + r u): the centripetal force
-    Mz = Iz * np.interp(t, tf, dr_f)
-    wx, wy = vehicle.wheel_x, vehicle.wheel_y
-    nw = vehicle.n_wheels
-    vwx = ub[:, None] - r[:, None] * wy[None, :]  # eq. (6)
-    vwy = vb[:, None] + r[:, None] * wx[None, :]  # eq. (7)
-    v = np.hypot(vwx, vwy)
-    theta = np.arctan2(vwy, vwx)
-    tire = _Tire(vehicle)
-    P = np.zeros((len(t), 3))
-    delta = np.zeros((len(t), nw))
-    z = np.zeros(2 * nw)
-    for k in range(len(t)):
-        ct, st = np.cos(theta[k]), np.sin(theta[k])
-        # body force of wheel i: (ct Fx - st Fy, st Fx + ct Fy); moment x Fby - y Fbx
-        A = np.zeros((3, 2 * nw))
-        A[0, :nw], A[0, nw:] = ct, -st
-        A[1, :nw], A[1, nw:] = st, ct
-        A[2, :nw] = wx * st - wy * ct
-        A[2, nw:] = wx * ct + wy * st
-        b = np.array([FBx[k], FBy[k], Mz[k]])
-        vk = v[k]
+    ub, vb = c * R[:, 3] + s * R[:, 4], -s * R[:, 3] + c * R[:, 4]
+    bx = ub[:, None] - r[:, None] * vehicle.wheel_y[None, :]
+    by = vb[:, None] + r[:, None] * vehicle.wheel_x[None, :]
+    theta = np.clip(np.unwrap(np.arctan2(by, bx), axis=0), lim.delta_min, lim.delta_max)
+    X0 = np.column_stack([R[:, 0], R[:, 1], np.unwrap(phi), ub, vb, r, theta])
+    rate = np.clip(np.diff(theta, axis=0) / h, lim.omega_s_min, lim.omega_s_max)
+    U0 = np.column_stack([np.clip(np.hypot(bx, by)[:-1] / vehicle.wheel_radius, 0.0,
+                                  lim.omega_w_max), rate, np.abs(rate)])
+    if guess is not None:
+        X0, U0 = guess(t)
+    if fixed_start:  # heading, velocities and yaw rate the reference's (a run starts there)
+        lbx[2:6] = ubx[2:6] = [phi[0], ub[0], vb[0], r[0]]
+    w = ca.vertcat(ca.vec(X), ca.vec(U))
+    J = ca.Function("J", [w], [J_s, J_a, J_t])
+    solver = ca.nlpsol("floor", "ipopt", {"x": w, "f": J_s + J_a + J_t, "g": g}, {
+        "print_time": False, "ipopt": {"print_level": 0, "sb": "yes", "max_iter": max_iter,
+                                       "tol": 1e-9, "acceptable_tol": 1e-7}})
+    tc = time.process_time()
+    sol = solver(x0=np.concatenate([X0.ravel(), U0.ravel()]), lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+    cpu = time.process_time() - tc
+    status = solver.stats()["return_status"]
+    if status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
+        raise RuntimeError(f"wear_floors: IPOPT did not solve the window [{t0:g}, {t1:g}] s "
+                           f"({status}): no floor")
+    wo = np.asarray(sol["x"]).ravel()
+    Xo = wo[:nx * (N + 1)].reshape(N + 1, nx)
+    Uo = wo[nx * (N + 1):].reshape(N, nu)
+    _, ps, pa = f.map(N + 1)(Xo.T, np.column_stack([Uo.T, Uo[-1]]))
+    P = np.zeros((N + 1, 3))
+    P[:, 0], P[:, 1] = np.asarray(ps).ravel(), np.asarray(pa).ravel()
+    P[:N, 2] = kt_FN * Uo[:, 2 * n:].sum(axis=1)  # held over each interval (the last: none)
+    W = tuple(float(x) for x in J(wo))
+    return t, P, Xo[:, 6:], W, cpu, Xo, Uo
 
-        def f(zz, vk=vk):
-            ps, pa, gx, gy = tire.cost(zz[:nw], zz[nw:], vk)
-            return ps.sum() + pa.sum(), np.concatenate([gx, gy])
 
-        # least-norm allocation as the start (exact for a linear tire of equal stiffness)
-        z0 = np.linalg.lstsq(A, b, rcond=None)[0] if k == 0 else z
-        res = minimize(f, z0, jac=True, method="SLSQP",
-                       constraints=[{"type": "eq", "fun": lambda zz, A=A, b=b: A @ zz - b,
-                                     "jac": lambda zz, A=A: A}],
-                       options={"maxiter": 200, "ftol": 1e-10})
-        z = res.x
-        ps, pa, _, _ = tire.cost(z[:nw], z[nw:], vk)
-        P[k, 0], P[k, 1] = ps.sum(), pa.sum()
-        delta[k] = theta[k] + tire.slip_angle(z[nw:])
-    lim = vehicle.limits
-    delta = np.clip(np.unwrap(delta, axis=0), lim.delta_min, lim.delta_max)
-    rate = np.abs(np.gradient(delta, t, axis=0))
-    P[:, 2] = vehicle.steer_loss_kt * (m * G_ACCEL / nw) * rate.sum(axis=1)  # eq. (15)
-    W = np.trapezoid(P, t, axis=0) if hasattr(np, "trapezoid") else np.trapz(P, t, axis=0)
-    return Floors(float(W[0]), float(W[1]), float(W[2]), t, P, delta)
+def wear_floors(reference, vehicle: Vehicle, t0: float, t1: float, dt: float = 0.05,
+                tol: float = FLOOR_TOL_M, tol_phi_deg: float | None = FLOOR_TOL_PHI_DEG,
+                window: float = FLOOR_WINDOW_S, max_iter: int = 3000) -> Floors:
+    """The wear floor of keeping within ``tol`` [m] of ``reference``'s position and within
+    ``tol_phi_deg`` of its heading (None: any heading) with ``vehicle`` over [t0, t1],
+    starting with the reference's heading and velocities (module docstring): ``dt`` the
+    collocation step [s], ``window`` the longest part solved at once [s]. Raises
+    ValueError on an empty window or a bad step or tolerance, RuntimeError if IPOPT does
+    not solve a part."""
+    if not t1 > t0:
+        raise ValueError(f"wear_floors: empty window [{t0}, {t1}]")
+    if not (dt > 0.0 and tol > 0.0 and window > 0.0
+            and (tol_phi_deg is None or tol_phi_deg > 0.0)):
+        raise ValueError(f"wear_floors: need dt > 0, tol > 0, tol_phi_deg > 0, window > 0 "
+                         f"(got {dt}, {tol}, {tol_phi_deg}, {window})")
+    tol_phi = None if tol_phi_deg is None else math.radians(tol_phi_deg)
+    parts = max(int(math.ceil((t1 - t0) / window - 1e-9)), 1)
+    edges = np.linspace(t0, t1, parts + 1)
+    ts, Ps, ds, W, cpu = [], [], [], np.zeros(3), 0.0
+    for j in range(parts):
+        t, P, d, Wj, c, _, _ = _solve_window(reference, vehicle, float(edges[j]),
+                                             float(edges[j + 1]), tol, dt, max_iter, tol_phi,
+                                             fixed_start=j == 0)
+        keep = slice(0 if j == 0 else 1, None)  # a joint's node once (the later part's)
+        ts.append(t[keep])
+        Ps.append(P[keep])
+        ds.append(d[keep])
+        W += Wj
+        cpu += c
+    return Floors(float(W[0]), float(W[1]), float(W[2]), np.concatenate(ts), np.concatenate(Ps),
+                  np.concatenate(ds), tol, tol_phi_deg, cpu)

@@ -18,8 +18,8 @@ strongest wear-blind references, at equal tracking error, with confidence interv
   random paths (:mod:`controller.paths`), 5-35 km/h, 8-20 t, 2 and 4 axles; annealer seeds
   in every class; the plant unlike the controller's model (combined-slip tires, tire
   coefficients +-20 %, load transfer with actuator lags); and a user's own vehicle and path.
-* **Wear floors** (:mod:`controller.floors`): each path's wear that exact tracking cannot
-  avoid.
+* **Wear floors** (:mod:`controller.floors`): each path's least wear of any motion within
+  1 cm and 2 deg of it.
 
 Runs are cached and resumable (:mod:`experiments.runs`), spread by Dask over a local
 cluster or the one at ``--scheduler``. The analysis is :mod:`experiments.study_analysis`.

@@ -157,7 +157,8 @@ def broken_floor_warnings(rows: list[dict]) -> list[str]:
                 ratios.append((w / f, p, r))
         q, p, worst = min(ratios, key=lambda x: x[0])
         out.append(f"broken floor: {sc}: {len(rs)} of {n} runs wear less than "
-                   f"{BROKEN_RATIO} x the wear floor of exact tracking ({', '.join(parts)}; "
+                   f"{BROKEN_RATIO} x the wear floor of any motion within 1 cm of the path "
+                   f"({', '.join(parts)}; "
                    f"lowest {p} {q:.3f} x its floor, {worst['label']}, lateral RMS "
                    f"{_f(worst.get('e_lat_rms_cm'), 3)} cm): the floor is not a lower bound "
                    f"on this path, and its W_tw / floor figures are not wear above a floor")
@@ -526,7 +527,8 @@ def plot_fronts(fam: list[dict], rows: list[dict], path: Path,
                 titles: dict | None = None) -> None:
     """Per scenario class: each family's mean wear over the floor against its mean lateral
     error, one point per lever level (a line along the lever), with 95 % bootstrap bars
-    over the class's scenarios; the floor (exact tracking) as the line W / floor = 1.
+    over the class's scenarios; the floor (the least wear within 1 cm of the path) as the
+    line W / floor = 1.
     ``titles``: a panel's title other than its class's name (the user's scenario)."""
     from .plots import WIDTH, pyplot, style
 
@@ -593,7 +595,7 @@ def _front_panel(ax, cls: str, fam: list[dict], rows: list[dict]) -> None:
                     lw=1.0, elinewidth=0.7, capsize=2, label=family)
     _clip_outliers(ax, pts, key == "W_over_floor")
     if key == "W_over_floor":
-        ax.axhline(1.0, color="k", lw=0.8, ls=":", label="floor (exact tracking)")
+        ax.axhline(1.0, color="k", lw=0.8, ls=":", label="floor (least wear within 1 cm)")
         ax.set_ylabel("W_tw / wear floor [-]")
     else:
         ax.set_ylabel("W_tw [J] (straight path: no floor)")
