@@ -512,3 +512,22 @@ def test_the_transcribed_lower_bound_on_a_circle_is_the_hand_computed_wear():
     assert loose["W_tw"] <= tight["W_tw"] * (1 + 1e-6)
     with pytest.raises(ValueError, match="t1 > t0"):
         lower_bound(ref, v_, 3.0, 3.0, tol=0.01)
+
+
+def test_fresh_class_drives_paths_no_other_class_drives_and_classes_select():
+    """Issue 29 item 3: at least 20 fresh random paths at 15-35 km/h, seeds no other class
+    uses; --classes runs a subset of the design and refuses a class it does not have."""
+    from msagv.experiments import study
+    from msagv.experiments.checks import ScenarioError
+
+    full = study.design(False)
+    fresh = [sc for sc in full if sc.cls == "fresh"]
+    seeds = {sc.path_seed for sc in fresh}
+    assert len(seeds) >= 20
+    others = {sc.path_seed for sc in full if sc.case == "random" and sc.cls != "fresh"}
+    assert not seeds & others
+    assert {sc.speed for sc in fresh} <= set(study.FRESH_SPEEDS)
+    assert min(sc.speed for sc in fresh) == 15.0 and max(sc.speed for sc in fresh) == 35.0
+    assert study.select_classes(full, ["fresh"]) == fresh
+    with pytest.raises(ScenarioError, match="no class 'nope'.*fresh"):
+        study.select_classes(full, ["nope"])

@@ -91,6 +91,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="study: add your own scenario on this t,x,y,phi CSV, run whole at "
                          "its own timing (with --vehicle: driven by that vehicle; the "
                          "design's scenarios keep the paper's), summarised on its own")
+    ap.add_argument("--classes", metavar="NAME,...",
+                    help="study: run only these classes of the design (case1, case2, lane, "
+                         "turn, random, fresh, load, 4-axle, robust; user: your own scenario)")
     ap.add_argument("--plants", metavar="NAME,...",
                     help="mismatch: the plants (default all: tires x0.7-x1.3, B or mu alone "
                          "x0.8/x1.2, combined-slip, load-transfer+lags)")
@@ -119,6 +122,8 @@ def _run(a, progress: bool) -> dict:
     check_output(a.json_out, "--json-out")
     methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
     masses = _masses_kg(a)
+    if a.experiment != "study" and a.classes is not None:
+        raise OptionError("--classes applies to the study")
     if a.experiment != "mismatch":
         for name in ("plants", "paths", "seeds"):
             if getattr(a, name) is not None:
@@ -155,9 +160,14 @@ def _run(a, progress: bool) -> dict:
                 raise OptionError(f"--{name.replace('_', '-')} applies to case1-3, pareto and "
                                   f"ridge, not to the study (its design is fixed; --vehicle, "
                                   f"--trajectory and --speeds add your own scenario)")
+        classes = ([c.strip() for c in a.classes.split(",") if c.strip()]
+                   if a.classes is not None else None)
+        if classes is not None and not classes:
+            raise OptionError("--classes: give at least one class")
         return run_study(a.out, quick=a.quick, jobs=a.jobs, scheduler=a.scheduler,
                          force=a.force, progress=progress, vehicle=a.vehicle,
-                         trajectory=a.trajectory, speeds=_floats(a.speeds, "--speeds"))
+                         trajectory=a.trajectory, speeds=_floats(a.speeds, "--speeds"),
+                         classes=classes)
     return cases.run_experiment(
         a.experiment, a.out, jobs=a.jobs, force=a.force, progress=progress,
         duration=a.duration, speeds=_floats(a.speeds, "--speeds"),

@@ -54,6 +54,11 @@ CASE2_HEADINGS_DEG = (15.0, 30.0, 45.0, 60.0, 75.0)
 CASE2_OFFSETS_M = (1.0, 2.0)
 CASE2_SPEEDS = (10.0, 20.0)
 SEEDS = (0, 1, 2)  # the annealer seeds of the scenario each class repeats
+# fresh random paths (issue 29 item 3): seeds no other class uses, at 15-35 km/h in turn,
+# one annealer seed each (the random class's solver noise is 0.0 %): "a path like these"
+FRESH_PATHS = tuple(range(101, 121))
+FRESH_SPEEDS = (15.0, 20.0, 25.0, 30.0, 35.0)
+FRESH_DURATION = 15.0  # s
 USER_SPEED = 20.0  # km/h: a user's vehicle on a random path, unless --speeds
 USER_DURATION = 15.0  # s of that random path
 
@@ -218,6 +223,7 @@ def _default_design() -> list[StudyScenario]:
     out += [S("random", "random", v, path_seed=p, duration=15.0, seed=k)
             for p in range(1, 6) for v in (10.0, 25.0)
             for k in (SEEDS if (p, v) == (1, 25.0) else (0,))]
+    out += fresh_design()
     # loads (Case 3's question on other paths too)
     for m in (8000.0, 20000.0):
         out.append(S("load", "curve", 25.0, mass_kg=m))
@@ -238,6 +244,16 @@ def _default_design() -> list[StudyScenario]:
                 for k in seeds]
         out += [S("robust", "lane", 15.0, plant=plant)]
     return out
+
+
+def fresh_design() -> list[StudyScenario]:
+    """The class ``fresh``: :data:`FRESH_PATHS` random paths no other class drives, each
+    at one of :data:`FRESH_SPEEDS` in turn (each path its own scenario: the bootstrap over
+    them resamples paths); the first path with every seed of :data:`SEEDS` (the solver's
+    noise, as in every class)."""
+    return [StudyScenario("fresh", "random", FRESH_SPEEDS[i % len(FRESH_SPEEDS)], path_seed=p,
+                          duration=FRESH_DURATION, seed=k)
+            for i, p in enumerate(FRESH_PATHS) for k in (SEEDS if i == 0 else (0,))]
 
 
 def _quick_design() -> list[StudyScenario]:
@@ -396,12 +412,26 @@ def _check_user(scenarios: list[StudyScenario], speeds) -> None:
             raise ScenarioError(f"{what}: {e}") from None
 
 
+def select_classes(scenarios: list[StudyScenario], classes) -> list[StudyScenario]:
+    """The scenarios of ``classes`` (names of the design's classes; None: all). A name the
+    design does not have is refused, naming the ones it has."""
+    if not classes:
+        return scenarios
+    have = list(dict.fromkeys(sc.cls for sc in scenarios))
+    bad = [c for c in classes if c not in have]
+    if bad:
+        raise ScenarioError(f"--classes: no class '{bad[0]}' in this design (its classes: "
+                            f"{', '.join(have)})")
+    return [sc for sc in scenarios if sc.cls in classes]
+
+
 def run_study(out: str | Path | None = None, *, quick: bool = False, jobs: int | None = None,
               scheduler: str | None = None, force: bool = False, progress: bool = True,
               vehicle: str | None = None, trajectory: str | None = None,
-              speeds=None) -> dict:
+              speeds=None, classes=None) -> dict:
     """Run (or resume) the study and write its report; returns the summary (the JSON
-    document of :func:`experiments.study_analysis.report_study`)."""
+    document of :func:`experiments.study_analysis.report_study`). ``classes``: run only
+    the design's scenarios of these classes (the user's scenario is the class ``user``)."""
     from .study_analysis import report_study
 
     for p, what in ((vehicle, "--vehicle"), (trajectory, "--trajectory")):
@@ -413,7 +443,7 @@ def run_study(out: str | Path | None = None, *, quick: bool = False, jobs: int |
     out = Path(out) if out is not None else Path("runs") / ("study-quick" if quick else "study")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    scenarios = design(quick, vehicle, trajectory, speeds)
+    scenarios = select_classes(design(quick, vehicle, trajectory, speeds), classes)
     _check_user(scenarios, speeds)
     described = {sc.name: sc.describe() for sc in scenarios}
     floors = compute_floors(scenarios, out, jobs, scheduler, force, progress)

@@ -59,7 +59,8 @@ RESOLUTION_CM = 0.1  # cm: lateral RMS errors below this count as this (1 mm: fi
 #                      differences are no distinction between controllers)
 NO_WEAR_J = NO_FLOOR_J  # J: a floor below this (a straight path) is not divided by; a scenario
 #                  whose every run wears less has nothing to compare
-CLASS_ORDER = ("case1", "case2", "lane", "turn", "random", "load", "4-axle", "robust", "user")
+CLASS_ORDER = ("case1", "case2", "lane", "turn", "random", "fresh", "load", "4-axle", "robust",
+               "user")
 NOMINAL = "all nominal"
 NOMINAL_NO_CASE2 = "all nominal without case2"
 
