@@ -531,3 +531,26 @@ def test_fresh_class_drives_paths_no_other_class_drives_and_classes_select():
     assert study.select_classes(full, ["fresh"]) == fresh
     with pytest.raises(ScenarioError, match="no class 'nope'.*fresh"):
         study.select_classes(full, ["nope"])
+
+
+def test_a_path_without_a_floor_is_said_and_the_study_goes_on(monkeypatch):
+    """IPOPT failing on one path's floor stops nothing: the floor task returns no floor and
+    the error, which the report turns into a warning naming the path's scenarios."""
+    from msagv.controller import floors as F
+    from msagv.experiments import study
+    from msagv.experiments.study_analysis import _row
+
+    def fail(*a, **k):
+        raise F.FloorError("wear_floors: IPOPT did not solve the window [0, 1] s (test)")
+
+    monkeypatch.setattr(F, "wear_floors", fail)
+    sc = study.StudyScenario("lane", "lane", 15.0, duration=2.0)
+    res = study.floor_task(__import__("dataclasses").asdict(sc), "digest")
+    assert res["floors"] == {} and "IPOPT did not solve" in res["error"]
+    r = {"spec": {"label": "NTWO", "tags": {"family": "NTWO", "lever": "none", "level": None,
+                                            "aware": False, "scenario": sc.name, "class": "lane",
+                                            "plant": "nominal", "seed": 0,
+                                            "path_key": sc.path_key}},
+         "metrics": {"W_tw": 10.0, "e_lat_rms_cm": 0.1}, "status": "ok", "key": "k"}
+    row = _row(r, {sc.path_key: res})
+    assert "W_tw_floor" not in row and row["W_tw"] == 10.0

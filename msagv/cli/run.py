@@ -226,7 +226,7 @@ def _floors(scenario, vehicle, ref, ran: float, metrics: dict):
 
 def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) -> None:
     """The result: warnings, the JSON document, the log, the figures, the table."""
-    from msagv.controller.floors import broken_floor_warning
+    from msagv.controller.floors import FloorError, broken_floor_warning
     from msagv.controller.metrics import (format_per_km, format_table, format_wheel_wear,
                                           wear_per_km)
     from msagv.experiments.checks import solve_time_warnings
@@ -244,7 +244,12 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
                         f"cover the {len(log.t)} steps run")
         warn(prog, warnings[-1:])
     m = log.metrics()
-    floors, broken = _floors(scenario, vehicle, ref, len(log.t) * scenario.period, m)
+    try:
+        floors, broken = _floors(scenario, vehicle, ref, len(log.t) * scenario.period, m)
+    except FloorError as e:  # no floor on this path: the run's figures stand without it
+        floors, broken = None, []
+        warnings.append(f"no wear floor for this run: {e}")
+        warn(prog, warnings[-1:])
     if broken:
         warnings.append(broken_floor_warning(broken))
         warn(prog, warnings[-1:])

@@ -59,6 +59,12 @@ FLOOR_TOL_PHI_DEG = 2.0  # deg: and the heading to this (runs track it within a 
 FLOOR_WINDOW_S = 30.0  # s: longer windows are solved in equal parts (free ends, a relaxation)
 
 
+
+
+class FloorError(RuntimeError):
+    """No floor for this path: IPOPT did not solve its problem (a run then has no floor to
+    be compared with; the study and ``msagv run`` say so and go on)."""
+
 def broken_floor(metrics: dict, floors: dict, ratio: float = BROKEN_RATIO) -> list[dict]:
     """The floor a run's wear ``metrics`` (``W_tw`` [J]) lies below ``ratio`` times of
     (``floors``: :meth:`Floors.as_dict`), as ``[{part, W, floor, ratio}]`` (empty: none).
@@ -220,7 +226,7 @@ def _solve_window(reference, vehicle: Vehicle, t0: float, t1: float, tol: float,
     cpu = time.process_time() - tc
     status = solver.stats()["return_status"]
     if status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
-        raise RuntimeError(f"wear_floors: IPOPT did not solve the window [{t0:g}, {t1:g}] s "
+        raise FloorError(f"wear_floors: IPOPT did not solve the window [{t0:g}, {t1:g}] s "
                            f"({status}): no floor")
     wo = np.asarray(sol["x"]).ravel()
     Xo = wo[:nx * (N + 1)].reshape(N + 1, nx)

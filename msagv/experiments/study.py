@@ -334,7 +334,7 @@ def column_settings(column: dict, family: dict, solver: str) -> dict:
 # ---- the floors, once per path ------------------------------------------------------------------
 def floor_task(sc_dict: dict, digest: str) -> dict:
     """The wear floors of one scenario's reference (a Dask task): ``{key, floors}``."""
-    from msagv.controller.floors import wear_floors
+    from msagv.controller.floors import FloorError, wear_floors
 
     t0 = time.perf_counter()
     sc = StudyScenario(**sc_dict)
@@ -342,8 +342,12 @@ def floor_task(sc_dict: dict, digest: str) -> dict:
     vehicle = scen.actual_vehicle(scen.resolve_vehicle())
     ref, _ = scen.reference()
     dur = scen.run_duration(ref)
-    f = wear_floors(ref, vehicle, float(ref.t[0]), float(ref.t[0]) + dur, dt=0.05)
-    return {"key": sc.path_key, "floors": f.as_dict(), "duration": dur, "code": digest,
+    try:
+        f = wear_floors(ref, vehicle, float(ref.t[0]), float(ref.t[0]) + dur, dt=0.05).as_dict()
+        err = None
+    except FloorError as e:  # this path has no floor; its runs are compared without one
+        f, err = {}, str(e)
+    return {"key": sc.path_key, "floors": f, "error": err, "duration": dur, "code": digest,
             "wall_s": time.perf_counter() - t0}
 
 

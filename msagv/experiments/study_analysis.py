@@ -792,7 +792,12 @@ def report_study(results: list[dict], floors: dict, scenarios, described: dict, 
                              for r in rows if r.get("floor_broken")],
            "runs": runs, "figures": figures, "out": str(out)}
     doc = stamp(doc, results)
-    doc["warnings"] = broken + doc["warnings"]  # the broken floors first
+    no_floor = []  # a path whose floor IPOPT did not find: its runs stand without one
+    for k, v in floors.items():
+        if v.get("error"):
+            names = sorted({r["scenario"] for r in rows if r["path_key"] == k})
+            no_floor.append(f"no wear floor for the path of {', '.join(names)}: {v['error']}")
+    doc["warnings"] = broken + no_floor + doc["warnings"]  # the floors' first
     text = json.dumps(doc, indent=1, default=_json_default)
     (out / "study.json").write_text(text)
     return json.loads(text)  # plain data, as a reader of the file gets it
