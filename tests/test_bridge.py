@@ -135,6 +135,23 @@ def test_plant_summary_counts_lost_commands(plant_node, owner):
     json.dumps(s)
 
 
+def test_the_lost_count_spans_the_states_in_fixed_memory(plant_node, owner):
+    """States answered out of order, across the bytes of the answered-states bitmap (issue
+    30: a set of them grew every period): answers to 5, 6, 8 (accepted) and 1, 7, 1 (stale:
+    older than the newest), counted as a set of the answered states would be."""
+    node = plant_node
+    size = len(node._answered)
+    for k in range(1, 10):
+        node.publish_state(k)
+    for i, j in enumerate([5, 6, 8, 1, 7, 1]):  # 1 twice: one state
+        owner.send(_cmd(i, j), i)
+    s = node.summary()
+    # states 0 .. 8 (9 is the newest, not yet due) less 1, 5, 6, 7, 8
+    assert s["commands"]["lost"] == 4
+    assert node.stats.accepted == 3 and node.stats.stale == 3
+    assert len(node._answered) == size  # allocated once, for the run's steps
+
+
 def test_plant_config_rejects_bad_values():
     with pytest.raises(ValueError, match="run mode"):
         PlantConfig(run_mode="fast")

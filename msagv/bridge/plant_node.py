@@ -121,7 +121,9 @@ class PlantNode:
         self._lock = self.core.lock  # seq, the newest command, the answered states
         self._plant_lock = self.core.plant_lock
         self.rej = M.Rejections(f"plant {keys.id}", log)
-        self._answered: set[int] = set()
+        # the states answered (for the summary's lost count): one bit per state of the run,
+        # allocated once (a set of them grew by an int every period)
+        self._answered = bytearray((cfg.steps + 8) // 8)
         self._newest: _Cmd | None = None
         self._last_cmd_seq: int | None = None
         self._wake = threading.Event()  # a command or the owner's presence changed
@@ -431,7 +433,7 @@ class PlantNode:
             n = self._newest
             if n is not None and j < n.state_seq:
                 self.stats.stale += 1
-                self._answered.add(j)
+                self._mark_answered(j)
                 return None
             if n is not None and j == n.state_seq:
                 self.stats.duplicate += 1
@@ -440,13 +442,28 @@ class PlantNode:
                 self.stats.cmd_seq_gaps += c["seq"] - self._last_cmd_seq - 1
             self._last_cmd_seq = c["seq"]
             self._newest = _Cmd(j, c["omega_w"], c["omega_s"], seq=c["seq"], rx_perf=rx_perf)
-            self._answered.add(j)
+            self._mark_answered(j)
             self.stats.accepted += 1
             if j <= self.core.stepped:
                 self.stats.late += 1  # arrived after the plant took the step of its state
             self.core.answered(j, rx_perf, c.get("solve_ms"))
         self._wake.set()
         return c
+
+    def _mark_answered(self, j: int) -> None:
+        """(under the lock) State ``j`` was answered (a state the run has: 0 <= j < steps)."""
+        if 0 <= j < self.cfg.steps:
+            self._answered[j >> 3] |= 1 << (j & 7)
+
+    def _lost(self, steps_done: int) -> int:
+        """States 0 .. steps_done - 1 that no valid command answered."""
+        with self._lock:
+            bits = bytes(self._answered)
+        full, rest = divmod(min(steps_done, 8 * len(bits)), 8)
+        answered = sum(bin(b).count("1") for b in bits[:full])
+        if rest:
+            answered += bin(bits[full] & ((1 << rest) - 1)).count("1")
+        return steps_done - answered
 
     def _not_owner(self, sender: str | None) -> str:
         if sender is None:
@@ -546,9 +563,7 @@ class PlantNode:
     def summary(self) -> dict:
         st, r = self.stats, self.core.summary()
         steps_done = r["steps"]
-        with self._lock:
-            answered = set(self._answered)
-        lost = sum(1 for j in range(steps_done) if j not in answered)
+        lost = self._lost(steps_done)
         return {
             "role": "plant", "id": self.keys.id,
             **{k: r[k] for k in ("run_mode", "period", "steps", "t_end", "completed", "error",

@@ -41,7 +41,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from msagv.controller.metrics import percentiles
+from msagv.controller.metrics import StreamPercentiles, percentiles
 from msagv.plant.signals import BODY_FIELDS, CONTROL_PERIOD, WEAR_FIELDS, WHEEL_WEAR_FIELDS
 
 from . import messages as M
@@ -209,14 +209,23 @@ class PlantStats:
     watchdog_trips: int = 0  # the loop missed its deadline by more than stale_ms
     watchdog_periods: int = 0  # periods of safe behaviour run by the watchdog
     resent: int = 0  # states sent again because their answer did not come
-    latency_s: list = field(default_factory=list)  # state sent -> command received, - solve
-    roundtrip_s: list = field(default_factory=list)  # state sent -> command received (wall)
-    lateness_s: list = field(default_factory=list)  # state sent - its due time (run's clock)
-    pub_intervals_s: list = field(default_factory=list)
+    # the durations [s] of every period or answer, in bounded memory (a run of hours adds
+    # one per period: exact up to 4096 values, then within 0.5 %, controller.metrics)
+    latency_s: StreamPercentiles = field(default_factory=StreamPercentiles)  # state sent ->
+    # command received, minus the controller's solve
+    roundtrip_s: StreamPercentiles = field(default_factory=StreamPercentiles)  # state sent ->
+    # command received (wall)
+    lateness_s: StreamPercentiles = field(default_factory=StreamPercentiles)  # state sent -
+    # its due time (run's clock)
+    jitter_s: StreamPercentiles = field(default_factory=StreamPercentiles)  # |interval
+    # between two states sent - T|
 
 
 def percentiles_ms(values_s) -> dict:
-    """Percentiles in ms of durations given in s (:func:`controller.metrics.percentiles`)."""
+    """Percentiles in ms of durations given in s (:func:`controller.metrics.percentiles`, or
+    a :class:`controller.metrics.StreamPercentiles`'s)."""
+    if isinstance(values_s, StreamPercentiles):
+        return values_s.percentiles(scale=1000.0, count=True)
     return percentiles(values_s, scale=1000.0, count=True)
 
 
@@ -415,8 +424,8 @@ class PlantRun:
             self.apply(k, u_w, u_s, commanded=d.use_command)
             self.publish_state(k + 1, end=k + 1 == cfg.steps)
             done = clock.now()
-            st.lateness_s.append(done - target)
-            st.pub_intervals_s.append(done - last_pub)
+            st.lateness_s.add(done - target)
+            st.jitter_s.add(abs(done - last_pub - T))
             last_pub = done
             if done - target > T:
                 st.missed_periods += 1
@@ -473,9 +482,9 @@ class PlantRun:
         tp = self.pub_perf.get(j)
         if tp is not None:
             rt = rx_perf - tp
-            self.stats.roundtrip_s.append(rt)
+            self.stats.roundtrip_s.add(rt)
             if solve_ms is not None:
-                self.stats.latency_s.append(rt - solve_ms / 1000.0)
+                self.stats.latency_s.add(rt - solve_ms / 1000.0)
 
     def summary(self) -> dict:
         """The run's part of a node's summary (the node adds its own)."""
@@ -491,7 +500,7 @@ class PlantRun:
             "latency_ms": percentiles_ms(st.latency_s),
             "roundtrip_ms": percentiles_ms(st.roundtrip_s),
             "lateness_ms": percentiles_ms(st.lateness_s),
-            "period_jitter_ms": percentiles_ms([abs(d - T) for d in st.pub_intervals_s]),
+            "period_jitter_ms": percentiles_ms(st.jitter_s),
             "safe": {"events": st.safe_events, "periods": st.safe_periods, "resumes": st.resumes,
                      "watchdog_trips": st.watchdog_trips,
                      "watchdog_periods": st.watchdog_periods},
