@@ -272,7 +272,10 @@ def _full_disk_run(procs, tmp_path, seconds: float):
     the recording and its size limit."""
     base = tmp_path / "base.mcap"
     _realtime_pair(procs, tmp_path, base, seconds)
-    assert procs.wait("plant", 240) == 0 and procs.wait("ctl", 60) == 0
+    assert procs.wait("plant", 240) == 0, procs.err("plant")[-3000:]
+    # (the controller ended with SIGABRT here once in a cold clean clone's make test, not
+    # reproduced in 12 runs after; its stderr is what tells why)
+    assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-3000:]
     s0 = procs.json("plant")
     assert s0["recording"]["errors"] == 0 and s0["recording"]["dropped"] == 0
     limit_kib = int(0.8 * os.path.getsize(base) / 1024)

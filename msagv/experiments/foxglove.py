@@ -56,6 +56,8 @@ class FoxgloveError(ValueError):
     """The view cannot be served (foxglove-sdk missing, the port taken); says why."""
 
 
+DRAIN_S = 0.5  # s: what the server gets to send its queued messages before it stops
+
 def require_foxglove():
     try:
         import foxglove
@@ -183,6 +185,10 @@ class FoxgloveView:
             except queue.Full:
                 pass
             self._t.join(5.0)
+            # the server sends from its own queues and has no flush: stopping it right after
+            # the last record lost that record to a client now and then (seen in a clean
+            # clone's make test: 249 of 250 states, the last one missing)
+            time.sleep(DRAIN_S)
             self.server.stop()  # closes its connections: each relay ends when its backend does
             self._front.close()
         return {"address": self.address, "sent": self._ch.sent, "dropped": self.dropped}
