@@ -48,6 +48,7 @@ import numpy as np
 from .checks import ScenarioError
 from .runs import PERIOD, code_digest, dask_map, run_all
 from .study import StudyScenario, run_specs
+from .study_analysis import _f, _ratio_text
 
 # the plants unlike the file: factors on the Magic Formula's B and mu (both curves), or the
 # plant's own options (vehicle file [plant])
@@ -409,14 +410,6 @@ def _mean(v):
     return float(np.mean(v)) if v else None
 
 
-def _ci_text(s: dict) -> str:
-    if s.get("gmean") is None:
-        return "n/a"
-    lo, hi = s["ci95"]
-    ci = "" if lo is None else f" [{lo:.3f}, {hi:.3f}]"
-    return f"{s['gmean']:.3f}{ci}"
-
-
 def _diff_text(s: dict) -> str:
     if s.get("difference") is None:
         return "n/a"
@@ -450,18 +443,18 @@ def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
         cells = []
         for m in MODELS:
             s = summary["by_plant"][m][p]
-            cells.append(f"{_ci_text(s['equal_error'])} (u {s['unmatched']})")
+            cells.append(f"{_ratio_text(s['equal_error'])} (u {s['unmatched']})")
         L.append(f"| {p} | " + " | ".join(cells) + " |")
-    cells = [f"**{_ci_text(summary['by_model'][m]['equal_error'])}** "
+    cells = [f"**{_ratio_text(summary['by_model'][m]['equal_error'])}** "
              f"(u {summary['by_model'][m]['unmatched']})" for m in MODELS]
     L.append("| all | " + " | ".join(cells) + " |")
     L += ["", "With the unmatched scenarios at their most-accurate ratio:", "",
           "| plant | model wrong | identified | adapted | model true |", "|---|---|---|---|---|"]
     for p in plants:
         L.append(f"| {p} | " + " | ".join(
-            _ci_text(summary["by_plant"][m][p]["with_unmatched"]) for m in MODELS) + " |")
+            _ratio_text(summary["by_plant"][m][p]["with_unmatched"]) for m in MODELS) + " |")
     L.append("| all | " + " | ".join(
-        f"**{_ci_text(summary['by_model'][m]['with_unmatched'])}**" for m in MODELS) + " |")
+        f"**{_ratio_text(summary['by_model'][m]['with_unmatched'])}**" for m in MODELS) + " |")
     L += ["", "Each column against the true model (the paired difference of the geometric "
           "means over the same paths, plants and seeds; 95 % interval resampling paths):", "",
           "| column | at equal error | with the unmatched |", "|---|---|---|"]
@@ -473,7 +466,7 @@ def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
           "against each column's model:", "",
           "| plant | model wrong | identified | adapted | model true |", "|---|---|---|---|---|"]
     for p in plants:
-        L.append(f"| {p} | " + " | ".join(_f(summary["by_plant"][m][p]["e_ntwo_cm"])
+        L.append(f"| {p} | " + " | ".join(_f(summary["by_plant"][m][p]["e_ntwo_cm"], 2)
                                           for m in MODELS) + " |")
     L += ["", "The identified vehicles (`msagv calibrate`'s estimator on one logged run of the "
           "excitation manoeuvre per plant): value / truth, or why a parameter was not "
@@ -496,17 +489,13 @@ def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
     return "\n".join(L) + "\n"
 
 
-def _f(v):
-    return "n/a" if v is None else f"{v:.2f}"
-
-
 def the_sentence(summary: dict) -> str:
     """What a user with unknown tires can expect, in one sentence, from the numbers."""
     bm = summary["by_model"]
 
     def t(m):
         s = bm[m]["with_unmatched"]
-        return _ci_text(s)
+        return _ratio_text(s)
 
     def u(m):
         return f"{bm[m]['unmatched']} of {bm[m]['instances']}"
