@@ -457,8 +457,10 @@ class PlantRun:
                 why = (f"the plant's own loop is {late * 1000:.0f} ms past its deadline "
                        f"(bound {self.cfg.stale_ms:g} ms): the watchdog runs the safe "
                        f"behaviour")
+                # the loop takes the trip at its next step and raises the published flag
+                # itself: the flag of a state says what the step that made it applied (set
+                # here, a state stepped with the held command could go out flagged safe)
                 self._wd_trip = why
-                self.safe = True
                 st.watchdog_trips += 1
                 self.log.warning("SAFE (watchdog) at t = %.2f s: %s", max(self.seq, 0) * T, why)
             if self.plant_lock.acquire(timeout=self.clock.wall(T)):
