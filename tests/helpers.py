@@ -69,7 +69,8 @@ class Procs:
         self.p: dict[str, subprocess.Popen] = {}
 
     def start(self, name: str, args: list[str]) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env = dict(os.environ, PYTHONUNBUFFERED="1",
+                   PYTHONFAULTHANDLER="1")  # an abort prints every thread's stack
         out = (self.tmp / f"{name}.out").open("w")
         err = (self.tmp / f"{name}.err").open("w")
         # SIGINT as a terminal's foreground job has it (a suite started in the background of
