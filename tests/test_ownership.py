@@ -777,6 +777,160 @@ def test_rogue_peer_long(procs):
           f"the kill, missed periods {s['missed_periods']}")
 
 
+# ---- processes: a client that copies the owner's source info (issue 30, item 2) -------------
+class Copier:
+    """A Zenoh **client** on the plant's own port (a stock zenoh-python session: it sees the
+    ``source_info`` of every put it receives). It puts a command (wheels at 40 rad/s,
+    steering at its limit) under the owner's key with the owner's source info for every
+    state, and a state (seq 10^6) under the plant's with the plant's; claims and releases
+    the vehicle in the owner's name with the owner's source info; and sends each of the
+    owner's commands again with its wheels changed but its ``mac`` kept."""
+
+    def __init__(self, port: int, vid: str = "agv0"):
+        import zenoh
+
+        from msagv.bridge.session import Keys
+
+        self.zenoh = zenoh
+        self.keys = Keys(vid)
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", json.dumps([ep(port)]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        self.session = zenoh.open(conf)
+        self.owner = self.owner_si = self.plant_si = None
+        self.sent = {"cmd": 0, "state": 0, "tampered": 0, "claims": 0}
+        self.granted = 0
+        self.errors: list[str] = []
+        self.top_state = 0
+        self.top_omega = 0.0  # the largest wheel speed of the plant's states [rad/s]
+        self._pubs: dict[str, object] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._subs = [self.session.declare_subscriber(f"{self.keys.cmd}/*", self._on_cmd),
+                      self.session.declare_subscriber(f"{self.keys.state}/*", self._on_state)]
+        self._claimer = threading.Thread(target=self._claim, daemon=True)
+        self._claimer.start()
+
+    def _put(self, key: str, payload: bytes, si) -> None:
+        with self._lock:
+            pub = self._pubs.get(key)
+            if pub is None:
+                pub = self._pubs[key] = self.session.declare_publisher(key)
+        pub.put(payload, source_info=self.zenoh.SourceInfo(si.source_id, 7))
+
+    def _on_cmd(self, s):
+        if s.source_info is None or self._stop.is_set():
+            return
+        self.owner, self.owner_si = str(s.key_expr).rsplit("/", 1)[1], s.source_info
+        m = msgpack.unpackb(s.payload.to_bytes())
+        if "mac" in m and m["omega_w"][0] != 40.0:  # the owner's (not our copy): changed,
+            # its mac kept
+            m["omega_w"] = [40.0] * len(m["omega_w"])
+            self._put(str(s.key_expr), msgpack.packb(m), s.source_info)
+            self.sent["tampered"] += 1
+
+    def _on_state(self, s):
+        if s.source_info is None or self._stop.is_set():
+            return
+        st = msgpack.unpackb(s.payload.to_bytes())
+        if st["seq"] >= 10 ** 6:  # our own copy
+            return
+        self.top_state = max(self.top_state, st["seq"])
+        self.top_omega = max(self.top_omega, max(st["omega_w"]))
+        plant = str(s.key_expr).rsplit("/", 1)[1]
+        if self.plant_si is None:
+            self.plant_si = s.source_info
+        if self.owner is not None and not st.get("end"):
+            n = len(st["delta"])
+            c = M.encode_cmd(10 ** 6 + self.sent["cmd"], st["t"], st["seq"], [40.0] * n,
+                             [0.8] * n)
+            self._put(f"{self.keys.cmd}/{self.owner}", c, self.owner_si)
+            self.sent["cmd"] += 1
+            if self.sent["state"] < 200:
+                fake = dict(st, seq=10 ** 6, t=10 ** 6 * T, x=st["x"] + 5.0)
+                fake.pop("mac", None)
+                self._put(f"{self.keys.state}/{plant}", msgpack.packb(fake), s.source_info)
+                self.sent["state"] += 1
+
+    def _claim(self):
+        from msagv.bridge.ownership import decode_grant, encode_claim
+
+        n = 0
+        while not self._stop.wait(0.1):
+            if self.owner is None:
+                continue
+            for action in ("claim", "release"):
+                try:
+                    for r in self.session.get(
+                            f"{self.keys.claim}/*/{self.owner}", payload=encode_claim(action),
+                            timeout=0.5, source_info=self.zenoh.SourceInfo(
+                                self.owner_si.source_id, n)):
+                        if r.ok is not None:
+                            g = decode_grant(r.ok.payload.to_bytes())
+                            self.granted += g["granted"] or g["reason"] == "released"
+                except Exception as e:
+                    self.errors.append(repr(e))
+                self.sent["claims"] += 1
+                n += 1
+
+    def close(self):
+        self._stop.set()
+        self._claimer.join(2)
+        time.sleep(0.2)  # the callbacks running see the stop
+        self.session.close()
+
+
+@pytest.mark.timeout(300)
+def test_a_client_copying_the_owners_source_info_drives_nothing(procs):
+    """Issue 30, item 2: before the grant's key, a client on the plant's port that attached
+    the owner's source info to its own commands drove the vehicle (wheels at 25 rad/s), and
+    states forged as the plant's reset the MPC. Now: none of its commands, states, claims or
+    releases is taken, each is counted by its reason, and the owner drives to the end."""
+    P = free_port()
+    procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 10,
+                               "--listen", ep(P), "--json"))
+    procs.start("ctl", msagv("controller", "--connect", ep(P), "--json", "--exit-at-end"))
+    copier = None
+    try:
+        t0 = time.monotonic()
+        while "vehicle agv0 granted" not in procs.err("ctl"):
+            assert time.monotonic() - t0 < 180, procs.err("ctl")[-2000:]
+            time.sleep(0.05)
+        copier = Copier(P)
+        # copy until 8 of the run's 10 s, then leave (while the plant is still there)
+        while copier.top_state < 800:
+            assert time.monotonic() - t0 < 240 and procs.p["plant"].poll() is None
+            time.sleep(0.05)
+    finally:
+        if copier is not None:
+            copier.close()
+    assert procs.wait("plant", 240) == 0, procs.err("plant")[-3000:]
+    assert procs.wait("ctl", 60) == 0, procs.err("ctl")[-3000:]
+    s, c = procs.json("plant"), procs.json("ctl")
+    sent = copier.sent
+    assert copier.owner is not None and sent["cmd"] > 50 and sent["state"] > 50
+    print(f"\ncopier: sent {sent}, granted {copier.granted}, fastest wheel "
+          f"{copier.top_omega:.1f} rad/s; plant: rejected {s['rejected']['by_reason']}, "
+          f"commands {s['commands']}, ownership {s['ownership']}; controller: rejected "
+          f"{c['rejected']['by_reason']}, MPC runs {c['new_runs']}")
+    assert sent["tampered"] > 50 and sent["claims"] > 4 and not copier.errors
+    # no forged command applied: one would have made the owner's answer a duplicate or
+    # stale, and the wheels would have gone towards 40 rad/s; no claim or release taken
+    assert s["completed"] and copier.granted == 0 and copier.top_omega < 30.0
+    assert s["commands"]["duplicate"] == 0 and s["commands"]["stale"] == 0
+    # no forged state taken: one MPC run (a state of seq 10^6 is a new run to it)
+    assert c["new_runs"] == 1
+    # each counted by its reason
+    assert s["rejected"]["by_reason"].get(M.BAD_MAC, 0) >= (sent["cmd"] + sent["tampered"]) // 2
+    assert s["ownership"]["key_mismatches"] >= sent["claims"] // 2
+    assert s["ownership"]["latches"] == 0 and s["ownership"]["grants"] == 1
+    assert c["rejected"]["by_reason"].get(M.BAD_MAC, 0) >= sent["state"] // 2
+    print(f"\ncopier: sent {sent}; plant rejected {s['rejected']['by_reason']}, "
+          f"key mismatches {s['ownership']['key_mismatches']}; controller rejected "
+          f"{c['rejected']['by_reason']}")
+
+
 # ---- processes: a stalled controller finds its plant alive and carries on --------------------
 @pytest.mark.timeout(300)
 def test_a_stalled_controller_carries_on_with_a_live_plant(procs):

@@ -37,6 +37,7 @@ import numpy as np
 
 from . import messages as M
 from .loss import LOST, STALE_MS, LossTimer
+from .link_key import KeyPair, LinkKeyError, LinkKeys, derive
 from .ownership import (CLAIM_REFRESH_S, CLAIM_RETRY_S, LATCHED, RELEASE, claim,
                         params_replies)
 from .plant_node import percentiles_ms
@@ -145,6 +146,10 @@ class ControllerNode:
         self._closing = threading.Event()
         self._claimer: threading.Thread | None = None
         self.loss = LossTimer(LOSS_CONFIRM_S)
+        # the grant's key (bridge.link_key): our key pair, and the keys derived with the
+        # bound plant's key (None: not granted yet, or a plant that sends no key)
+        self._keys = KeyPair()
+        self._link: LinkKeys | None = None
 
     # ---- transport ---------------------------------------------------------------------
     def open(self, transport: Transport) -> None:
@@ -184,6 +189,7 @@ class ControllerNode:
         self._plant_presence = None
         self.plant_zid = None
         self.granted, self.grant_reason = False, None
+        self._link = None
         self.plant_present, self.plant_seen, self._fallback = False, False, False
         with self._lock:
             self._pending = self._held = None
@@ -205,7 +211,8 @@ class ControllerNode:
                 self._claim_wake.clear()
                 continue
             try:
-                replies = claim(self.transport, self.keys, n, to=bound, wheel_wear=True)
+                replies = claim(self.transport, self.keys, n, to=bound, wheel_wear=True,
+                                pk=self._keys.public)
             except Exception as e:  # the transport is closing
                 log.debug("claim failed: %s", e)
                 replies = []
@@ -224,10 +231,39 @@ class ControllerNode:
                     if not self.plant_present and self._plant_presence is not None:
                         self._fallback = True
                         self._on_plant_change(True, via="claims")
+                    if g["granted"]:
+                        self._take_key(z, g.get("pk"))
                     self._set_granted(g["granted"], g["reason"])
             wait = CLAIM_REFRESH_S if self.granted else CLAIM_RETRY_S
             self._claim_wake.wait(wait)
             self._claim_wake.clear()
+
+    def _take_key(self, plant: str, pk: bytes | None) -> None:
+        """The grant's key, derived with the plant's key of its grant (a plant that sends
+        none: commands without a mac, states taken without one)."""
+        link = self._link
+        if pk is None:
+            if link is not None:
+                log.warning("plant %s granted the vehicle without its key: commands go "
+                            "without a mac", plant)
+            self._link = None
+        elif link is None or link.peer_pk != pk:
+            try:
+                self._link = derive(self._keys, pk, self.keys.id, plant, self.transport.id)
+            except LinkKeyError as e:
+                log.warning("plant %s's key is not usable (%s): not commanding", plant, e)
+                self._link = None
+                self.granted = False
+
+    def _authentic(self, st: dict) -> bool:
+        """The state carries the grant's mac (or no key is agreed yet)."""
+        link = self._link
+        return link is None or LinkKeys.valid(link.state, st)
+
+    def _bad_mac(self, st: dict) -> M.MessageError:
+        return M.MessageError(M.BAD_MAC, f"state {st.get('seq')} from {self.plant_zid}: "
+                              + ("no mac" if "mac" not in st else "a wrong mac")
+                              + " (the plant's states carry the grant's mac)")
 
     def _set_granted(self, granted: bool, reason: str) -> None:
         was, self.granted = self.granted, granted
@@ -257,7 +293,7 @@ class ControllerNode:
         self._claim_wake.set()
         if self.granted:
             try:  # hand the vehicle back at once (the plant also notices our token going)
-                claim(self.transport, self.keys, 0, RELEASE, timeout=0.3)
+                claim(self.transport, self.keys, 0, RELEASE, timeout=0.3, pk=self._keys.public)
             except Exception:
                 pass
             self.granted = False
@@ -329,6 +365,8 @@ class ControllerNode:
             if sender is None or sender != self.plant_zid:
                 raise M.MessageError(M.NOT_BOUND, self._not_bound(sender))
             st = M.decode_state(payload, self.nw)
+            if not self._authentic(st):
+                raise self._bad_mac(st)
         except M.MessageError as e:
             self.rej.add(e, key)
             self.rec.message("rx", key, payload, why=e.reason)
@@ -422,6 +460,10 @@ class ControllerNode:
         """Solve for one state and send the command. Returns 'sent', 'resent' (the same
         command again for a state sent again), 'end', 'duplicate', 'stale', 'no plant' or
         'not granted'."""
+        if not self._authentic(st):
+            # a state taken before the grant's key came, without its mac
+            self.rej.add(self._bad_mac(st), self.keys.state)
+            return "bad_mac"
         seq = st["seq"]
         last = self._last_seq
         held = self._again
@@ -491,8 +533,10 @@ class ControllerNode:
             # as it grants, which can arrive before the grant's reply
             self._hold(st, rx_perf, cmd)
             return "not granted"
+        link = self._link
         payload = M.encode_cmd(self._cmd_seq, st["t"], seq, cmd.omega_w, cmd.omega_s,
-                               solve_ms=cmd.solve_ms, cost=cmd.cost)
+                               solve_ms=cmd.solve_ms, cost=cmd.cost,
+                               mac_key=None if link is None else link.cmd)
         self._pub.put(payload, self._cmd_seq)
         self._sent = (seq, payload)
         self._cmd_seq += 1

@@ -48,12 +48,14 @@ UNKNOWN_STATE = "unknown_state"  # a command answering a state the plant never p
 T_MISMATCH = "t_mismatch"  # a command's t is not the t of the state it answers
 NOT_OWNER = "not_owner"  # a command from an identity that does not own the vehicle
 NOT_BOUND = "not_bound"  # a state from a plant the controller is not bound to
+BAD_MAC = "bad_mac"  # an owner's command or a bound plant's state without the grant's mac
 REASONS = (NOT_MSGPACK, TOO_LARGE, NOT_A_MAP, VERSION_MISMATCH, MISSING_FIELD, EXTRA_FIELD,
            BAD_TYPE, BAD_LENGTH, NON_FINITE, NEGATIVE_WHEEL_SPEED, BAD_VALUE, UNKNOWN_STATE,
-           T_MISMATCH, NOT_OWNER, NOT_BOUND)
+           T_MISMATCH, NOT_OWNER, NOT_BOUND, BAD_MAC)
 
 # field tables: name -> kind. kinds: "int" (>= 0), "float" (finite), "wheels" (2n finite
-# floats), "wheels+" (2n finite floats >= 0), "bool", "float+" (finite, >= 0), "str"
+# floats), "wheels+" (2n finite floats >= 0), "bool", "float+" (finite, >= 0), "str",
+# "bin" (bytes, at most MAX_BIN of them)
 # the state's field names are the plant's (msagv.plant.signals): the body's
 # BODY_FIELDS, the wear work WEAR_FIELDS, and the per-wheel wear work WHEEL_WEAR_FIELDS
 # (arrays in the wheel order), sent only to peers that asked for it (docs/PROTOCOL.md,
@@ -61,10 +63,11 @@ REASONS = (NOT_MSGPACK, TOO_LARGE, NOT_A_MAP, VERSION_MISMATCH, MISSING_FIELD, E
 STATE_REQUIRED = {"v": "int", "seq": "int", "t": "float", **dict.fromkeys(BODY_FIELDS, "float"),
                   "delta": "wheels", "omega_w": "wheels+"}
 STATE_OPTIONAL = {**dict.fromkeys(WEAR_FIELDS, "float"), "safe": "bool", "end": "bool",
-                  **dict.fromkeys(WHEEL_WEAR_FIELDS, "wheels")}
+                  **dict.fromkeys(WHEEL_WEAR_FIELDS, "wheels"), "mac": "bin"}
 CMD_REQUIRED = {"v": "int", "seq": "int", "t": "float", "state_seq": "int",
                 "omega_w": "wheels+", "omega_s": "wheels"}
-CMD_OPTIONAL = {"solve_ms": "float+", "cost": "float"}
+CMD_OPTIONAL = {"solve_ms": "float+", "cost": "float", "mac": "bin"}
+MAX_BIN = 64  # a binary field's bytes (a mac, a public key)
 REFERENCE_REQUIRED = {"v": "int", "t": "series", "x": "series", "y": "series", "phi": "series"}
 REFERENCE_OPTIONAL = {"name": "str", "relative": "bool"}
 PARAMS_REQUIRED = {"v": "int", "id": "str", "vehicle": "map", "period": "float+",
@@ -92,11 +95,21 @@ def pack(msg: Mapping[str, Any]) -> bytes:
     return msgpack.packb(dict(msg), use_bin_type=True)
 
 
+def _signed(m: dict, mac_key: bytes | None) -> bytes:
+    if mac_key is not None:
+        from .link_key import LinkKeys
+
+        m["mac"] = LinkKeys.tag(mac_key, m)
+    return pack(m)
+
+
 def encode_state(seq: int, state: Mapping[str, Any], *, safe: bool | None = None,
-                 end: bool | None = None, wheel_wear: bool = True) -> bytes:
+                 end: bool | None = None, wheel_wear: bool = True,
+                 mac_key: bytes | None = None) -> bytes:
     """A ``state`` message from ``Plant.state_message()``-style fields (``t`` included).
     ``wheel_wear``: include the per-wheel wear work ``W_s_ij, W_alpha_ij, W_t_ij`` when the
-    fields have them (False: leave them out, for a peer that does not know them)."""
+    fields have them (False: leave them out, for a peer that does not know them).
+    ``mac_key``: the grant's state key (:mod:`bridge.link_key`): the state carries ``mac``."""
     m = {"v": VERSION, "seq": int(seq), "t": float(state["t"])}
     for k in BODY_FIELDS:
         m[k] = float(state[k])
@@ -113,18 +126,21 @@ def encode_state(seq: int, state: Mapping[str, Any], *, safe: bool | None = None
         m["safe"] = bool(safe)
     if end is not None:
         m["end"] = bool(end)
-    return pack(m)
+    return _signed(m, mac_key)
 
 
 def encode_cmd(seq: int, t: float, state_seq: int, omega_w, omega_s, *,
-               solve_ms: float | None = None, cost: float | None = None) -> bytes:
+               solve_ms: float | None = None, cost: float | None = None,
+               mac_key: bytes | None = None) -> bytes:
+    """A ``cmd`` message; ``mac_key``: the grant's command key (:mod:`bridge.link_key`):
+    the command carries ``mac``."""
     m = {"v": VERSION, "seq": int(seq), "t": float(t), "state_seq": int(state_seq),
          "omega_w": _floats(omega_w), "omega_s": _floats(omega_s)}
     if solve_ms is not None:
         m["solve_ms"] = float(solve_ms)
     if cost is not None and math.isfinite(cost):
         m["cost"] = float(cost)
-    return pack(m)
+    return _signed(m, mac_key)
 
 
 def encode_reference(t, x, y, phi, *, name: str | None = None,
@@ -230,6 +246,12 @@ def fields(m: dict, required: dict, optional: dict, n: int | None,
         elif kind == "str":
             if not isinstance(val, str):
                 raise MessageError(BAD_TYPE, f"{k} must be a string, got {type(val).__name__}")
+            out[k] = val
+        elif kind == "bin":
+            if not isinstance(val, bytes):
+                raise MessageError(BAD_TYPE, f"{k} must be binary, got {type(val).__name__}")
+            if len(val) > MAX_BIN:
+                raise MessageError(BAD_LENGTH, f"{k} has {len(val)} bytes (at most {MAX_BIN})")
             out[k] = val
         elif kind == "map":
             if not isinstance(val, dict):

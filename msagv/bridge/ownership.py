@@ -39,8 +39,9 @@ log = logging.getLogger("msagv.bridge")
 CLAIM, RELEASE = "claim", "release"
 VERSION = 2  # the schema version of the claim, grant, arm and armed maps
 CLAIM_REQUIRED = {"v": "int", "action": "str"}
-CLAIM_OPTIONAL = {"wheel_wear": "bool"}
+CLAIM_OPTIONAL = {"wheel_wear": "bool", "pk": "bin"}  # pk: the claimer's key (bridge.link_key)
 GRANT_REQUIRED = {"v": "int", "granted": "bool", "reason": "str"}
+GRANT_OPTIONAL = {"pk": "bin"}  # the plant's key, in a grant to a claim that carried one
 ARM_REQUIRED = {"v": "int"}
 ARM_OPTIONAL = {"controller": "str"}
 ARMED_REQUIRED = {"v": "int", "armed": "bool", "reason": "str"}
@@ -62,8 +63,9 @@ LATCHED = "latched"  # the vehicle lost its owner: an operator must re-arm it
 ARMED_FOR_ANOTHER = "armed_for_another"  # re-armed for another controller
 BANNED = "banned"  # this identity commanded while another owned the vehicle
 BAD_CLAIM = "bad_claim"  # the claim map was malformed (counted by its reason)
+KEY_MISMATCH = "key_mismatch"  # a claim as the owner with a key that is not the grant's
 GRANT_REASONS = (GRANTED, RELEASED, NOT_YOURS, OWNED, LATCHED, ARMED_FOR_ANOTHER, BANNED,
-                 BAD_CLAIM)
+                 BAD_CLAIM, KEY_MISMATCH)
 # the arm reply's reasons
 ARMED, ARM_OWNED, BAD_ARM = "armed", "owned", "bad_arm"
 
@@ -72,10 +74,13 @@ FREE, OWNED_STATE, LATCHED_STATE, ARMED_STATE = "free", "owned", "latched", "arm
 
 
 # ---- messages ------------------------------------------------------------------------------
-def encode_claim(action: str = CLAIM, wheel_wear: bool | None = None) -> bytes:
+def encode_claim(action: str = CLAIM, wheel_wear: bool | None = None,
+                 pk: bytes | None = None) -> bytes:
     m = {"v": VERSION, "action": action}
     if wheel_wear is not None:
         m["wheel_wear"] = bool(wheel_wear)
+    if pk is not None:
+        m["pk"] = bytes(pk)
     return M.pack(m)
 
 
@@ -96,12 +101,15 @@ def decode_claim(payload) -> dict:
     return m
 
 
-def encode_grant(granted: bool, reason: str) -> bytes:
-    return M.pack({"v": VERSION, "granted": bool(granted), "reason": reason})
+def encode_grant(granted: bool, reason: str, pk: bytes | None = None) -> bytes:
+    m = {"v": VERSION, "granted": bool(granted), "reason": reason}
+    if pk is not None:
+        m["pk"] = bytes(pk)
+    return M.pack(m)
 
 
 def decode_grant(payload) -> dict:
-    return _versioned(payload, GRANT_REQUIRED, {})
+    return _versioned(payload, GRANT_REQUIRED, GRANT_OPTIONAL)
 
 
 def encode_arm(controller: str | None = None) -> bytes:
@@ -188,8 +196,15 @@ class Ownership:
 
     def __init__(self, on_change=None, policy: RearmPolicy = RearmPolicy(),
                  period: float = CONTROL_PERIOD,
-                 on_event=None):
+                 on_event=None, rekey: bool = False):
         self.owner: str | None = None
+        # the key the owner's grant is bound to (bridge.link_key; None: its claim had none);
+        # rekey: a claim as the owner may bring another key (identities are authenticated:
+        # --secure; a restarted controller with the same certificate), else it is refused
+        self.owner_pk: bytes | None = None
+        self.owner_link = None  # (owner, what the caller derived from pk), set with the grant
+        self.rekey = rekey
+        self.key_mismatches = 0
         self.state = FREE
         self.armed_for: str | None = None  # armed: the identity that may claim (None: any)
         self.lost: str | None = None  # latched: the identity that lost the vehicle
@@ -229,6 +244,7 @@ class Ownership:
         """(locked) The owner is gone: latched once the run has started, else free; a
         release after the end of the run ends it normally (no claim granted, no latch)."""
         prev, self.owner = self.owner, None
+        self.owner_pk, self.owner_link = None, None
         if self.ended and released:
             self.state, self.lost, self.why, self.armed_for = LATCHED_STATE, None, why, None
             self.latched_at = now
@@ -254,15 +270,25 @@ class Ownership:
             self.on_change(owner, why)
 
     def claim(self, who: str | None, action: str = CLAIM, now: float | None = None,
-              token_present: bool = False, wheel_wear: bool | None = None) -> Grant:
+              token_present: bool = False, wheel_wear: bool | None = None,
+              pk: bytes | None = None, link=None) -> Grant:
         """Handle a claim or release from identity ``who`` (``token_present``: its token is
-        visible now; ``wheel_wear``: what the claim asks, taken with the grant)."""
+        visible now; ``wheel_wear``: what the claim asks, taken with the grant; ``pk``: the
+        claimer's key, that a new grant is bound to and a repeated claim must bring again
+        (:attr:`owner_pk`); ``link``: what the caller derived from it, kept as
+        :attr:`owner_link` ``(owner, link)`` with the grant, atomically)."""
         now = time.monotonic() if now is None else now
         changed = None
         with self._lock:
             if who is None:
                 self.refused += 1
                 return Grant(False, BAD_CLAIM)
+            if who == self.owner and pk != self.owner_pk and not self.rekey:
+                # the owner's identity with another key (or none): on a plain bus, a forged
+                # source info; never the owner's own controller, which keeps its key
+                self.key_mismatches += 1
+                self.refused += 1
+                return Grant(False, KEY_MISMATCH)
             if action == RELEASE:
                 if who != self.owner:
                     return Grant(False, NOT_YOURS)
@@ -271,6 +297,7 @@ class Ownership:
                 grant = Grant(False, RELEASED)
             elif self.owner == who:
                 self.owner_seen = self.owner_seen or token_present
+                self.owner_pk, self.owner_link = pk, (who, link)
                 grant = Grant(True, GRANTED)
             else:
                 if (self.owner is not None and not self.owner_seen
@@ -282,6 +309,7 @@ class Ownership:
                     self.state, self.armed_for = self._before_grant
                 grant = self._grant_or_refuse(who, now, token_present)
                 if grant.granted:
+                    self.owner_pk, self.owner_link = pk, (who, link)
                     changed = (who, f"granted to {who}", None)
             if grant.granted and wheel_wear is not None:
                 self.wheel_wear = wheel_wear
@@ -361,19 +389,21 @@ class Ownership:
             return {"state": self.state, "owner": self.owner, "armed_for": self.armed_for,
                     "grants": self.grants, "refused": self.refused, "releases": self.releases,
                     "losses": self.losses, "latches": self.latches, "arms": list(self.arms),
-                    "banned": len(self.banned), "rearm": str(self.policy)}
+                    "banned": len(self.banned), "rearm": str(self.policy),
+                    "key_mismatches": self.key_mismatches}
 
 
 # ---- the controller's side -----------------------------------------------------------------
 def claim(transport, keys, sn: int, action: str = CLAIM, timeout: float = 1.0,
-          to: str | None = None, wheel_wear: bool | None = None
+          to: str | None = None, wheel_wear: bool | None = None, pk: bytes | None = None
           ) -> list[tuple[str, dict | None]]:
     """Send a claim (or release) as ``transport``'s identity to the plant ``to`` (None:
-    every plant); returns ``[(replier, grant or None if malformed)]`` for every plant that
-    answered (error replies, which name nobody, are left out)."""
+    every plant), with the claimer's key ``pk`` (:mod:`bridge.link_key`); returns
+    ``[(replier, grant or None if malformed)]`` for every plant that answered (error
+    replies, which name nobody, are left out)."""
     out = []
-    for reply in transport.query(keys.claim, encode_claim(action, wheel_wear), to=to, sn=sn,
-                                 timeout=timeout):
+    for reply in transport.query(keys.claim, encode_claim(action, wheel_wear, pk), to=to,
+                                 sn=sn, timeout=timeout):
         if not reply.ok or reply.sender is None:
             continue
         try:

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 from . import messages as M
 from .ownership import (BAD_ARM, BAD_CLAIM, CLAIM, LATCHED, Ownership, RearmPolicy,
                         decode_arm, decode_claim, encode_armed, encode_grant)
+from .link_key import KeyPair, LinkKeyError, LinkKeys, derive
 from .presence import TokenSet
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_heap
 from .run_core import (Command, PlantRun, PlantRunError, PlantStats, RunConfig, WallClock,
@@ -138,6 +139,8 @@ class PlantNode:
         self.ownership = Ownership(on_change=self._on_owner_change,
                                    policy=RearmPolicy.parse(cfg.rearm), period=cfg.period,
                                    on_event=self._on_ownership_event)
+        self._keys = KeyPair()  # the grant's key exchange (bridge.link_key)
+        self._unkeyed_told: str | None = None  # the keyless owner last warned about
         self._tokens: TokenSet | None = None
         self._beat, self._last_stall = time.monotonic(), -1e9
         self._refused_logged = 0
@@ -183,6 +186,8 @@ class PlantNode:
         declared)."""
         t, k = transport, self.keys
         self.transport = t
+        # with certificates an identity is proven: its restarted controller may bring a new key
+        self.ownership.rekey = bool(getattr(t, "authenticated", False))
         self._pub = t.publisher(k.state)
         self._decls.append(t.subscribe(k.cmd, self._on_cmd_sample))
         self._decls.append(t.queryable(k.params, self._on_params_query))
@@ -230,20 +235,29 @@ class PlantNode:
         who = query.sender
         if who is None:
             return self._old_client(query)
+        pk = None
         try:
             c = decode_claim(query.payload if query.payload is not None else b"")
+            pk, link = c.get("pk"), None
+            if pk is not None:
+                try:
+                    link = derive(self._keys, pk, self.keys.id, self.transport.id, who)
+                except LinkKeyError as e:
+                    raise M.MessageError(M.BAD_VALUE, f"pk: {e}") from None
         except M.MessageError as e:
             self.rej.add(e, self.keys.claim)
             grant = self.ownership.claim(None)
             grant.reason = BAD_CLAIM
+            pk = None
         else:
-            # the owner's wheel_wear is taken with the grant, under the ownership's lock: the
-            # run may start the moment the grant is made, its first state must have it
+            # the owner's wheel_wear (and key) is taken with the grant, under the ownership's
+            # lock: the run may start the moment the grant is made, its first state must
+            # have it
             if who == self.ownership.owner:
                 self._heard = (who, time.monotonic())
             grant = self.ownership.claim(
                 who, c["action"], token_present=self._tokens is not None and self._tokens.present(who),
-                wheel_wear=bool(c.get("wheel_wear", False)))
+                wheel_wear=bool(c.get("wheel_wear", False)), pk=pk, link=link)
             if grant.granted:
                 self._tell_wheel_wear()
             if c["action"] == CLAIM and not grant.granted:
@@ -254,8 +268,15 @@ class PlantNode:
                             if grant.reason == LATCHED else "")
                     log.warning("claim of vehicle %s by %s refused: %s (%d refused)%s",
                                 self.keys.id, who, grant.reason, n, hint)
+            if grant.granted and pk is None and self._unkeyed_told != who:
+                self._unkeyed_told = who
+                log.warning("controller %s claimed vehicle %s without a key (a client older "
+                            "than the grant's key, docs/PROTOCOL.md): its commands are taken "
+                            "without a mac, as any session that forges its source info could "
+                            "send them", who, self.keys.id)
         try:
-            query.reply(encode_grant(grant.granted, grant.reason))
+            query.reply(encode_grant(grant.granted, grant.reason,
+                                     pk=self._keys.public if grant.granted and pk else None))
         except Exception as e:
             log.debug("claim reply failed: %s", e)
 
@@ -410,6 +431,11 @@ class PlantNode:
                 self.ownership.violation(sender)
                 raise M.MessageError(M.NOT_OWNER, self._not_owner(sender))
             c = M.decode_cmd(payload, self.nw)
+            owner, link = self.ownership.owner_link or (None, None)
+            if link is not None and not (owner == sender and LinkKeys.valid(link.cmd, c)):
+                raise M.MessageError(M.BAD_MAC, f"from {sender}: "
+                                     + ("no mac" if "mac" not in c else "a wrong mac")
+                                     + " (the owner's commands carry the grant's mac)")
             with self._lock:
                 newest_pub = self.seq
             j = c["state_seq"]
@@ -477,8 +503,10 @@ class PlantNode:
         self.core.publish_state(seq, end)
 
     def send_state(self, seq: int, st: dict, end: bool) -> None:
+        link = (self.ownership.owner_link or (None, None))[1]
         payload = M.encode_state(seq, st, safe=self.safe if self.cfg.run_mode == "realtime" else None,
-                                 end=True if end else None, wheel_wear=self.wheel_wear)
+                                 end=True if end else None, wheel_wear=self.wheel_wear,
+                                 mac_key=None if link is None else link.state)
         if seq == 0:
             self.ownership.start()  # from now on a lost owner latches the vehicle
         if end:

@@ -89,6 +89,8 @@ _KIND_SCHEMA = {
     "str": {"type": "string"},
     "map": {"type": "object"},
     "series": {"type": "array", "items": {"type": "number"}},
+    # msgpack bin (a mac, a key): JSON has no bytes type
+    "bin": {"description": "msgpack bin (bytes)"},
 }
 _MESSAGES = {  # key suffix -> (required, optional, description)
     "state": (M.STATE_REQUIRED, M.STATE_OPTIONAL, "the plant's state (docs/PROTOCOL.md 3.2)"),
