@@ -96,22 +96,23 @@ def test_recovery_of_a_real_run_agrees_with_the_controllers_metrics(tmp_path):
 
 # ---- matched recovery and interpolated fronts by hand ---------------------------------------
 def test_matched_recovery_by_hand():
-    """Aware (t_settle, overshoot, W): (3, 10, 100), (4, 5, 80) and (5, 20, 90), the last
-    one beaten by the second on all three (off the front). Blind: (2, 8, 200), (3.5, 4,
-    120), (6, 1, 50). (3, 10, 100) is matched by (2, 8, 200): 0.5; (4, 5, 80) by (3.5, 4,
-    120): 2/3."""
-    aware = [(3, 10, 100), (4, 5, 80), (5, 20, 90)]
-    blind = [(2, 8, 200), (3.5, 4, 120), (6, 1, 50)]
+    """(t_settle, peak, overshoot, W). Aware: (3, 50, 10, 100), (4, 50, 5, 80) and
+    (5, 50, 20, 90), the last one beaten by the second on all four (off the front). Blind:
+    (2, 50, 8, 200), (3.5, 40, 4, 120), (6, 50, 1, 50), and (1, 60, 0, 10), which strays
+    further than every aware run. (3, 50, 10, 100) is matched by (2, 50, 8, 200): 0.5;
+    (4, 50, 5, 80) by (3.5, 40, 4, 120): 2/3."""
+    aware = [(3, 50, 10, 100), (4, 50, 5, 80), (5, 50, 20, 90)]
+    blind = [(2, 50, 8, 200), (3.5, 40, 4, 120), (6, 50, 1, 50), (1, 60, 0, 10)]
     m = matched_recovery(aware, blind)
     assert m["n"] == 2 and m["matched"] == 2
     assert m["ratio"] == pytest.approx(math.sqrt(0.5 * 80 / 120))
-    # an aware run that recovers better than every blind one: against the cheapest (50),
+    # an aware run that recovers better than every blind one: against the cheapest (10),
     # counted unmatched
-    u = matched_recovery([(1, 0, 70)], blind)
-    assert u["matched"] == 0 and u["ratio"] == pytest.approx(70 / 50)
-    # 1 unit of overshoot slack: (3.5, 4, 120) now matches (4, 3, 60) -> 0.5
-    assert matched_recovery([(4, 3, 60)], blind)["ratio"] == pytest.approx(60 / 50)
-    assert matched_recovery([(4, 3, 60)], blind, slack=1.0)["ratio"] == pytest.approx(0.5)
+    u = matched_recovery([(1, 30, 0, 70)], blind)
+    assert u["matched"] == 0 and u["ratio"] == pytest.approx(70 / 10)
+    # 1 unit of slack: (3.5, 40, 4, 120) now matches (4, 39, 3, 60) -> 0.5
+    assert matched_recovery([(4, 39, 3, 60)], blind)["ratio"] == pytest.approx(60 / 10)
+    assert matched_recovery([(4, 39, 3, 60)], blind, slack=1.0)["ratio"] == pytest.approx(0.5)
     assert matched_recovery([], blind)["ratio"] is None
 
 
@@ -133,13 +134,15 @@ def test_interpolated_front_and_its_ratio_by_hand():
 # ---- Case 2's columns count every start -----------------------------------------------------
 def _case2_rows(scenario, unit, blind, aware, levers=(), seed=0):
     """One Case 2 instance: NTWO and FF at (e, W) of ``blind``, the lever runs ``levers``,
-    TWO at ``aware``; the recovery metrics follow the error (t_settle = e, overshoot = e)."""
+    TWO at ``aware``; the recovery metrics follow the error (t_settle = peak = overshoot =
+    e)."""
     base = {"status": "ok", "scenario": scenario, "class": "case2", "plant": "nominal",
             "path_key": unit, "unit": unit, "seed": seed, "W_tw_floor": 0.0}
 
     def row(fam, aware_, e, w, i):
         return dict(base, family=fam, label=f"{fam} {i}", aware=aware_, e_lat_rms_cm=e,
-                    W_tw=w, t_settle_s=e, overshoot_cm=e, W_settle=w, t_settle_slack_s=e,
+                    W_tw=w, t_settle_s=e, overshoot_cm=e, peak_cm=e, W_settle=w,
+                    t_settle_slack_s=e,
                     W_settle_slack=w)
 
     rows = [row("NTWO" if i == 0 else "FF", False, e, w, i) for i, (e, w) in enumerate(blind)]

@@ -14,8 +14,8 @@ the recoveries themselves.
 * :func:`recovery_of_log`: the same from a run's per-step CSV log
   (:meth:`controller.loop.RunLog.to_csv`).
 * :func:`matched_recovery`: each wear-aware recovery against the cheapest wear-blind one
-  that is at least as good (settles no later, swings past no further), the blind side
-  optionally given a slack.
+  that is at least as good (settles no later, strays from the path and swings past it no
+  further), the blind side optionally given a slack.
 * :func:`wear_interpolated`: a front's wear at an error between two of its runs, read on
   the straight line between them in log-log (the step rule of the study credits only what
   a run reached; this one what a mix of two neighbouring runs would).
@@ -87,29 +87,29 @@ def recovery_of_log(path, bands=(BAND_M,)) -> dict[float, dict]:
 def matched_recovery(aware, blind, slack: float = 0.0, slack_t: float = 0.0) -> dict:
     """Each wear-aware recovery against the wear-blind ones at least as good.
 
-    ``aware``, ``blind``: ``(t_settle, overshoot, W_settle)`` of the runs that recovered.
-    For a wear-aware run, the blind runs that settle no later (plus ``slack_t``) and swing
-    past no further (plus ``slack``, in the overshoot's unit) are its matches; its ratio
-    is its wear over the least wear of its matches. A wear-aware run no blind run matches
-    (it recovers better than every one) is compared with the cheapest blind run instead
-    (conservative for the wear term) and counted as unmatched.
+    ``aware``, ``blind``: ``(t_settle, peak, overshoot, W_settle)`` of the runs that
+    recovered. For a wear-aware run, the blind runs that settle no later (plus
+    ``slack_t``), stray no further from the path (peak) and swing past it no further
+    (overshoot; both plus ``slack``, in their unit) are its matches; its ratio is its wear
+    over the least wear of its matches. A wear-aware run no blind run matches (it recovers
+    better than every one) is compared with the cheapest blind run instead (conservative
+    for the wear term) and counted as unmatched.
 
     Only the wear-aware runs on their own front count (no other aware run at least as good
-    on all three: settling, overshoot and wear), each once. Returns ``{ratio, n, matched,
-    ratios}``: ``ratio`` the geometric mean over those runs (None without a run on either
-    side), ``matched`` how many had a real match."""
+    on all four), each once. Returns ``{ratio, n, matched, ratios}``: ``ratio`` the
+    geometric mean over those runs (None without a run on either side), ``matched`` how
+    many had a real match."""
     aware = [tuple(map(float, a)) for a in aware]
     blind = [tuple(map(float, b)) for b in blind]
     if not aware or not blind:
         return {"ratio": None, "n": 0, "matched": 0, "ratios": []}
-    front = [a for a in aware
-             if not any(b[0] <= a[0] and b[1] <= a[1] and b[2] <= a[2] and b != a
-                        for b in aware)]
-    front = sorted(set(front))
-    cheapest = min(b[2] for b in blind)
+    front = sorted({a for a in aware
+                    if not any(all(x <= y for x, y in zip(b, a)) and b != a for b in aware)})
+    cheapest = min(b[3] for b in blind)
     ratios, matched = [], 0
-    for t, o, w in front:
-        ok = [b[2] for b in blind if b[0] <= t + slack_t + 1e-9 and b[1] <= o + slack + 1e-12]
+    for t, pk, o, w in front:
+        ok = [b[3] for b in blind if b[0] <= t + slack_t + 1e-9
+              and b[1] <= pk + slack + 1e-12 and b[2] <= o + slack + 1e-12]
         if ok:
             matched += 1
         ratios.append(w / min(ok) if ok else w / cheapest)

@@ -231,8 +231,8 @@ CASE2_LEVERS = frozenset(f.name for f in FAMILIES.values()
 # conservative fill, counted under KEY:unmatched)
 CASE2_FORMS = (
     ("recovery", "recovery: wear until settled in the 5 cm band, against the cheapest blind "
-                 "run settling no later and overshooting no further (every aware run on its "
-                 "front)"),
+                 "run settling no later, straying and overshooting no further (every aware "
+                 "run on its front)"),
     ("step", "equal lateral RMS error, the step rule (the study's headline form)"),
     ("interp", "equal lateral RMS error, the fronts read between their runs (log-log)"),
 )
@@ -244,10 +244,10 @@ CASE2_VARIANTS = (("base", "blind side without the recovery levers"),
 
 
 def _recovery_points(rows, pick, slack: bool = False) -> list[tuple[float, float, float]]:
-    """``(t_settle [s], overshoot [cm], W_settle [J])`` of the rows ``pick`` selects that
-    recovered; ``slack``: settled into the band widened by :data:`SLACK_CM`."""
+    """``(t_settle [s], peak [cm], overshoot [cm], W_settle [J])`` of the rows ``pick``
+    selects that recovered; ``slack``: settled into the band widened by :data:`SLACK_CM`."""
     ts, ws = ("t_settle_slack_s", "W_settle_slack") if slack else ("t_settle_s", "W_settle")
-    return [(r[ts], r["overshoot_cm"], r[ws]) for r in rows
+    return [(r[ts], r["peak_cm"], r["overshoot_cm"], r[ws]) for r in rows
             if pick(r) and r.get(ts) is not None and r.get(ws) is not None]
 
 
@@ -287,6 +287,7 @@ def case2_compare(ok: list[dict], aware: list, a_pts: list) -> dict:
             wins_rec = all(a.get("t_settle_s") is None or
                            (f["t_settle_s"] <= a["t_settle_s"]
                             and f["overshoot_cm"] <= a["overshoot_cm"]
+                            and f["peak_cm"] <= a["peak_cm"]
                             and f["W_settle"] <= a["W_settle"]) for a in aw)
         else:
             wins_rec = False
@@ -876,8 +877,9 @@ def plot_ratios(summary: dict, path: Path) -> None:
 
 def plot_case2(comparisons: list[dict], path: Path) -> bool:
     """Case 2's sweep: per speed, the ratio at equal error against the start (heading
-    error, lateral offset), both wear-aware families together and each alone; an unmatched
-    start at its most-accurate ratio (open). False when the design has no sweep."""
+    error, lateral offset), both wear-aware families together and each alone, and the
+    recovery form (:func:`case2_compare`); an unmatched start at its most-accurate ratio
+    (open). False when the design has no sweep."""
     import re
 
     from .plots import WIDTH, pyplot, style
@@ -897,6 +899,8 @@ def plot_case2(comparisons: list[dict], path: Path) -> bool:
     series = [("ratio", "both wear-aware families", "k", "o")]
     series += [(f"family:{f}", f, FAMILIES[f].style[0], FAMILIES[f].style[1])
                for f in ("TWO", "TWO-energy")]
+    series.append(("c2:recovery:levers", "recovery: wear until in the 5 cm band, against "
+                   "blind runs recovering at least as well", "C2", "s"))
     with style():
         fig, axes = plt.subplots(1, len(pts), figsize=(WIDTH, 3.4), squeeze=False,
                                  sharey=True)
