@@ -170,6 +170,7 @@ def test_case2_unmatched_starts_are_counted_in_every_column():
     assert c["c2:recovery:levers"] == pytest.approx(60 / 80)
     assert not c["c2:recovery:levers:unmatched"]
     assert not c["c2:ff_wins"]  # FF (50, 90) is less accurate than TWO (40, 60)
+    assert c["c2:ff_beats"] == [0, 1]
     s = summarise(list(cs.values()))["case2"]
     for col in (s["equal_error"], s["at"]["1"], s["tolerance"]["0.5"]):
         assert col["n"] == 2 and col["missing"] == 0
@@ -188,6 +189,12 @@ def test_the_plain_feed_forward_wins_where_it_is_better_and_cheaper():
                        [(50.0, 100.0), (10.0, 20.0)], [(12.0, 30.0), (15.0, 25.0)])
     c = compare(rows)[0]
     assert c["c2:ff_wins"] and c["c2:ff_wins_recovery"]
+    assert c["c2:ff_beats"] == [2, 2] and c["c2:ff_beats_recovery"] == [2, 2]
+    # a wear-aware run cheaper than the FF: it beats one of the three
+    rows += _case2_rows("case2, 20 km/h, heading 15 deg, seed 0", "u", [],
+                        [(11.0, 15.0)])
+    c = compare(rows)[0]
+    assert not c["c2:ff_wins"] and c["c2:ff_beats"] == [2, 3]
 
 
 # ---- the levers ---------------------------------------------------------------------------
