@@ -11,6 +11,10 @@ strongest wear-blind references, at equal tracking error, with confidence interv
   NTWO-wheel-cut (its reference smoothed toward the inside of every curve, lever: the
   smoothing length: the blind side's accuracy lever) and the paper's Kinematic, DH and TCT.
   Every optimising family gets the same annealer, budget, horizon and tracking weights.
+  Case 2 (a recovery, on a straight line where the corner cut does nothing) swaps the
+  corner cut for the blind side's recovery levers: the feed-forward's yaw-rate limit,
+  position gain and velocity-correction limit (FF-yaw, FF-pos, FF-speed) and NTWO's
+  heading weight (NTWO-heading); five annealer seeds at every start.
 * **The decision parametrisation as a factor** (on a subset): NTWO and TWO-energy on the
   paper's own decision vector (the raw commands U of eq. 27) with four times the budget.
 * **Scenarios** (:func:`design`): the paper's Case 1 curve; Case 2 as a sweep of initial

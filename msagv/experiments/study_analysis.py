@@ -27,6 +27,14 @@ Per scenario instance (a path, speed, vehicle, load, plant, start and annealer s
   blind runs at least as accurate (the cheapest blind run if none is): the conservative
   ratio an unmatched instance enters the pooled number with.
 
+Case 2 (a recovery from an initial error, :func:`case2_compare`) is compared three ways,
+every start counted in every column (an unmatched one at its conservative fill): on the
+recovery itself (:mod:`experiments.recovery`: the wear until the vehicle is in a 5 cm band
+for good, against the blind runs that settle no later and stray and overshoot no
+further), at equal RMS error by the step rule, and on fronts read between their runs;
+each without the blind side's Case 2 levers, with them, and with them and 0.5 cm of
+matching slack (issue 29's check: does the ratio move by less than its interval?).
+
 Across scenarios: an instance's ratios are averaged (in logs) over its annealer seeds first
 (a scenario counts once however many seeds it has), then the geometric mean over the
 scenarios of a group and a 95 % percentile bootstrap interval that resamples scenarios
