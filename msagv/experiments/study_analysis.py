@@ -355,6 +355,10 @@ def case2_summary(items: list[dict]) -> dict | None:
                     "inside_ci": bool(lo <= s["gmean"] <= hi)}
         out["forms" if who == "aware" else "forms_TWO"] = forms
         out["goal" if who == "aware" else "goal_TWO"] = goal
+    # the former headline's form: the quadratic term alone, the step rule, the matched
+    # starts only (the unmatched dropped), as the blind side gets the levers and the slack
+    out["former"] = {var: pooled([d for d in items if not d.get(f"c2TWO:step:{var}:unmatched")],
+                                 f"c2TWO:step:{var}") for var, _ in CASE2_VARIANTS}
     starts: dict[str, dict] = {}
     for d in items:
         st = starts.setdefault(_start(d["scenario"]), {
@@ -658,6 +662,10 @@ def _md_case2(summary: dict) -> list[str]:
             verdict = ("n/a" if g is None else
                        f"{'yes' if g['inside_ci'] else 'no'} ({100 * g['change']:+.0f} %)")
             L.append(f"| {who} | {what} | " + " | ".join(cells) + f" | {verdict} |")
+    fo = c2["former"]
+    L.append("| TWO alone | the former headline's form: the step rule over the matched seeds "
+             "only (the unmatched dropped; n: starts) | "
+             + " | ".join(_ratio_text(fo[v], n=True) for v, _ in CASE2_VARIANTS) + " | |")
     L += ["\nPer start (seeds pooled in logs). The plain feed-forward (FF, no optimisation) "
           "beats a wear-aware run where it is at least as accurate and wears no more: on "
           "the lateral RMS error and the wear (RMS), and on the recovery (settles no later, "
