@@ -931,11 +931,11 @@ def plot_case2(comparisons: list[dict], path: Path) -> bool:
     plt = pyplot()
     starts = sorted({x for v in pts.values() for x in v},
                     key=lambda x: (x.endswith("m"), float(x.split()[0])))
-    series = [("ratio", "both wear-aware families", "k", "o")]
+    series = [("ratio", "both, at equal RMS error", "k", "o")]
     series += [(f"family:{f}", f, FAMILIES[f].style[0], FAMILIES[f].style[1])
                for f in ("TWO", "TWO-energy")]
-    series.append(("c2:recovery:levers", "recovery: wear until in the 5 cm band, against "
-                   "blind runs recovering at least as well", "C2", "s"))
+    series += [("c2:recovery:levers", "both, on the recovery", "C2", "s"),
+               ("c2TWO:recovery:levers", "TWO, on the recovery", "C5", "s")]
     with style():
         fig, axes = plt.subplots(1, len(pts), figsize=(WIDTH, 3.4), squeeze=False,
                                  sharey=True)
@@ -958,11 +958,11 @@ def plot_case2(comparisons: list[dict], path: Path) -> bool:
                             label="unmatched: most-accurate ratio")
             ax.axhline(1.0, color="k", lw=0.8, ls=":")
             ax.set_xticks(range(len(starts)), starts, rotation=45, fontsize=8)
-            ax.set_title(f"Case 2's line at {v:g} km/h, started off it")
+            ax.set_title(f"Case 2's line at {v:g} km/h, started off it", fontsize=9)
             ax.set_xlabel("start: heading error or lateral offset")
             ax.grid(alpha=0.3)
-        axes[0][0].set_ylabel("wear-aware / wear-blind at equal error [-]")
-        axes[0][0].legend(fontsize=7.5)
+        axes[0][0].set_ylabel("wear-aware / wear-blind [-]")
+        axes[0][0].legend(fontsize=6.5, loc="upper right")
         fig.tight_layout()
         fig.savefig(path)
         plt.close(fig)
