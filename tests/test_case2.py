@@ -171,6 +171,9 @@ def test_case2_unmatched_starts_are_counted_in_every_column():
     assert not c["c2:recovery:levers:unmatched"]
     assert not c["c2:ff_wins"]  # FF (50, 90) is less accurate than TWO (40, 60)
     assert c["c2:ff_beats"] == [0, 1]
+    # a matched start: the step form with the levers is the study's own ratio at equal error
+    assert cs["u2"]["reason"] is None
+    assert cs["u2"]["c2:step:levers"] == pytest.approx(cs["u2"]["ratio"])
     s = summarise(list(cs.values()))["case2"]
     for col in (s["equal_error"], s["at"]["1"], s["tolerance"]["0.5"]):
         assert col["n"] == 2 and col["missing"] == 0
