@@ -84,8 +84,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--ridge-scales", metavar="S,...",
                     help="pareto: factors of NTWO's R_ow, R_od; ridge: the levels (default 0,0.1,1)")
     ap.add_argument("--quick", action="store_true",
-                    help="study: the reduced design, a smoke test (about a minute on 2 "
-                         "cores; the full design about 65 min, docs/RESULTS.md); mismatch: 2 plants (tires x0.8, x1.2), "
+                    help="study: the reduced design, a smoke test (about a minute and a half "
+                         "on 2 cores; the full design's times: docs/RESULTS.md); mismatch: 2 "
+                         "plants (tires x0.8, x1.2), "
                          "2 paths, 1 seed, the quick levels")
     ap.add_argument("--trajectory", metavar="FILE",
                     help="study: add your own scenario on this t,x,y,phi CSV, run whole at "

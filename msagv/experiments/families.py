@@ -109,6 +109,11 @@ class Family:
         judge.
     study : swept by the study; raw : only on the scenarios of the decision-parametrisation
         factor (the paper's raw U).
+    classes : the study's classes it is swept in (None: every class); a family whose levers
+        answer one class's question (Case 2's recovery levers) stays out of the others, so
+        their numbers do not move.
+    not_in : classes it is not swept in: its lever does nothing there (the corner-cutting
+        smoothing on Case 2's straight line).
     style : (matplotlib colour, marker) in every figure.
     """
 
@@ -125,6 +130,8 @@ class Family:
     paper: bool = False
     study: bool = True
     raw: bool = False
+    classes: tuple[str, ...] | None = None
+    not_in: tuple[str, ...] = ()
     style: tuple[str, str] = ("k", "o")
 
     def __post_init__(self):
@@ -139,6 +146,12 @@ class Family:
             raise ValueError(f"family {self.name}: levels need a lever and a lever levels")
         for lv in tuple(self.levels) + tuple(self.quick_levels or ()):
             MPCSettings(**_tuples(self.settings_at(lv)))  # a bad value fails at import
+
+    def in_class(self, cls: str | None) -> bool:
+        """Whether the study sweeps this family in the class ``cls`` (None: any class)."""
+        if cls is None:
+            return self.classes is None
+        return (self.classes is None or cls in self.classes) and cls not in self.not_in
 
     def settings_at(self, level: float | None = None) -> dict:
         """The MPCSettings fields of this family at ``level`` (None: its base)."""
@@ -218,7 +231,31 @@ _TABLE = (
     Family("NTWO-wheel-cut", "NTWO-wheel tracking its reference smoothed along the path: "
            "cuts each corner by about sigma^2 kappa / 2", _WHEEL,
            lever=Lever("ref_smoothing", "sigma", unit="m"), levels=(0.35, 0.5, 0.7, 1.0, 1.4),
-           quick_levels=(0.5, 1.0), style=("navy", "h")),
+           quick_levels=(0.5, 1.0), not_in=("case2",), style=("navy", "h")),
+    # ---- Case 2's wear-blind recovery levers (issue 29 item 2): how hard the blind side
+    # turns back to the line. The feed-forward's pose feedback (controller.rollout.
+    # policy_head): its yaw-rate limit r_fb_max, its position gain K_pos and the limit of its
+    # velocity correction v_fb_max (the speed at which it closes a lateral gap); and NTWO's
+    # heading weight Q_phi. Case 2 only: elsewhere the recovery is not the question, and the
+    # other classes' numbers stay as they were ---------------------------------------------
+    Family("FF-yaw", "the feed-forward alone with its yaw-rate limit r_fb_max set",
+           {"model": "mf", "method": "ntwo"}, solver="ff",
+           lever=Lever("r_fb_max", "r_fb_max", unit="rad/s"),
+           levels=(0.15, 0.2, 0.25, 0.35, 0.45, 0.6, 0.8, 1.0), quick_levels=(0.45,),
+           classes=("case2",), style=("0.25", "1")),
+    Family("FF-pos", "the feed-forward alone with its position gain K_pos set",
+           {"model": "mf", "method": "ntwo"}, solver="ff",
+           lever=Lever("K_pos", "K_pos", unit="1/s"), levels=(0.5, 0.7, 1.5, 2.0, 3.0),
+           quick_levels=(1.5,), classes=("case2",), style=("0.25", "2")),
+    Family("FF-speed", "the feed-forward alone with the limit v_fb_max of its velocity "
+           "correction set", {"model": "mf", "method": "ntwo"}, solver="ff",
+           lever=Lever("v_fb_max", "v_fb_max", unit="m/s"), levels=(0.5, 0.75, 1.0, 2.0, 3.0),
+           quick_levels=(1.0,), classes=("case2",), style=("0.25", "3")),
+    Family("NTWO-heading", "NTWO with its heading weight Q_phi scaled",
+           {"model": "mf", "method": "ntwo"},
+           lever=Lever("Q", "Q_phi x", scale=True, components=(2,)),
+           levels=(0.1, 0.3, 3.0, 10.0), quick_levels=(0.3,), classes=("case2",),
+           style=("C0", "4")),
     # ---- the decision-parametrisation factor: the paper's raw U, 4x the annealing budget -
     Family("NTWO-raw", "NTWO on the paper's raw decision vector U (4x the annealing budget)",
            dict(_RAW, model="mf", method="ntwo"), raw=True, style=("C8", "<")),
@@ -249,9 +286,11 @@ def paper_methods() -> list[str]:
     return [f.name for f in FAMILIES.values() if f.paper]
 
 
-def study_families(raw: bool = False) -> list[Family]:
-    """The families the study sweeps in a scenario (``raw``: with the raw-U factor)."""
-    return [f for f in FAMILIES.values() if f.study and (raw or not f.raw)]
+def study_families(raw: bool = False, cls: str | None = None) -> list[Family]:
+    """The families the study sweeps in a scenario of the class ``cls`` (``raw``: with the
+    raw-U factor; ``cls`` None: the families of every class)."""
+    return [f for f in FAMILIES.values()
+            if f.study and (raw or not f.raw) and f.in_class(cls)]
 
 
 def wear_aware() -> set[str]:

@@ -27,6 +27,14 @@ Per scenario instance (a path, speed, vehicle, load, plant, start and annealer s
   blind runs at least as accurate (the cheapest blind run if none is): the conservative
   ratio an unmatched instance enters the pooled number with.
 
+Case 2 (a recovery from an initial error, :func:`case2_compare`) is compared three ways,
+every start counted in every column (an unmatched one at its conservative fill): on the
+recovery itself (:mod:`experiments.recovery`: the wear until the vehicle is in a 5 cm band
+for good, against the blind runs that settle no later and stray and overshoot no
+further), at equal RMS error by the step rule, and on fronts read between their runs;
+each without the blind side's Case 2 levers, with them, and with them and 0.5 cm of
+matching slack (issue 29's check: does the ratio move by less than its interval?).
+
 Across scenarios: an instance's ratios are averaged (in logs) over its annealer seeds first
 (a scenario counts once however many seeds it has), then the geometric mean over the
 scenarios of a group and a 95 % percentile bootstrap interval that resamples scenarios
@@ -47,6 +55,7 @@ import numpy as np
 from msagv.controller.floors import BROKEN_RATIO, NO_FLOOR_J, broken_floor
 
 from .families import FAMILIES
+from .recovery import BAND_M, front_ratio, matched_recovery, recovery_of_log
 from .tables import fmt, lower_front
 
 METRICS = ("W_tw", "W_s", "W_alpha", "W_t", "e_lat_rms_cm", "e_lat_max_cm", "e_phi_deg",
@@ -102,13 +111,14 @@ def equal_error(aware, blind) -> dict:
     return out
 
 
-def most_accurate_ratio(aware_pts, blind_pts) -> float | None:
+def most_accurate_ratio(aware_pts, blind_pts, slack: float = 0.0) -> float | None:
     """The aware side's most accurate run against the least wear of the blind runs at least
-    as accurate, or of every blind run if none is (conservative for the wear term)."""
+    as accurate (or at most ``slack`` less), or of every blind run if none is (conservative
+    for the wear term)."""
     if not aware_pts or not blind_pts:
         return None
     e0, w0 = min(aware_pts)
-    ok = [w for e, w in blind_pts if e <= e0 * (1 + 1e-9)]
+    ok = [w for e, w in blind_pts if e <= e0 * (1 + 1e-9) + slack]
     return w0 / min(ok or [w for _, w in blind_pts])
 
 
@@ -216,7 +226,162 @@ def _compare_one(name: str, rs: list[dict]) -> dict:
     for fam in sorted({r["family"] for r in ok if r["aware"]}):
         front = lower_envelope(_points(ok, lambda r, f=fam: r["family"] == f))
         d[f"family:{fam}"] = None if d["reason"] == _NO_WEAR else equal_error(front, blind)["mean"]
+    if first["class"] == "case2":
+        d.update(case2_compare(ok, aware, a_pts))
+        # the paper's quadratic term alone (the page's Case 2 sentence is about it)
+        two = [r for r in ok if not r["aware"] or r["family"] == "TWO"]
+        d.update(case2_compare(two, lower_envelope(_points(two, lambda r: r["aware"])),
+                               _points(two, lambda r: r["aware"]), prefix="c2TWO"))
     return d
+
+
+# ---- Case 2: the recovery compared (issue 29 item 2) ---------------------------------------
+SLACK_CM = 0.5  # the matching slack the blind side gets in the robustness check [cm]
+CASE2_LEVERS = frozenset(f.name for f in FAMILIES.values()
+                         if f.classes == ("case2",) and not f.wear_aware)
+# Case 2's measures: (key, what it is); each enters every instance (an unmatched one at its
+# conservative fill, counted under KEY:unmatched)
+CASE2_FORMS = (
+    ("recovery", "recovery: wear until settled in the 5 cm band, against the cheapest blind "
+                 "run settling no later, straying and overshooting no further (every aware "
+                 "run on its front)"),
+    ("step", "equal lateral RMS error, the step rule (the study's headline form)"),
+    ("interp", "equal lateral RMS error, the fronts read between their runs (log-log)"),
+)
+# the three ways each form is measured: the blind side without the recovery levers and no
+# slack (as the study reported), with the levers, with the levers and 0.5 cm of slack
+CASE2_VARIANTS = (("base", "blind side without the recovery levers"),
+                  ("levers", "with the recovery levers"),
+                  ("slack", f"with the levers and {SLACK_CM:g} cm of matching slack"))
+
+
+def _recovery_points(rows, pick, slack: bool = False) -> list[tuple[float, float, float]]:
+    """``(t_settle [s], peak [cm], overshoot [cm], W_settle [J])`` of the rows ``pick``
+    selects that recovered; ``slack``: settled into the band widened by :data:`SLACK_CM`."""
+    ts, ws = ("t_settle_slack_s", "W_settle_slack") if slack else ("t_settle_s", "W_settle")
+    return [(r[ts], r["peak_cm"], r["overshoot_cm"], r[ws]) for r in rows
+            if pick(r) and r.get(ts) is not None and r.get(ws) is not None]
+
+
+def case2_compare(ok: list[dict], aware: list, a_pts: list, prefix: str = "c2") -> dict:
+    """A Case 2 instance's recovery compared three ways (:data:`CASE2_FORMS`), each
+    without the blind side's recovery levers, with them, and with them and
+    :data:`SLACK_CM` of slack (:data:`CASE2_VARIANTS`); every value filled for an
+    unmatched instance (``c2:FORM:VARIANT:unmatched`` True), so no Case 2 column drops a
+    start. And whether the plain feed-forward beats every wear-aware run (``c2:ff_wins``:
+    at least as accurate and no more wear, on the lateral RMS and on the recovery).
+    ``prefix``: the keys' first part (``c2``; ``c2TWO`` for the quadratic term alone)."""
+    out: dict = {}
+    base_pick = lambda r: not r["aware"] and r["family"] not in CASE2_LEVERS  # noqa: E731
+    blind_pick = lambda r: not r["aware"]  # noqa: E731
+    rec_a = _recovery_points(ok, lambda r: r["aware"])
+    for var, pick, slack in (("base", base_pick, 0.0), ("levers", blind_pick, 0.0),
+                             ("slack", blind_pick, SLACK_CM)):
+        b_pts = _points(ok, pick)
+        blind = lower_envelope(b_pts)
+        ma = most_accurate_ratio(a_pts, b_pts, slack)
+        for form, rule in (("step", wear_within), ("interp", None)):
+            kw = {} if rule is None else {"wear_at": rule}
+            v = front_ratio(aware, blind, slack, **kw) if aware and blind else None
+            out[f"{prefix}:{form}:{var}"] = v if v is not None else ma
+            out[f"{prefix}:{form}:{var}:unmatched"] = v is None
+        rec_b = _recovery_points(ok, pick, slack=bool(slack))
+        m = matched_recovery(rec_a, rec_b, slack=slack)
+        out[f"{prefix}:recovery:{var}"] = m["ratio"]
+        out[f"{prefix}:recovery:{var}:unmatched"] = m["n"] > 0 and m["matched"] == 0
+        out[f"{prefix}:recovery:{var}:runs"] = [m["matched"], m["n"]]
+    ff = [r for r in ok if r["family"] == "FF"]
+    aw = [r for r in ok if r["aware"]]
+    if ff and aw:
+        f = ff[0]
+        rms = [f["e_lat_rms_cm"] <= a["e_lat_rms_cm"] and f["W_tw"] <= a["W_tw"] for a in aw]
+        rec = [f.get("t_settle_s") is not None and (
+            a.get("t_settle_s") is None or
+            (f["t_settle_s"] <= a["t_settle_s"] and f["overshoot_cm"] <= a["overshoot_cm"]
+             and f["peak_cm"] <= a["peak_cm"] and f["W_settle"] <= a["W_settle"]))
+            for a in aw]
+        # the plain feed-forward beats how many of the wear-aware runs (at least as
+        # accurate and no more wear), of how many; ff_wins: all of them
+        out[f"{prefix}:ff_beats"] = [sum(rms), len(aw)]
+        out[f"{prefix}:ff_beats_recovery"] = [sum(rec), len(aw)]
+        out[f"{prefix}:ff_wins"] = all(rms)
+        out[f"{prefix}:ff_wins_recovery"] = all(rec)
+    return out
+
+
+def add_recovery(rows: list[dict], out: Path) -> None:
+    """The recovery metrics (:func:`experiments.recovery.recovery`) of every finished
+    Case 2 run, from its per-step log under ``out/runs/``: ``t_settle_s``, ``W_settle``,
+    ``overshoot_cm``, ``peak_cm`` at the 5 cm band, and ``t_settle_slack_s``,
+    ``W_settle_slack`` at the band widened by :data:`SLACK_CM`."""
+    wide = BAND_M + SLACK_CM / 100.0
+    for r in rows:
+        if r["class"] != "case2" or r["status"] != "ok":
+            continue
+        p = out / "runs" / f"{r['key']}.csv"
+        if not p.is_file():
+            continue
+        rec = recovery_of_log(p, (BAND_M, wide))
+        a, b = rec[BAND_M], rec[wide]
+        r.update(t_settle_s=a["t_settle"], W_settle=a["W_settle"],
+                 overshoot_cm=100.0 * a["overshoot"], peak_cm=100.0 * a["peak"],
+                 t_settle_slack_s=b["t_settle"], W_settle_slack=b["W_settle"])
+
+
+def case2_summary(items: list[dict]) -> dict | None:
+    """Case 2's pooled forms (every instance counted: the unmatched at their fill), the
+    goal's check (does the form's ratio move by less than its own interval when the blind
+    side gets the levers and the slack?) and where the plain feed-forward wins."""
+    items = [d for d in items if any(k.startswith("c2:") for k in d)]
+    if not items:
+        return None
+    out = {}
+    for who, prefix in (("aware", "c2"), ("TWO", "c2TWO")):
+        forms, goal = {}, {}
+        for form, _ in CASE2_FORMS:
+            f = {}
+            for var, _ in CASE2_VARIANTS:
+                key = f"{prefix}:{form}:{var}"
+                p = pooled(items, key)
+                p["unmatched"] = sum(1 for d in items if d.get(key + ":unmatched"))
+                f[var] = p
+            forms[form] = f
+            b, s = f["base"], f["slack"]
+            if b["gmean"] is not None and s["gmean"] is not None and b["ci95"][0] is not None:
+                lo, hi = b["ci95"]
+                goal[form] = {
+                    "base": b["gmean"], "with_levers_and_slack": s["gmean"],
+                    "change": s["gmean"] / b["gmean"] - 1.0, "base_ci95": [lo, hi],
+                    "inside_ci": bool(lo <= s["gmean"] <= hi)}
+        out["forms" if who == "aware" else "forms_TWO"] = forms
+        out["goal" if who == "aware" else "goal_TWO"] = goal
+    # the former headline's form: the quadratic term alone, the step rule, the matched
+    # starts only (the unmatched dropped), as the blind side gets the levers and the slack
+    out["former"] = {var: pooled([d for d in items if not d.get(f"c2TWO:step:{var}:unmatched")],
+                                 f"c2TWO:step:{var}") for var, _ in CASE2_VARIANTS}
+    starts: dict[str, dict] = {}
+    for d in items:
+        st = starts.setdefault(_start(d["scenario"]), {
+            "seeds": 0, "ff_wins": 0, "ff_wins_recovery": 0, "ff_beats": [0, 0],
+            "ff_beats_recovery": [0, 0]})
+        st["seeds"] += 1
+        st["ff_wins"] += bool(d.get("c2:ff_wins"))
+        st["ff_wins_recovery"] += bool(d.get("c2:ff_wins_recovery"))
+        for k in ("ff_beats", "ff_beats_recovery"):
+            st[k] = [a + b for a, b in zip(st[k], d.get(f"c2:{k}") or (0, 0))]
+    for name, st in starts.items():
+        ds = [d for d in items if _start(d["scenario"]) == name]
+        for form, _ in CASE2_FORMS:
+            for var, _ in CASE2_VARIANTS:
+                v = [d[f"c2:{form}:{var}"] for d in ds if d.get(f"c2:{form}:{var}")]
+                st[f"{form}:{var}"] = float(np.exp(np.mean(np.log(v)))) if v else None
+    out["starts"] = starts
+    return out
+
+
+def _start(scenario: str) -> str:
+    """A Case 2 instance's start (its name without the seed)."""
+    return scenario.rsplit(", seed ", 1)[0]
 
 
 _NO_WEAR = f"no wear to compare: every run wears under {NO_WEAR_J:g} J"
@@ -335,6 +500,18 @@ def summarise(comparisons: list[dict]) -> dict:
                            "most_accurate": d["most_accurate"]}
                           for d in items if d["reason"] is not None],
         }
+        if g == "case2":
+            # Case 2: no column drops an unmatched start (issue 29): each enters at its
+            # most-accurate ratio, and the recovery forms beside them
+            out[g].update(
+                equal_error=pooled(items, fill="most_accurate"),
+                at={f"{lv:g}": pooled(items, f"at:{lv:g}", fill="most_accurate")
+                    for lv in LEVELS_CM},
+                tolerance={f"{t:g}": pooled(items, f"tol:{t:g}", fill="most_accurate")
+                           for t in TOLERANCES_CM},
+                by_family={f: pooled([d for d in items if f"family:{f}" in d], f"family:{f}",
+                                     fill="most_accurate") for f in fams},
+                case2=case2_summary(items))
     return out
 
 
@@ -460,6 +637,52 @@ def _md_families(summary: dict) -> list[str]:
     return L
 
 
+def _md_case2(summary: dict) -> list[str]:
+    """Case 2's recovery compared (:func:`case2_summary`), when the design has Case 2."""
+    c2 = (summary.get("case2") or {}).get("case2")
+    if not c2:
+        return []
+    L = ["\n## Case 2: the recovery compared\n",
+         "Wear-aware / wear-blind, geometric mean over the starts [95 % bootstrap CI], every "
+         "start counted (an unmatched one at its conservative fill: the aware side's best "
+         "against the cheapest blind run if no blind run is as good; u: how many seeds of "
+         "all were unmatched). The recovery levers are the Case 2 families "
+         f"{', '.join(sorted(CASE2_LEVERS))}; the slack lets the blind side be {SLACK_CM:g} "
+         "cm less accurate (the recovery: a band and an overshoot that much wider).\n",
+         "| wear-aware | form | " + " | ".join(v for _, v in CASE2_VARIANTS)
+         + " | goal: the last within the first's interval |",
+         "|---|---|" + "---|" * (len(CASE2_VARIANTS) + 1)]
+    for who, fk, gk in (("TWO and TWO-energy", "forms", "goal"),
+                        ("TWO alone", "forms_TWO", "goal_TWO")):
+        for form, what in CASE2_FORMS:
+            f = c2[fk][form]
+            cells = [f"{_ratio_text(f[v])} (u {f[v]['unmatched']} of "
+                     f"{f[v]['instances'] + f[v]['missing']})" for v, _ in CASE2_VARIANTS]
+            g = c2[gk].get(form)
+            verdict = ("n/a" if g is None else
+                       f"{'yes' if g['inside_ci'] else 'no'} ({100 * g['change']:+.0f} %)")
+            L.append(f"| {who} | {what} | " + " | ".join(cells) + f" | {verdict} |")
+    fo = c2["former"]
+    L.append("| TWO alone | the former headline's form: the step rule over the matched seeds "
+             "only (the unmatched dropped; n: starts) | "
+             + " | ".join(_ratio_text(fo[v], n=True) for v, _ in CASE2_VARIANTS) + " | |")
+    L += ["\nPer start (seeds pooled in logs). The plain feed-forward (FF, no optimisation) "
+          "beats a wear-aware run where it is at least as accurate and wears no more: on "
+          "the lateral RMS error and the wear (RMS), and on the recovery (settles no later, "
+          "strays and overshoots no further, wears no more until then); the wear-aware runs "
+          "it beats, of all the start's (every seed), and the seeds where it beats all:\n",
+          "| start | recovery (levers) | step (levers) | interp (levers) | interp (levers + "
+          "slack) | FF beats (RMS) | FF beats (recovery) | FF beats all (RMS / recovery) |",
+          "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, st in c2["starts"].items():
+        L.append(f"| {name} | {_f(st['recovery:levers'], 3)} | {_f(st['step:levers'], 3)} | "
+                 f"{_f(st['interp:levers'], 3)} | {_f(st['interp:slack'], 3)} | "
+                 f"{st['ff_beats'][0]} of {st['ff_beats'][1]} | "
+                 f"{st['ff_beats_recovery'][0]} of {st['ff_beats_recovery'][1]} | "
+                 f"{st['ff_wins']} / {st['ff_wins_recovery']} of {st['seeds']} seeds |")
+    return L
+
+
 def _md_unmatched(comparisons: list[dict]) -> list[str]:
     rows = [d for d in comparisons if d["reason"] is not None]
     if not rows:
@@ -518,7 +741,8 @@ def markdown(summary: dict, fam: list[dict], comparisons: list[dict], runs: dict
     user = user_label(described)
     warn = ([f"**Warning: {w}.**\n" for w in broken] if broken else [])
     L = (_md_head(runs, described) + warn + _md_headline(summary, user) + _md_forms(summary)
-         + _md_families(summary) + _md_unmatched(comparisons) + _md_family_table(fam)
+         + _md_families(summary) + _md_case2(summary) + _md_unmatched(comparisons)
+         + _md_family_table(fam)
          + _md_scenarios(comparisons))
     return "\n".join(L) + "\n"
 
@@ -688,8 +912,9 @@ def plot_ratios(summary: dict, path: Path) -> None:
 
 def plot_case2(comparisons: list[dict], path: Path) -> bool:
     """Case 2's sweep: per speed, the ratio at equal error against the start (heading
-    error, lateral offset), both wear-aware families together and each alone; an unmatched
-    start at its most-accurate ratio (open). False when the design has no sweep."""
+    error, lateral offset), both wear-aware families together and each alone, and the
+    recovery form (:func:`case2_compare`); an unmatched start at its most-accurate ratio
+    (open). False when the design has no sweep."""
     import re
 
     from .plots import WIDTH, pyplot, style
@@ -706,9 +931,11 @@ def plot_case2(comparisons: list[dict], path: Path) -> bool:
     plt = pyplot()
     starts = sorted({x for v in pts.values() for x in v},
                     key=lambda x: (x.endswith("m"), float(x.split()[0])))
-    series = [("ratio", "both wear-aware families", "k", "o")]
+    series = [("ratio", "both, at equal RMS error", "k", "o")]
     series += [(f"family:{f}", f, FAMILIES[f].style[0], FAMILIES[f].style[1])
                for f in ("TWO", "TWO-energy")]
+    series += [("c2:recovery:levers", "both, on the recovery", "C2", "s"),
+               ("c2TWO:recovery:levers", "TWO, on the recovery", "C5", "s")]
     with style():
         fig, axes = plt.subplots(1, len(pts), figsize=(WIDTH, 3.4), squeeze=False,
                                  sharey=True)
@@ -731,11 +958,11 @@ def plot_case2(comparisons: list[dict], path: Path) -> bool:
                             label="unmatched: most-accurate ratio")
             ax.axhline(1.0, color="k", lw=0.8, ls=":")
             ax.set_xticks(range(len(starts)), starts, rotation=45, fontsize=8)
-            ax.set_title(f"Case 2's line at {v:g} km/h, started off it")
+            ax.set_title(f"Case 2's line at {v:g} km/h, started off it", fontsize=9)
             ax.set_xlabel("start: heading error or lateral offset")
             ax.grid(alpha=0.3)
-        axes[0][0].set_ylabel("wear-aware / wear-blind at equal error [-]")
-        axes[0][0].legend(fontsize=7.5)
+        axes[0][0].set_ylabel("wear-aware / wear-blind [-]")
+        axes[0][0].legend(fontsize=6.5, loc="upper right")
         fig.tight_layout()
         fig.savefig(path)
         plt.close(fig)
@@ -751,6 +978,7 @@ def report_study(results: list[dict], floors: dict, scenarios, described: dict, 
     from .results import stamp
 
     rows = [_row(r, floors, described) for r in results]
+    add_recovery(rows, out)
     comparisons = compare(rows)
     summary = summarise(comparisons)
     fam = family_table(rows)
