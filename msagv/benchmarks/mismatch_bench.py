@@ -3,7 +3,7 @@ from the controller's file, with and without the offset-free disturbance and the
 adaptation, against the same MPC given the plant's own tires.
 
     python -m msagv.benchmarks.mismatch_bench [--scales 0.8,1.2] [--paths curve:25,lane:15,random:20]
-        [--method ntwo] [--duration 15] [--json]
+        [--method ntwo] [--duration 15] [--set NAME=VALUE ...] [--json]
 
 Per path and plant tire factor (B and mu of both Magic Formula curves times the factor, as
 ``Scenario.plant_tire_scale``), four controllers:
@@ -29,12 +29,13 @@ VARIANTS = ("wrong", "offset-free", "adapted", "true")
 
 
 def run_one(case: str, speed: float, scale: float, variant: str, method: str,
-            duration: float, path_seed: int = 0) -> dict:
-    """One closed loop: the metrics and the controller's estimates."""
+            duration: float, path_seed: int = 0, extra: dict | None = None) -> dict:
+    """One closed loop: the metrics and the controller's estimates. ``extra``: MPC
+    settings every variant gets (``--set``)."""
     from msagv.controller.loop import closed_loop
     from msagv.experiments.scenario import Scenario
 
-    settings = {"method": method}
+    settings = {**(extra or {}), "method": method}
     if variant == "wrong":
         settings["offset_free"] = False
     elif variant == "adapted":
@@ -76,8 +77,17 @@ def main(argv: list[str] | None = None) -> int:
                          "change at 15, three random paths at 20 km/h)")
     ap.add_argument("--method", default="ntwo", help="the MPC's wear term (default ntwo)")
     ap.add_argument("--duration", type=float, default=15.0, help="seconds per run (default 15)")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="an MPCSettings field for every variant, e.g. --set "
+                         "disturbance_tau=0.02 (the variants' own switches stay theirs)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     a = ap.parse_args(argv)
+    from msagv.cli.args import OptionError, settings_from_args
+
+    try:
+        extra = settings_from_args(argparse.Namespace(set=a.set))
+    except (OptionError, ValueError) as e:
+        ap.error(str(e))
     from tqdm import tqdm
 
     scales = [float(s) for s in a.scales.split(",")]
@@ -85,12 +95,12 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     t0 = time.time()
     for c, v, s, p, var in tqdm(jobs, file=sys.stderr, disable=a.json or not sys.stderr.isatty()):
-        rows.append(run_one(c, v, s, var, a.method, a.duration, p))
+        rows.append(run_one(c, v, s, var, a.method, a.duration, p, extra))
     if a.json:
         print(json.dumps({"rows": rows, "wall_s": time.time() - t0}, indent=1))
         return 0
     print(f"lateral RMS [cm] (ratio to the true model) and W_tw [J]; {a.method}, "
-          f"{a.duration:g} s per run")
+          f"{a.duration:g} s per run" + (f"; {' '.join(a.set)}" if a.set else ""))
     print(f"{'path':<16}{'tires':>6}" + "".join(f"{v:>22}" for v in VARIANTS))
     for c, v, p in _paths(a.paths):
         for s in scales:
