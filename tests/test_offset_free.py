@@ -232,3 +232,18 @@ def test_adapt_is_refused_where_it_cannot_act():
     pytest.importorskip("casadi")
     with pytest.raises(ControllerError, match="adapt: the ipopt solver builds the tires"):
         MPC(default_vehicle(), MPCSettings(adapt=True), solver="ipopt")
+
+
+def test_mismatch_bench_refuses_an_unknown_setting_and_applies_a_known_one(capsys):
+    """``python -m msagv.benchmarks.mismatch_bench --set``: a bad name is one line and exit
+    2 before any run; a known one reaches every variant's controller."""
+    from msagv.benchmarks import mismatch_bench as mb
+
+    with pytest.raises(SystemExit) as e:
+        mb.main(["--set", "bogus=1", "--paths", "lane:15"])
+    assert e.value.code == 2 and "unknown setting 'bogus'" in capsys.readouterr().err
+    r = mb.run_one("lane", 15.0, 1.2, "offset-free", "ntwo", 0.5, 0, {"disturbance_tau": 0.2})
+    r0 = mb.run_one("lane", 15.0, 1.2, "offset-free", "ntwo", 0.5, 0)
+    assert r["disturbance"]["updates"] == r0["disturbance"]["updates"] > 0
+    # the same prediction error moves d by 1/tau: a quarter as far at 0.2 s as at 0.05 s
+    assert abs(r["disturbance"]["d_v"]) < abs(r0["disturbance"]["d_v"])
