@@ -757,6 +757,76 @@ def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
     assert speed < max(0.5, 4.2 - 2.0 * (6.0 - t_safe) + 0.5), (t_safe, speed)
 
 
+def test_a_second_publisher_never_drives_until_an_operator_rearms(procs, ros_env):
+    """Issue 30: on ROS 2 any second publisher's commands were applied, and kept the plant
+    out of its safe behaviour when the controller died. Now the realtime plant takes each
+    command topic from the first publisher it heard: a second one (real rclpy, steering
+    targets 0.4 rad, the controller's a few hundredths) is rejected as ``not_owner`` while
+    the controller lives and after its SIGKILL (the plant goes safe and stays safe), until
+    ``~/rearm`` (std_srvs/Trigger) lets it drive."""
+    _ros()
+    import signal
+
+    try:
+        from std_srvs.srv import Trigger
+    except ImportError as e:
+        pytest.skip(f"std_srvs not installed: {e}")
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    procs.start("plant", msagv("ros2", "plant", "--run-mode", "realtime", "--case", "curve",
+                               "--duration", "9", "--stale-ms", "100", "--json", "-q"))
+    ctl = procs.start("ctl", msagv("ros2", "controller", "--case", "curve", "-q"))
+    peer = Peer("second_controller")
+    n = peer.node
+    t_odom, steer = [0.0], []  # (vehicle time, the largest |steering angle|)
+    n.create_subscription(Odometry, "odom", lambda m: t_odom.__setitem__(0, _stamp(m.header)),
+                          10)
+    n.create_subscription(JointState, "joint_states", lambda m: steer.append(
+        (_stamp(m.header), max(abs(p) for nm, p in zip(m.name, m.position)
+                               if nm.startswith("steer")))), 10)
+    pubs, sent = [], [0]
+
+    def publish():
+        pubs[0].publish(Float64MultiArray(data=[0.4] * 4))
+        pubs[1].publish(Float64MultiArray(data=[5.0] * 4))
+        sent[0] += 1
+
+    rearm = n.create_client(Trigger, "/msagv_plant/rearm")
+    try:
+        assert peer.spin(120, until=lambda: t_odom[0] >= 1.0), procs.err("plant")[-2000:]
+        # (publishers declared now: the plant starts once a node publishes both topics)
+        pubs += [n.create_publisher(Float64MultiArray, "steering_controller/commands", 10),
+                 n.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)]
+        timer = n.create_timer(0.01, publish)
+        assert peer.spin(60, until=lambda: t_odom[0] >= 2.5)
+        ctl.send_signal(signal.SIGKILL)
+        ctl.wait(10)
+        assert peer.spin(60, until=lambda: t_odom[0] >= 5.0)
+        t_rearm, sent_before = t_odom[0], sent[0]
+        assert _call(peer, rearm, Trigger.Request()).success
+        peer.spin(60, until=lambda: procs.p["plant"].poll() is not None)
+        timer.cancel()
+    finally:
+        peer.close()
+    assert procs.wait("plant", 60) == 0, procs.err("plant")[-2000:]
+    s = procs.json("plant")
+    before = [d for t, d in steer if 1.0 <= t < t_rearm]
+    after = [d for t, d in steer if t > t_rearm + 1.0]
+    print(f"\nsecond publisher: {sent[0]} sent; rejected {s['rejected']}; safe {s['safe']}; "
+          f"steering before the rearm <= {max(before):.3f} rad, after {max(after):.3f}")
+    assert sent[0] > 200 and s["completed"] and s["rearms"] == 1
+    # (two messages a publish: every one before the rearm rejected, if DDS lost half)
+    assert s["rejected"]["by_reason"].get("not_owner", 0) >= sent_before
+    # the controller's curve: steering of a few hundredths; the second publisher's 0.4 rad
+    # never applied while the controller lived, nor after its death (the plant safe)
+    assert max(before) < 0.2
+    assert s["safe"]["events"] >= 1 and s["safe"]["resumes"] >= 1
+    # re-armed: the next publisher (the second one) drives
+    assert max(after) > 0.35 and all(g for g in s["sources"].values())
+
+
 # ---- a managed node: lifecycle, parameters at run time, diagnostics, services --------------
 def _call(peer, client, request):
     """A service call by real rclpy: the response (the node answers within 60 s)."""

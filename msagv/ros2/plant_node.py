@@ -26,6 +26,15 @@ decisions count that clock's periods) and does not publish ``clock`` itself. A l
 plant is the simulator: it publishes ``clock``, and its waits stay on the wall clock (its
 own time stands while it waits). A malformed command (wrong length, not finite, a negative wheel
 speed) is rejected, counted by reason and never applied.
+
+One publisher per command topic drives: the first whose valid command arrives once state 0
+is out (its publisher GID, from rclpy's message info). Another publisher's commands are
+rejected as ``not_owner`` before they are read and counted, also after the bound one fell
+silent or left (the safe behaviour or the lockstep timeout follows, never a takeover), until
+an operator calls ``~/rearm`` (std_srvs/Trigger): then the next publisher to send binds.
+This keeps a second, stale or misconfigured controller from driving; it authenticates
+nobody (a process may publish under any node name): SROS2's access control decides who may
+publish on the command topics at all (docs/ROS2.md).
 """
 
 from __future__ import annotations
@@ -44,6 +53,15 @@ from msagv.bridge.run_core import Command, PlantRun, PlantRunError, RunConfig, W
 from .runtime import Context, Ros2Unavailable
 
 log = logging.getLogger("msagv.ros2.plant")
+
+def _gid(info) -> bytes:
+    """A publisher's GID from rclpy's message info (``publisher_gid``: a dict with the
+    bytes as ``data``), as bytes; b"" where the middleware gives none."""
+    g = (info or {}).get("publisher_gid") if isinstance(info, dict) else None
+    if isinstance(g, dict):
+        g = g.get("data")
+    return bytes(g) if g is not None else b""
+
 
 RosPlantError = PlantRunError  # the run cannot go on (no controller, a timeout, a failed step)
 SIM_LOOK_S = 0.002  # under use_sim_time the clock's pace is the simulator's: look this often
@@ -110,8 +128,21 @@ class RosPlant:
                     raise
                 self.tf_published = False
                 log.warning("not publishing tf: %s; the pose is on odom", e)
+        # the publisher (GID) each command topic is bound to (None: the next one to send)
+        self.sources: dict[str, bytes | None] = {R.STEERING_COMMANDS: None,
+                                                 R.WHEEL_COMMANDS: None}
+        self.rearms = 0
         self._subs = [self.ctx.subscription(R.STEERING_COMMANDS, self._on_steer),
                       self.ctx.subscription(R.WHEEL_COMMANDS, self._on_wheel)]
+        self._services = []
+        try:
+            import std_srvs.srv as srv
+
+            self._services.append(self.ctx.node.create_service(srv.Trigger, "~/rearm",
+                                                               self._on_rearm))
+        except ImportError as e:
+            log.warning("no ~/rearm service: %s (pip install ros-std-srvs); a new controller "
+                        "can then drive only a new run", e)
 
     seq = property(lambda self: self.core.seq)
     error = property(lambda self: self.core.error)
@@ -133,17 +164,52 @@ class RosPlant:
             return None
         return v
 
-    def _on_steer(self, msg) -> None:
+    def _from_source(self, topic: str, info) -> bool:
+        """The command comes from the publisher ``topic`` is bound to (binding the first
+        one once state 0 is out); another's is rejected as ``not_owner``."""
+        gid = _gid(info)
+        bound = self.sources[topic]
+        if bound is None:
+            if self.seq < 0:
+                return True  # before state 0 nothing is taken anyway
+            self.sources[topic] = gid
+            log.info("commands on %s from publisher %s", topic, gid.hex()[:16])
+            self.rec.event("source", topic=topic, gid=gid.hex())
+            return True
+        if gid == bound:
+            return True
+        self.rej.add(M.MessageError(
+            M.NOT_OWNER, f"from publisher {gid.hex()[:16]}, not {bound.hex()[:16]} that "
+            f"drives (a second controller? ~/rearm lets the next publisher drive)"), topic)
+        return False
+
+    def _on_steer(self, msg, info) -> None:  # (two arguments: rclpy passes the info)
+        if not self._from_source(R.STEERING_COMMANDS, info):
+            return
         v = self._check(msg, R.STEERING_COMMANDS, nonneg=False)
         if v is not None and self.seq >= 0:
             self._steer = (self.seq, v)
             self._answered()
 
-    def _on_wheel(self, msg) -> None:
+    def _on_wheel(self, msg, info) -> None:
+        if not self._from_source(R.WHEEL_COMMANDS, info):
+            return
         v = self._check(msg, R.WHEEL_COMMANDS, nonneg=True)
         if v is not None and self.seq >= 0:
             self._wheel = (self.seq, v)
             self._answered()
+
+    def _on_rearm(self, request, response):
+        """``~/rearm`` (std_srvs/Trigger): the next publisher to send on each command topic
+        drives (the safe behaviour ends as ever: once its commands keep up)."""
+        was = {t: (g.hex()[:16] if g is not None else None) for t, g in self.sources.items()}
+        self.sources = dict.fromkeys(self.sources)
+        self.rearms += 1
+        log.warning("re-armed by an operator: the next publisher on %s and %s drives "
+                    "(was %s)", R.STEERING_COMMANDS, R.WHEEL_COMMANDS, was)
+        self.rec.event("armed", was=was)
+        response.success, response.message = True, "re-armed: the next publisher drives"
+        return response
 
     def _answered(self) -> None:
         s, w, k = self._steer, self._wheel, self.seq
@@ -234,4 +300,6 @@ class RosPlant:
         return {"role": "ros2 plant", **self.core.summary(),
                 "clock": "ros" if self.sim_time else "wall",
                 "commands": {"accepted": st.accepted, "after_end": st.after_end},
+                "sources": {t: (g.hex() if g is not None else None)
+                            for t, g in self.sources.items()}, "rearms": self.rearms,
                 "rejected": self.rej.summary(), "tf": self.tf_published}
