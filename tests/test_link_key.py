@@ -18,6 +18,7 @@ from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 from msagv.bridge import messages as M
 from msagv.bridge.link_key import KeyPair, LinkKeyError, LinkKeys, derive
 from msagv.bridge.ownership import (GRANTED, KEY_MISMATCH, OWNED, RELEASE, Ownership,
+                                    RearmPolicy,
                                     decode_claim, decode_grant, encode_claim, encode_grant)
 
 
@@ -90,22 +91,44 @@ def test_a_public_key_that_is_not_one_is_refused():
 
 
 def test_a_claim_in_the_owners_name_without_its_key_changes_nothing():
+    """The key ``pk`` is public (every claim carries it): the owner's release needs the
+    proof (a ``mac`` under the command key), a claim with another key is refused, and the
+    owner's key without the proof is told ``granted`` and changes nothing."""
     o = Ownership()
     k1, k2 = KeyPair().public, KeyPair().public
-    assert o.claim("c1", pk=k1, link="L1").granted and o.owner_link == ("c1", "L1")
-    assert o.claim("c1", pk=k1, link="L1").reason == GRANTED  # the owner's refresh
-    for pk in (k2, None):  # a copier of c1's source info: another key or none
+    assert o.claim("c1", pk=k1, link="L1", wheel_wear=True).granted
+    assert o.owner_link == ("c1", "L1") and o.wheel_wear
+    assert o.claim("c1", pk=k1, proven=True).reason == GRANTED  # the owner's refresh
+    for pk in (k2, None):  # a copier of c1's source info with another key, or none
         assert o.claim("c1", pk=pk).reason == KEY_MISMATCH
         assert o.claim("c1", RELEASE, pk=pk).reason == KEY_MISMATCH
+    # the copied key itself: a release refused, a claim told granted that changes nothing
+    assert o.claim("c1", RELEASE, pk=k1).reason == KEY_MISMATCH
+    assert o.claim("c1", pk=k1, wheel_wear=False).reason == GRANTED and o.wheel_wear
     assert o.owner == "c1" and o.owner_link == ("c1", "L1") and o.state == "owned"
-    assert o.summary()["key_mismatches"] == 4 and o.claim("c2", pk=k2).reason == OWNED
-    # the owner's own release (with its key) frees it and forgets the key
-    assert o.claim("c1", RELEASE, pk=k1).reason == "released"
+    assert o.summary()["key_mismatches"] == 5 and o.claim("c2", pk=k2).reason == OWNED
+    # the owner's own release (proven) frees it and forgets the key
+    assert o.claim("c1", RELEASE, pk=k1, proven=True).reason == "released"
     assert o.owner is None and o.owner_link is None and o.owner_pk is None
     # identities proven by certificates (--secure): the owner's new key replaces the old
     s = Ownership(rekey=True)
     assert s.claim("cert", pk=k1, link="A").granted
     assert s.claim("cert", pk=k2, link="B").granted and s.owner_link == ("cert", "B")
+
+
+def test_same_n_regrants_the_lost_owner_only_with_its_keys_grant():
+    """``--rearm same:N``: the lost owner's identity with the lost grant's key (which only
+    that controller can use: a copier of it gets a vehicle it cannot command)."""
+    o = Ownership(policy=RearmPolicy.parse("same:5"), period=0.01)
+    k1, k2 = KeyPair().public, KeyPair().public
+    assert o.claim("c1", pk=k1, link="L1", now=0.0).granted
+    o.start()
+    o.token("c1", True, now=0.0)
+    o.token("c1", False, now=1.0)
+    assert o.state == "latched" and o.lost_pk == k1
+    assert o.claim("c1", pk=k2, now=2.0).reason == "latched"  # another key: refused
+    assert o.claim("c1", pk=k1, link="L1b", now=2.0).granted
+    assert o.owner_link == ("c1", "L1b")
 
 
 def test_claim_and_grant_carry_the_keys():

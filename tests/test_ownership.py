@@ -783,8 +783,10 @@ class Copier:
     ``source_info`` of every put it receives). It puts a command (wheels at 40 rad/s,
     steering at its limit) under the owner's key with the owner's source info for every
     state, and a state (seq 10^6) under the plant's with the plant's; claims and releases
-    the vehicle in the owner's name with the owner's source info; and sends each of the
-    owner's commands again with its wheels changed but its ``mac`` kept."""
+    the vehicle in the owner's name with the owner's source info and the owner's key
+    ``pk`` (read off the owner's claims by a queryable of its own); sends each of the
+    owner's commands again with its wheels changed but its ``mac`` kept; and replays a
+    signed state of the plant's every tenth state."""
 
     def __init__(self, port: int, vid: str = "agv0"):
         import zenoh
@@ -800,15 +802,19 @@ class Copier:
         self.session = zenoh.open(conf)
         self.owner = self.owner_si = self.plant_si = None
         self.sent = {"cmd": 0, "state": 0, "tampered": 0, "claims": 0}
-        self.granted = 0
+        self.released = 0
         self.errors: list[str] = []
         self.top_state = 0
         self.top_omega = 0.0  # the largest wheel speed of the plant's states [rad/s]
         self._pubs: dict[str, object] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self.owner_pk = None
+        self.old_state = None  # a signed state of the plant's, replayed
+        self.sent["replayed"] = 0
         self._subs = [self.session.declare_subscriber(f"{self.keys.cmd}/*", self._on_cmd),
-                      self.session.declare_subscriber(f"{self.keys.state}/*", self._on_state)]
+                      self.session.declare_subscriber(f"{self.keys.state}/*", self._on_state),
+                      self.session.declare_queryable(f"{self.keys.claim}/**", self._on_claim)]
         self._claimer = threading.Thread(target=self._claim, daemon=True)
         self._claimer.start()
 
@@ -830,12 +836,24 @@ class Copier:
             self._put(str(s.key_expr), msgpack.packb(m), s.source_info)
             self.sent["tampered"] += 1
 
+    def _on_claim(self, q):  # the owner's claims reach every queryable: its key is public
+        if q.payload is not None:
+            m = msgpack.unpackb(q.payload.to_bytes())
+            if isinstance(m, dict) and "pk" in m:
+                self.owner_pk = m["pk"]
+
     def _on_state(self, s):
         if s.source_info is None or self._stop.is_set():
             return
-        st = msgpack.unpackb(s.payload.to_bytes())
-        if st["seq"] >= 10 ** 6:  # our own copy
+        raw = s.payload.to_bytes()
+        st = msgpack.unpackb(raw)
+        if st["seq"] >= 10 ** 6 or st["seq"] <= (self.old_state or (-1,))[0]:  # our copies
             return
+        if "mac" in st and self.old_state is None:
+            self.old_state = (st["seq"], raw)
+        elif self.old_state is not None and st["seq"] % 10 == 0:
+            self._put(str(s.key_expr), self.old_state[1], s.source_info)
+            self.sent["replayed"] += 1
         self.top_state = max(self.top_state, st["seq"])
         self.top_omega = max(self.top_omega, max(st["omega_w"]))
         plant = str(s.key_expr).rsplit("/", 1)[1]
@@ -863,12 +881,15 @@ class Copier:
             for action in ("claim", "release"):
                 try:
                     for r in self.session.get(
-                            f"{self.keys.claim}/*/{self.owner}", payload=encode_claim(action),
+                            f"{self.keys.claim}/*/{self.owner}",
+                            payload=encode_claim(action, pk=self.owner_pk),
                             timeout=0.5, source_info=self.zenoh.SourceInfo(
                                 self.owner_si.source_id, n)):
                         if r.ok is not None:
                             g = decode_grant(r.ok.payload.to_bytes())
-                            self.granted += g["granted"] or g["reason"] == "released"
+                            # (a claim with the owner's copied key is told "granted" and
+                            # changes nothing; a release taken would end the ownership)
+                            self.released += g["reason"] == "released"
                 except Exception as e:
                     self.errors.append(repr(e))
                 self.sent["claims"] += 1
@@ -910,20 +931,23 @@ def test_a_client_copying_the_owners_source_info_drives_nothing(procs):
     s, c = procs.json("plant"), procs.json("ctl")
     sent = copier.sent
     assert copier.owner is not None and sent["cmd"] > 50 and sent["state"] > 50
-    print(f"\ncopier: sent {sent}, granted {copier.granted}, fastest wheel "
+    print(f"\ncopier: sent {sent}, released {copier.released}, fastest wheel "
           f"{copier.top_omega:.1f} rad/s; plant: rejected {s['rejected']['by_reason']}, "
           f"commands {s['commands']}, ownership {s['ownership']}; controller: rejected "
           f"{c['rejected']['by_reason']}, MPC runs {c['new_runs']}")
     assert sent["tampered"] > 50 and sent["claims"] > 4 and not copier.errors
+    assert copier.owner_pk is not None and sent["replayed"] > 20
     # no forged command applied: one would have made the owner's answer a duplicate or
     # stale, and the wheels would have gone towards 40 rad/s; no claim or release taken
-    assert s["completed"] and copier.granted == 0 and copier.top_omega < 30.0
+    assert s["completed"] and copier.released == 0 and copier.top_omega < 30.0
     assert s["commands"]["duplicate"] == 0 and s["commands"]["stale"] == 0
-    # no forged state taken: one MPC run (a state of seq 10^6 is a new run to it)
-    assert c["new_runs"] == 1
+    # no forged or replayed state taken: one MPC run (a state of seq 10^6, or an older one,
+    # is a new run to it)
+    assert c["new_runs"] == 1 and c["replayed"] >= sent["replayed"] // 2
     # each counted by its reason
     assert s["rejected"]["by_reason"].get(M.BAD_MAC, 0) >= (sent["cmd"] + sent["tampered"]) // 2
-    assert s["ownership"]["key_mismatches"] >= sent["claims"] // 2
+    # the releases (half of the claims) refused: the copied key without its proof
+    assert s["ownership"]["key_mismatches"] >= sent["claims"] // 4
     assert s["ownership"]["latches"] == 0 and s["ownership"]["grants"] == 1
     assert c["rejected"]["by_reason"].get(M.BAD_MAC, 0) >= sent["state"] // 2
     print(f"\ncopier: sent {sent}; plant rejected {s['rejected']['by_reason']}, "

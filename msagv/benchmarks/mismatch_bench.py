@@ -88,6 +88,10 @@ def main(argv: list[str] | None = None) -> int:
         extra = settings_from_args(argparse.Namespace(set=a.set))
     except (OptionError, ValueError) as e:
         ap.error(str(e))
+    own = sorted(set(extra) & {"method", "offset_free", "adapt"})
+    if own:
+        ap.error(f"--set {', '.join(own)}: the variants' own switches (use --method; the "
+                 f"disturbance and the adaptation are what the columns compare)")
     from tqdm import tqdm
 
     scales = [float(s) for s in a.scales.split(",")]

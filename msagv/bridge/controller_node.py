@@ -38,7 +38,7 @@ import numpy as np
 from . import messages as M
 from .loss import LOST, STALE_MS, LossTimer
 from .link_key import KeyPair, LinkKeyError, LinkKeys, derive
-from .ownership import (CLAIM_REFRESH_S, CLAIM_RETRY_S, LATCHED, RELEASE, claim,
+from .ownership import (BAD_CLAIM, CLAIM_REFRESH_S, CLAIM_RETRY_S, LATCHED, RELEASE, claim,
                         params_replies)
 from .plant_node import percentiles_ms
 from .presence import Presence
@@ -97,6 +97,7 @@ class ControllerStats:
     resent: int = 0  # commands sent again: their state came again (a lockstep re-send)
     references: int = 0
     ends: int = 0
+    replayed: int = 0  # signed states older than the newest one of the same grant
     solve_ms: list = dataclasses.field(default_factory=list)
 
 
@@ -150,6 +151,8 @@ class ControllerNode:
         # bound plant's key (None: not granted yet, or a plant that sends no key)
         self._keys = KeyPair()
         self._link: LinkKeys | None = None
+        self._send_pk = True  # False: the plant refused the field (older than the key)
+        self._link_top = -1  # the newest state seq taken under the current key
 
     # ---- transport ---------------------------------------------------------------------
     def open(self, transport: Transport) -> None:
@@ -211,8 +214,10 @@ class ControllerNode:
                 self._claim_wake.clear()
                 continue
             try:
+                link = self._link
                 replies = claim(self.transport, self.keys, n, to=bound, wheel_wear=True,
-                                pk=self._keys.public)
+                                pk=self._keys.public if self._send_pk else None,
+                                mac_key=None if link is None else link.cmd)
             except Exception as e:  # the transport is closing
                 log.debug("claim failed: %s", e)
                 replies = []
@@ -231,16 +236,25 @@ class ControllerNode:
                     if not self.plant_present and self._plant_presence is not None:
                         self._fallback = True
                         self._on_plant_change(True, via="claims")
-                    if g["granted"]:
-                        self._take_key(z, g.get("pk"))
+                    if g["reason"] == BAD_CLAIM and self._send_pk:
+                        # a plant older than the grant's key refuses the field: claim
+                        # without it (its commands then go without a mac)
+                        self._send_pk = False
+                        log.warning("plant %s refuses the claim's key (a plant older than "
+                                    "docs/PROTOCOL.md 3.9): claiming without it", z)
+                        self._claim_wake.set()
+                        continue
+                    if g["granted"] and not self._take_key(z, g.get("pk")):
+                        continue
                     self._set_granted(g["granted"], g["reason"])
             wait = CLAIM_REFRESH_S if self.granted else CLAIM_RETRY_S
             self._claim_wake.wait(wait)
             self._claim_wake.clear()
 
-    def _take_key(self, plant: str, pk: bytes | None) -> None:
+    def _take_key(self, plant: str, pk: bytes | None) -> bool:
         """The grant's key, derived with the plant's key of its grant (a plant that sends
-        none: commands without a mac, states taken without one)."""
+        none: commands without a mac, states taken without one). False: the plant's key is
+        not usable (the grant is not taken)."""
         link = self._link
         if pk is None:
             if link is not None:
@@ -250,10 +264,13 @@ class ControllerNode:
         elif link is None or link.peer_pk != pk:
             try:
                 self._link = derive(self._keys, pk, self.keys.id, plant, self.transport.id)
+                self._link_top = -1
             except LinkKeyError as e:
                 log.warning("plant %s's key is not usable (%s): not commanding", plant, e)
                 self._link = None
-                self.granted = False
+                self._set_granted(False, "bad key")
+                return False
+        return True
 
     def _authentic(self, st: dict) -> bool:
         """The state carries the grant's mac (or no key is agreed yet)."""
@@ -274,7 +291,9 @@ class ControllerNode:
                 if self._held is not None and self._pending is None and self.plant_present:
                     self._pending, self._held = self._held, None
             self._event.set()
-        elif was and not granted:
+        if not granted:
+            self._link = None  # the plant signs its states for its new owner, or nobody
+        if was and not granted:
             log.warning("plant %s no longer grants vehicle %s to this controller (%s): "
                         "not commanding", self.plant_zid, self.keys.id, reason)
         if not granted and reason != told:
@@ -293,7 +312,10 @@ class ControllerNode:
         self._claim_wake.set()
         if self.granted:
             try:  # hand the vehicle back at once (the plant also notices our token going)
-                claim(self.transport, self.keys, 0, RELEASE, timeout=0.3, pk=self._keys.public)
+                link = self._link
+                claim(self.transport, self.keys, 0, RELEASE, timeout=0.3,
+                      pk=self._keys.public if self._send_pk else None,
+                      mac_key=None if link is None else link.cmd)
             except Exception:
                 pass
             self.granted = False
@@ -371,6 +393,14 @@ class ControllerNode:
             self.rej.add(e, key)
             self.rec.message("rx", key, payload, why=e.reason)
             return None
+        if self._link is not None:
+            # a signed state older than one taken under the same key is a replay (a plant
+            # starts a new run under a new key): never a new run of the MPC
+            if st["seq"] < self._link_top:
+                self.stats.replayed += 1
+                self.rec.message("rx", key, payload, why="replayed")
+                return None
+            self._link_top = st["seq"]
         self.rec.message("rx", key, payload)
         self._last_state_rx = time.monotonic()
         pres = self._plant_presence
@@ -579,6 +609,7 @@ class ControllerNode:
         return {"role": "controller", "id": self.keys.id, "answered": s.answered,
                 "solve_ms": percentiles_ms(np.asarray(s.solve_ms) / 1000.0),
                 "skipped": s.skipped, "duplicates": s.duplicates, "new_runs": s.new_runs,
+                "replayed": s.replayed,
                 "dropped_stale": s.dropped_stale, "ignored_no_plant": s.ignored_no_plant,
                 "not_granted": s.not_granted, "resent": s.resent, "plant_zid": self.plant_zid,
                 "grant": self.grant_reason,

@@ -8,9 +8,10 @@ on the plant's port, any client of a router) can put its own with the owner's id
 taken for the owner. Its commands are not what this module lets through:
 
 * each side makes an X25519 key pair for its lifetime (:class:`KeyPair`); the controller's
-  claim carries its public key ``pk``; the plant binds the grant to that key (a claim as
-  the owner with another key is refused, ``key_mismatch``) and answers the grant with its
-  own public key;
+  claim carries its public key ``pk``; the plant binds the grant to that key and answers
+  the grant with its own public key. ``pk`` is public: the owner proves it holds the key
+  with a ``mac`` on its later claims and its release (a release without it, or a claim
+  with another key, is refused: ``key_mismatch``);
 * both derive, with HKDF-SHA256 over the X25519 shared secret and the names of the
   vehicle, the plant and the controller, one key for commands and one for states
   (:func:`derive`): nobody who saw the two public keys on the bus can derive them;
@@ -66,8 +67,10 @@ class KeyPair:
 
 def canonical(m: Mapping[str, Any]) -> bytes:
     """The bytes a ``mac`` covers: the message's fields but ``mac``, as a msgpack map in
-    sorted key order (floats as float64), so that both sides compute them from the fields
-    they hold, whatever order or float width the message had on the wire."""
+    code-point key order, floats as float64: both sides compute them from the fields as the
+    receiver validates them (a float field is a Python float there), whatever order the
+    message had on the wire. A sender signs those values: an int or a float 32 in a float
+    field is signed as its float 64 (docs/PROTOCOL.md 3.9)."""
     return msgpack.packb({k: m[k] for k in sorted(m) if k != "mac"}, use_bin_type=True,
                          use_single_float=False)
 

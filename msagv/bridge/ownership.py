@@ -39,7 +39,8 @@ log = logging.getLogger("msagv.bridge")
 CLAIM, RELEASE = "claim", "release"
 VERSION = 2  # the schema version of the claim, grant, arm and armed maps
 CLAIM_REQUIRED = {"v": "int", "action": "str"}
-CLAIM_OPTIONAL = {"wheel_wear": "bool", "pk": "bin"}  # pk: the claimer's key (bridge.link_key)
+# pk: the claimer's key; mac: the owner's proof of it (bridge.link_key)
+CLAIM_OPTIONAL = {"wheel_wear": "bool", "pk": "bin", "mac": "bin"}
 GRANT_REQUIRED = {"v": "int", "granted": "bool", "reason": "str"}
 GRANT_OPTIONAL = {"pk": "bin"}  # the plant's key, in a grant to a claim that carried one
 ARM_REQUIRED = {"v": "int"}
@@ -75,13 +76,15 @@ FREE, OWNED_STATE, LATCHED_STATE, ARMED_STATE = "free", "owned", "latched", "arm
 
 # ---- messages ------------------------------------------------------------------------------
 def encode_claim(action: str = CLAIM, wheel_wear: bool | None = None,
-                 pk: bytes | None = None) -> bytes:
+                 pk: bytes | None = None, mac_key: bytes | None = None) -> bytes:
+    """A claim map; ``mac_key``: the grant's command key, which the owner signs its
+    claims and its release with (:mod:`bridge.link_key`)."""
     m = {"v": VERSION, "action": action}
     if wheel_wear is not None:
         m["wheel_wear"] = bool(wheel_wear)
     if pk is not None:
         m["pk"] = bytes(pk)
-    return M.pack(m)
+    return M._signed(m, mac_key)
 
 
 def _versioned(payload, required: dict, optional: dict) -> dict:
@@ -202,6 +205,7 @@ class Ownership:
         # rekey: a claim as the owner may bring another key (identities are authenticated:
         # --secure; a restarted controller with the same certificate), else it is refused
         self.owner_pk: bytes | None = None
+        self.lost_pk: bytes | None = None  # latched: the key of the lost owner's grant
         self.owner_link = None  # (owner, what the caller derived from pk), set with the grant
         self.rekey = rekey
         self.key_mismatches = 0
@@ -244,6 +248,7 @@ class Ownership:
         """(locked) The owner is gone: latched once the run has started, else free; a
         release after the end of the run ends it normally (no claim granted, no latch)."""
         prev, self.owner = self.owner, None
+        self.lost_pk = self.owner_pk
         self.owner_pk, self.owner_link = None, None
         if self.ended and released:
             self.state, self.lost, self.why, self.armed_for = LATCHED_STATE, None, why, None
@@ -271,24 +276,34 @@ class Ownership:
 
     def claim(self, who: str | None, action: str = CLAIM, now: float | None = None,
               token_present: bool = False, wheel_wear: bool | None = None,
-              pk: bytes | None = None, link=None) -> Grant:
+              pk: bytes | None = None, link=None, proven: bool = False) -> Grant:
         """Handle a claim or release from identity ``who`` (``token_present``: its token is
         visible now; ``wheel_wear``: what the claim asks, taken with the grant; ``pk``: the
         claimer's key, that a new grant is bound to and a repeated claim must bring again
         (:attr:`owner_pk`); ``link``: what the caller derived from it, kept as
-        :attr:`owner_link` ``(owner, link)`` with the grant, atomically)."""
+        :attr:`owner_link` ``(owner, link)`` with the grant, atomically; ``proven``: the
+        claim carries a valid ``mac`` under the owner's command key: the owner's release
+        needs it, and its claim to change anything)."""
         now = time.monotonic() if now is None else now
         changed = None
         with self._lock:
             if who is None:
                 self.refused += 1
                 return Grant(False, BAD_CLAIM)
-            if who == self.owner and pk != self.owner_pk and not self.rekey:
-                # the owner's identity with another key (or none): on a plain bus, a forged
-                # source info; never the owner's own controller, which keeps its key
+            keyed = who == self.owner and self.owner_pk is not None and not self.rekey
+            if who == self.owner and pk != self.owner_pk and not self.rekey or (
+                    keyed and action == RELEASE and not proven):
+                # the owner's identity with another key (or none), or its release without
+                # the proof of its key: on a plain bus, a copied source info (the key
+                # itself is public); never the owner's own controller
                 self.key_mismatches += 1
                 self.refused += 1
                 return Grant(False, KEY_MISMATCH)
+            if keyed and not proven:
+                # the owner's key without its proof: the owner's claim before its grant's
+                # reply reached it (it cannot sign yet), or a copy: told it is granted (the
+                # plant's key is public), nothing changes
+                return Grant(True, GRANTED)
             if action == RELEASE:
                 if who != self.owner:
                     return Grant(False, NOT_YOURS)
@@ -297,7 +312,9 @@ class Ownership:
                 grant = Grant(False, RELEASED)
             elif self.owner == who:
                 self.owner_seen = self.owner_seen or token_present
-                self.owner_pk, self.owner_link = pk, (who, link)
+                if self.rekey:
+                    self.owner_link = (who, link)
+                    self.owner_pk = pk
                 grant = Grant(True, GRANTED)
             else:
                 if (self.owner is not None and not self.owner_seen
@@ -305,11 +322,11 @@ class Ownership:
                     # the grant is void (its owner never showed its token): undo it
                     log.info("the grant to %s is void: no token within %g s", self.owner,
                              GRANT_TOKEN_S)
+                    self.owner_link = None
                     self.owner = None
                     self.state, self.armed_for = self._before_grant
-                grant = self._grant_or_refuse(who, now, token_present)
+                grant = self._grant_or_refuse(who, now, token_present, pk, link)
                 if grant.granted:
-                    self.owner_pk, self.owner_link = pk, (who, link)
                     changed = (who, f"granted to {who}", None)
             if grant.granted and wheel_wear is not None:
                 self.wheel_wear = wheel_wear
@@ -318,13 +335,18 @@ class Ownership:
         self._notify(changed)
         return grant
 
-    def _grant_or_refuse(self, who: str, now: float, token_present: bool) -> Grant:
-        """(locked) A claim by ``who``, who does not own the vehicle."""
+    def _grant_or_refuse(self, who: str, now: float, token_present: bool,
+                         pk: bytes | None = None, link=None) -> Grant:
+        """(locked) A claim by ``who``, who does not own the vehicle (the grant binds
+        ``pk`` and ``link``: set before the owner, so that a reader without the lock that
+        sees the new owner sees its key)."""
         if self.state == OWNED_STATE:
             return Grant(False, OWNED)
         if self.state == LATCHED_STATE:
             n = self.policy.same_after
-            if not (n is not None and who == self.lost
+            # (same:N: the lost owner's identity with the lost grant's key: a copied source
+            # info alone does not make the same controller)
+            if not (n is not None and who == self.lost and pk == self.lost_pk
                     and now - self.latched_at >= n * self.period - 1e-9):
                 return Grant(False, LATCHED)
         elif self.state == ARMED_STATE and self.armed_for not in (None, who):
@@ -332,6 +354,7 @@ class Ownership:
         if who in self.banned and not (self.state == ARMED_STATE and self.armed_for == who):
             return Grant(False, BANNED)
         self._before_grant = (self.state, self.armed_for)
+        self.owner_pk, self.owner_link = pk, (who, link)
         self.owner, self.state, self.armed_for = who, OWNED_STATE, None
         self.owner_seen, self.granted_at = token_present, now
         self.grants += 1
@@ -395,14 +418,15 @@ class Ownership:
 
 # ---- the controller's side -----------------------------------------------------------------
 def claim(transport, keys, sn: int, action: str = CLAIM, timeout: float = 1.0,
-          to: str | None = None, wheel_wear: bool | None = None, pk: bytes | None = None
-          ) -> list[tuple[str, dict | None]]:
+          to: str | None = None, wheel_wear: bool | None = None, pk: bytes | None = None,
+          mac_key: bytes | None = None) -> list[tuple[str, dict | None]]:
     """Send a claim (or release) as ``transport``'s identity to the plant ``to`` (None:
-    every plant), with the claimer's key ``pk`` (:mod:`bridge.link_key`); returns
+    every plant), with the claimer's key ``pk`` and, once granted, signed with the grant's
+    command key ``mac_key`` (:mod:`bridge.link_key`); returns
     ``[(replier, grant or None if malformed)]`` for every plant that answered (error
     replies, which name nobody, are left out)."""
     out = []
-    for reply in transport.query(keys.claim, encode_claim(action, wheel_wear, pk), to=to,
+    for reply in transport.query(keys.claim, encode_claim(action, wheel_wear, pk, mac_key), to=to,
                                  sn=sn, timeout=timeout):
         if not reply.ok or reply.sender is None:
             continue

@@ -140,6 +140,7 @@ class PlantNode:
                                    policy=RearmPolicy.parse(cfg.rearm), period=cfg.period,
                                    on_event=self._on_ownership_event)
         self._keys = KeyPair()  # the grant's key exchange (bridge.link_key)
+        self._derived = None  # (identity, pk, keys) of the last claim's key: derived once
         self._unkeyed_told: str | None = None  # the keyless owner last warned about
         self._tokens: TokenSet | None = None
         self._beat, self._last_stall = time.monotonic(), -1e9
@@ -240,10 +241,15 @@ class PlantNode:
             c = decode_claim(query.payload if query.payload is not None else b"")
             pk, link = c.get("pk"), None
             if pk is not None:
-                try:
-                    link = derive(self._keys, pk, self.keys.id, self.transport.id, who)
-                except LinkKeyError as e:
-                    raise M.MessageError(M.BAD_VALUE, f"pk: {e}") from None
+                cached = self._derived
+                if cached is not None and cached[:2] == (who, pk):
+                    link = cached[2]
+                else:
+                    try:
+                        link = derive(self._keys, pk, self.keys.id, self.transport.id, who)
+                    except LinkKeyError as e:
+                        raise M.MessageError(M.BAD_VALUE, f"pk: {e}") from None
+                    self._derived = (who, pk, link)
         except M.MessageError as e:
             self.rej.add(e, self.keys.claim)
             grant = self.ownership.claim(None)
@@ -255,9 +261,11 @@ class PlantNode:
             # have it
             if who == self.ownership.owner:
                 self._heard = (who, time.monotonic())
+            owner, held = self.ownership.owner_link or (None, None)
+            proven = owner == who and held is not None and LinkKeys.valid(held.cmd, c)
             grant = self.ownership.claim(
                 who, c["action"], token_present=self._tokens is not None and self._tokens.present(who),
-                wheel_wear=bool(c.get("wheel_wear", False)), pk=pk, link=link)
+                wheel_wear=bool(c.get("wheel_wear", False)), pk=pk, link=link, proven=proven)
             if grant.granted:
                 self._tell_wheel_wear()
             if c["action"] == CLAIM and not grant.granted:

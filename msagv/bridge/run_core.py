@@ -262,6 +262,7 @@ class PlantRun:
         self.final_state: dict | None = None
         self._due: float | None = None  # realtime: the clock's time the next step is due by
         self._wd_trip: str | None = None  # set by the watchdog, taken by the loop
+        self._trip_lock = threading.Lock()
         self._wd_active = False
 
     # ---- states and steps ----------------------------------------------------------------
@@ -398,7 +399,8 @@ class PlantRun:
                 n = self.port.newest()
                 present = self.port.present()
                 self.stepped = k
-            trip, self._wd_trip = self._wd_trip, None
+            with self._trip_lock:  # (the watchdog's trip is never lost between the two)
+                trip, self._wd_trip = self._wd_trip, None
             if trip is not None:
                 d = self.watch.force_safe(trip)
             else:
@@ -460,7 +462,8 @@ class PlantRun:
                 # the loop takes the trip at its next step and raises the published flag
                 # itself: the flag of a state says what the step that made it applied (set
                 # here, a state stepped with the held command could go out flagged safe)
-                self._wd_trip = why
+                with self._trip_lock:  # (its own lock: never one the transport holds)
+                    self._wd_trip = why
                 st.watchdog_trips += 1
                 self.log.warning("SAFE (watchdog) at t = %.2f s: %s", max(self.seq, 0) * T, why)
             if self.plant_lock.acquire(timeout=self.clock.wall(T)):

@@ -28,7 +28,8 @@ own time stands while it waits). A malformed command (wrong length, not finite, 
 speed) is rejected, counted by reason and never applied.
 
 One publisher per command topic drives: the first whose valid command arrives once state 0
-is out (its publisher GID, from rclpy's message info). Another publisher's commands are
+is out while it is the topic's only publisher (its GID, from rclpy's message info; with two
+publishers neither binds). Another publisher's commands are
 rejected as ``not_owner`` before they are read and counted, also after the bound one fell
 silent or left (the safe behaviour or the lockstep timeout follows, never a takeover), until
 an operator calls ``~/rearm`` (std_srvs/Trigger): then the next publisher to send binds.
@@ -165,29 +166,46 @@ class RosPlant:
         return v
 
     def _from_source(self, topic: str, info) -> bool:
-        """The command comes from the publisher ``topic`` is bound to (binding the first
-        one once state 0 is out); another's is rejected as ``not_owner``."""
-        gid = _gid(info)
+        """The command may be read: it comes from the publisher ``topic`` is bound to, or
+        the topic is not bound yet (it binds in :meth:`_bind`, once the command is valid);
+        another publisher's is rejected as ``not_owner``."""
         bound = self.sources[topic]
-        if bound is None:
-            if self.seq < 0:
-                return True  # before state 0 nothing is taken anyway
-            self.sources[topic] = gid
-            log.info("commands on %s from publisher %s", topic, gid.hex()[:16])
-            self.rec.event("source", topic=topic, gid=gid.hex())
-            return True
-        if gid == bound:
+        gid = _gid(info)
+        if bound is None or gid == bound:
             return True
         self.rej.add(M.MessageError(
             M.NOT_OWNER, f"from publisher {gid.hex()[:16]}, not {bound.hex()[:16]} that "
             f"drives (a second controller? ~/rearm lets the next publisher drive)"), topic)
         return False
 
+    def _bind(self, topic: str, info, sub) -> bool:
+        """A valid command once state 0 is out: binds ``topic`` to its publisher if it is
+        not bound. Not while more than one node publishes on the topic (which of two
+        controllers drives is not for the first message to decide: neither is taken until
+        one leaves or an operator re-arms; after ``~/rearm`` the next one binds whatever the
+        count), nor without a GID from the middleware."""
+        if self.sources[topic] is not None:
+            return True
+        gid, n = _gid(info), sub.get_publisher_count()
+        # (after ~/rearm the operator said the next one drives: a killed controller's
+        # publisher may stay in the graph for its lease)
+        why = ("the middleware gives no publisher GID" if not gid else
+               f"{n} publishers on {topic}" if n > 1 and not self.rearms else None)
+        if why is not None:
+            self.rej.add(M.MessageError(M.NOT_OWNER, f"{why}: none drives until one is "
+                                                     f"left (or ~/rearm)"), topic)
+            return False
+        self.sources[topic] = gid
+        log.info("commands on %s from publisher %s", topic, gid.hex()[:16])
+        self.rec.event("source", topic=topic, gid=gid.hex())
+        return True
+
     def _on_steer(self, msg, info) -> None:  # (two arguments: rclpy passes the info)
         if not self._from_source(R.STEERING_COMMANDS, info):
             return
         v = self._check(msg, R.STEERING_COMMANDS, nonneg=False)
-        if v is not None and self.seq >= 0:
+        if v is not None and self.seq >= 0 and self._bind(R.STEERING_COMMANDS, info,
+                                                          self._subs[0]):
             self._steer = (self.seq, v)
             self._answered()
 
@@ -195,7 +213,8 @@ class RosPlant:
         if not self._from_source(R.WHEEL_COMMANDS, info):
             return
         v = self._check(msg, R.WHEEL_COMMANDS, nonneg=True)
-        if v is not None and self.seq >= 0:
+        if v is not None and self.seq >= 0 and self._bind(R.WHEEL_COMMANDS, info,
+                                                          self._subs[1]):
             self._wheel = (self.seq, v)
             self._answered()
 
