@@ -82,12 +82,13 @@ def main(argv: list[str] | None = None) -> int:
                          "disturbance_tau=0.02 (the variants' own switches stay theirs)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     a = ap.parse_args(argv)
-    from msagv.cli.args import OptionError, settings_from_args
+    from msagv.controller.models import MPCSettings
 
     try:
-        extra = settings_from_args(argparse.Namespace(set=a.set))
-    except (OptionError, ValueError) as e:
-        ap.error(str(e))
+        extra = MPCSettings.parse_assignments(a.set)
+        MPCSettings(**extra)  # a bad value is named now, before any run
+    except (ValueError, TypeError) as e:
+        ap.error(f"--set: {e}")
     own = sorted(set(extra) & {"method", "offset_free", "adapt"})
     if own:
         ap.error(f"--set {', '.join(own)}: the variants' own switches (use --method; the "

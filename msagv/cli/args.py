@@ -382,29 +382,10 @@ def settings_from_args(a) -> dict:
             kw[k] = getattr(a, k)
     if getattr(a, "deadline_ms", None) is not None:
         kw["deadline_ms"] = a.deadline_ms
-    base = MPCSettings()
-    for item in getattr(a, "set", []) or []:
-        if "=" not in item:
-            raise OptionError(f"--set: expected NAME=VALUE, got '{item}'")
-        k, v = item.split("=", 1)
-        k = k.strip()
-        if k not in MPCSettings.field_names():
-            raise OptionError(f"--set: unknown setting '{k}' (known: "
-                              f"{', '.join(MPCSettings.field_names())})")
-        cur = getattr(base, k)
-        try:
-            if isinstance(cur, tuple):
-                kw[k] = tuple(type(cur[0])(x) for x in v.split(","))
-            elif isinstance(cur, bool) or k == "offset_free":
-                if v.lower() not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-                    raise ValueError(v)
-                kw[k] = v.lower() in ("1", "true", "yes", "on")
-            elif cur is None:
-                kw[k] = float(v)
-            else:
-                kw[k] = type(cur)(v)
-        except ValueError:
-            raise OptionError(f"--set: {k}: cannot parse '{v}'") from None
+    try:
+        kw.update(MPCSettings.parse_assignments(getattr(a, "set", []) or []))
+    except ValueError as e:
+        raise OptionError(f"--set: {e}") from None
     MPCSettings(**kw)  # a bad value is named now, before anything is built
     return kw
 

@@ -240,6 +240,37 @@ class MPCSettings:
     def field_names(cls) -> list[str]:
         return [f.name for f in fields(cls)]
 
+    @classmethod
+    def parse_assignments(cls, items) -> dict:
+        """``NAME=VALUE`` strings (a command line's ``--set``) as settings fields, each
+        value in its field's type (a tuple as comma-separated values; a bool as
+        1/true/yes/on or 0/false/no/off). Raises ValueError naming the bad item."""
+        base = cls()
+        kw = {}
+        for item in items:
+            if "=" not in item:
+                raise ValueError(f"expected NAME=VALUE, got '{item}'")
+            k, v = item.split("=", 1)
+            k = k.strip()
+            if k not in cls.field_names():
+                raise ValueError(f"unknown setting '{k}' (known: "
+                                 f"{', '.join(cls.field_names())})")
+            cur = getattr(base, k)
+            try:
+                if isinstance(cur, tuple):
+                    kw[k] = tuple(type(cur[0])(x) for x in v.split(","))
+                elif isinstance(cur, bool) or k == "offset_free":
+                    if v.lower() not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+                        raise ValueError(v)
+                    kw[k] = v.lower() in ("1", "true", "yes", "on")
+                elif cur is None:
+                    kw[k] = float(v)
+                else:
+                    kw[k] = type(cur)(v)
+            except ValueError:
+                raise ValueError(f"{k}: cannot parse '{v}'") from None
+        return kw
+
 
 class Rollout(NamedTuple):
     poses: np.ndarray  # (B, N_p, 3) x, y, phi at steps 1..N_p
