@@ -311,3 +311,16 @@ class LoopbackPlant:
     def leave(self) -> None:
         """The plant's endpoint leaves the bus (its token disappears, its queryable goes)."""
         self.t.close()
+
+
+def ros_domain_id() -> int:
+    """A random ROS 2 domain id in this test worker's own slice of 1..100: two xdist workers
+    never draw the same one (two tests of two workers on one domain saw each other's
+    plants and controllers: a clean clone's run failed that way once)."""
+    import random
+
+    w = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    index = int(w[2:]) if w.startswith("gw") and w[2:].isdigit() else 0
+    count = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1))
+    size = max(1, 100 // count)
+    return 1 + (index % count) * size + random.randrange(size)

@@ -22,7 +22,7 @@ import time
 
 import pytest
 
-from helpers import ROOT, free_port, msagv, run_msagv
+from helpers import ROOT, free_port, msagv, ros_domain_id, run_msagv
 
 websockets = pytest.importorskip("websockets")
 pytest.importorskip("foxglove")
@@ -117,10 +117,9 @@ def test_a_foxglove_client_receives_the_run_live(procs):
 
 def test_the_ros2_plant_serves_foxglove(procs, monkeypatch):
     pytest.importorskip("rclpy")
-    import random
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain_id()))
     port = free_port()
     procs.start("plant", msagv("ros2", "plant", "--duration", "1", "--foxglove",
                                "--foxglove-port", port, "--json", "-q"))

@@ -18,13 +18,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import random
 import time
 
 import numpy as np
 import pytest
 
-from helpers import ROOT, msagv, run_msagv
+from helpers import ROOT, msagv, ros_domain_id, run_msagv
 
 T = 0.01
 
@@ -47,7 +46,7 @@ def _ros():
 def ros_env(monkeypatch):
     """Loopback discovery and a domain of this test alone (inherited by the processes)."""
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain_id()))
     monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
     return os.environ["ROS_DOMAIN_ID"]
 

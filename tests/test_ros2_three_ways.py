@@ -16,12 +16,11 @@ same machine code), so the tolerance is set just above round-off: 1 micrometre, 
 
 from __future__ import annotations
 
-import random
 
 import numpy as np
 import pytest
 
-from helpers import ep, free_port, msagv
+from helpers import ep, free_port, msagv, ros_domain_id
 
 SPEED = "15"
 
@@ -52,7 +51,7 @@ def _poses(rec):
 def three_ways(procs, tmp_path, monkeypatch, duration: float) -> dict:
     _have_ros()
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain_id()))
     d = f"{duration:g}"
     P = free_port()
     z_rec, r_rec = tmp_path / "zenoh.mcap", tmp_path / "ros2.mcap"
