@@ -272,15 +272,15 @@ class ControllerNode:
                 return False
         return True
 
-    def _authentic(self, st: dict) -> bool:
-        """The state carries the grant's mac (or no key is agreed yet)."""
+    def _mac_error(self, st: dict) -> M.MessageError | None:
+        """None if the state carries the grant's mac (or no key is agreed yet), else its
+        ``bad_mac`` rejection."""
         link = self._link
-        return link is None or LinkKeys.valid(link.state, st)
-
-    def _bad_mac(self, st: dict) -> M.MessageError:
+        why = None if link is None else LinkKeys.fault(link.state, st)
+        if why is None:
+            return None
         return M.MessageError(M.BAD_MAC, f"state {st.get('seq')} from {self.plant_zid}: "
-                              + ("no mac" if "mac" not in st else "a wrong mac")
-                              + " (the plant's states carry the grant's mac)")
+                                         f"{why} (the plant's states carry the grant's mac)")
 
     def _set_granted(self, granted: bool, reason: str) -> None:
         was, self.granted = self.granted, granted
@@ -387,8 +387,9 @@ class ControllerNode:
             if sender is None or sender != self.plant_zid:
                 raise M.MessageError(M.NOT_BOUND, self._not_bound(sender))
             st = M.decode_state(payload, self.nw)
-            if not self._authentic(st):
-                raise self._bad_mac(st)
+            bad = self._mac_error(st)
+            if bad is not None:
+                raise bad
         except M.MessageError as e:
             self.rej.add(e, key)
             self.rec.message("rx", key, payload, why=e.reason)
@@ -490,9 +491,10 @@ class ControllerNode:
         """Solve for one state and send the command. Returns 'sent', 'resent' (the same
         command again for a state sent again), 'end', 'duplicate', 'stale', 'no plant' or
         'not granted'."""
-        if not self._authentic(st):
+        bad = self._mac_error(st)
+        if bad is not None:
             # a state taken before the grant's key came, without its mac
-            self.rej.add(self._bad_mac(st), self.keys.state)
+            self.rej.add(bad, self.keys.state)
             return "bad_mac"
         seq = st["seq"]
         last = self._last_seq

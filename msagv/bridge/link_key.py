@@ -94,6 +94,14 @@ class LinkKeys:
         return (isinstance(mac, (bytes, bytearray))
                 and hmac.compare_digest(bytes(mac), LinkKeys.tag(key, m)))
 
+    @staticmethod
+    def fault(key: bytes, m: Mapping[str, Any]) -> str | None:
+        """None if ``m`` carries a valid tag under ``key``, else what is wrong with it (for
+        a ``bad_mac`` rejection)."""
+        if LinkKeys.valid(key, m):
+            return None
+        return "no mac" if "mac" not in m else "a wrong mac"
+
 
 def derive(pair: KeyPair, peer_pk: bytes, vehicle: str, plant: str, controller: str
            ) -> LinkKeys:

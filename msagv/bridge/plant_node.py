@@ -440,10 +440,11 @@ class PlantNode:
                 raise M.MessageError(M.NOT_OWNER, self._not_owner(sender))
             c = M.decode_cmd(payload, self.nw)
             owner, link = self.ownership.owner_link or (None, None)
-            if link is not None and not (owner == sender and LinkKeys.valid(link.cmd, c)):
-                raise M.MessageError(M.BAD_MAC, f"from {sender}: "
-                                     + ("no mac" if "mac" not in c else "a wrong mac")
-                                     + " (the owner's commands carry the grant's mac)")
+            if link is not None:
+                why = "not the owner's" if owner != sender else LinkKeys.fault(link.cmd, c)
+                if why is not None:
+                    raise M.MessageError(M.BAD_MAC, f"from {sender}: {why} (the owner's "
+                                                    f"commands carry the grant's mac)")
             with self._lock:
                 newest_pub = self.seq
             j = c["state_seq"]
