@@ -471,6 +471,38 @@ def test_the_plant_counts_only_its_owners_token_as_the_controllers_presence(plan
     assert n.stats.controller_losses == 1
 
 
+def test_a_token_query_missing_right_after_the_grant_does_not_lose_an_owner_that_then_sends(
+        plant_node, bus):
+    """A CI run through a router: the owner's token was found missing by the token query
+    made right after the first grant, while the owner, granted, waited for its first state
+    and had sent nothing since its claim: the plant took it for lost and latched a live
+    controller. The granted claim is the owner heard; it is lost only if it stays quiet."""
+    from msagv.bridge.ownership import claim
+    from msagv.bridge.plant_node import QUIET_MIN_S
+    from msagv.bridge.session import Keys
+
+    n, k = plant_node, Keys("t0")
+    ctl = bus.endpoint("ctl")
+    tok = ctl.declare_token(k.controller_token("ctl"))
+    wait_until(lambda: n._tokens.present("ctl"), 5.0, "the token seen")
+    # the router's query misses the live token from now on (no DELETE): the grant's own
+    # query of the new owner's token finds nothing
+    assert bus.vanish(k.controller_token("ctl"), notify=False) == 1
+    assert claim(ctl, k, 0)[0][1]["granted"]
+    pub = ctl.publisher(k.cmd)
+    time.sleep(0.6 * QUIET_MIN_S)  # the owner waits for its first state: sends nothing
+    for i in range(8):  # then commands, well within the quiet bound of each other
+        pub.put(_cmd(i), i)
+        time.sleep(0.4 * QUIET_MIN_S)
+    assert n.ownership.owner == "ctl" and n.ownership.losses == 0
+    assert n.stats.controller_losses == 0
+    assert n._tokens.summary()["kept_while_sending"] >= 1  # the miss was seen, and kept
+    # quiet as well as missing: lost (the miss is not ignored)
+    wait_until(lambda: n.ownership.owner is None, 10.0, "the quiet owner's loss")
+    assert n.ownership.losses == 1
+    tok.close()
+
+
 def test_token_set_tracks_a_bounded_number_and_always_its_focus(bus):
     """A flood of tokens (issue 30): at most ``bound`` holders are kept, the rest counted;
     the focus (the owner) is tracked even when it comes after the set is full."""

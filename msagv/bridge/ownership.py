@@ -360,8 +360,10 @@ class Ownership:
         self.grants += 1
         return Grant(True, GRANTED)
 
-    def token(self, who: str, present: bool, now: float | None = None) -> None:
-        """A controller token appeared or was lost (confirmed)."""
+    def token(self, who: str, present: bool, now: float | None = None, how: str = ""
+              ) -> None:
+        """A controller token appeared or was lost (confirmed; ``how``: by what, for the
+        log)."""
         now = time.monotonic() if now is None else now
         changed = None
         with self._lock:
@@ -371,7 +373,8 @@ class Ownership:
                 self.owner_seen = True
             else:
                 self.losses += 1
-                changed = self._end_ownership(f"owner {who} lost (its token is gone)", now)
+                changed = self._end_ownership(
+                    f"owner {who} lost (its token is gone{': ' + how if how else ''})", now)
         self._notify(changed)
 
     def arm(self, by: str | None, controller: str | None = None, t: float | None = None

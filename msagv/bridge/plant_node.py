@@ -259,14 +259,17 @@ class PlantNode:
             # the owner's wheel_wear (and key) is taken with the grant, under the ownership's
             # lock: the run may start the moment the grant is made, its first state must
             # have it
-            if who == self.ownership.owner:
-                self._heard = (who, time.monotonic())
             owner, held = self.ownership.owner_link or (None, None)
             proven = owner == who and held is not None and LinkKeys.valid(held.cmd, c)
             grant = self.ownership.claim(
                 who, c["action"], token_present=self._tokens is not None and self._tokens.present(who),
                 wheel_wear=bool(c.get("wheel_wear", False)), pk=pk, link=link, proven=proven)
             if grant.granted:
+                # a granted claim is the owner heard: right after a first grant its token
+                # query through a router may still miss (issue 30, item 4), and the owner,
+                # waiting for its first state, sends nothing else yet (a CI run latched a
+                # live owner that way)
+                self._heard = (who, time.monotonic())
                 self._tell_wheel_wear()
             if c["action"] == CLAIM and not grant.granted:
                 self._refused_logged += 1
@@ -365,12 +368,13 @@ class PlantNode:
             t.daemon = True
             t.start()
             return
-        self.ownership.token(zid, present)
+        self.ownership.token(zid, present,
+                             how="" if present or self._tokens is None else self._tokens.last_loss)
         self._update_presence()
 
     def _recheck_owner(self, zid: str) -> None:
         if self._tokens is not None and not self._tokens.present(zid):
-            self.ownership.token(zid, False)
+            self.ownership.token(zid, False, how="not back after this plant's own stall")
         self._update_presence()
 
     def _heartbeat(self) -> None:

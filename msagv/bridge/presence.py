@@ -206,6 +206,7 @@ class TokenSet:
         self.tracked_max = 0
         self.suspicions = 0  # the focus's token found missing
         self.kept = 0  # ... while the focus still sent: not taken for lost
+        self.last_loss = ""  # why the focus was last taken for lost (for the caller's log)
         self._sub = transport.watch_tokens(f"{prefix}/*", self._on_token)
         self._poller = threading.Thread(target=self._poll, daemon=True,
                                         name=f"tokens {prefix}")
@@ -350,10 +351,12 @@ class TokenSet:
             if self._closed or zid != self._focus or self._suspect_since is None:
                 return
             self._present.discard(zid)
+            self.last_loss = ("its DELETE confirmed by a query" if deleted else
+                              f"missing from the token query for {now - since:.2f} s, and "
+                              "nothing received from it")
             self._suspect_since = None
             self._deleted = False
-        log.debug("tokens %s: %s gone (%s)", self.prefix, zid,
-                  "its DELETE confirmed" if deleted else "no token, nothing sent")
+        log.debug("tokens %s: %s gone (%s)", self.prefix, zid, self.last_loss)
         if self.on_change is not None:
             self.on_change(zid, False)
 
