@@ -483,15 +483,15 @@ class SimVehicle:
                               and self.pub_plan.get_subscription_count() > 0
                               and all(s.get_publisher_count() > 0 for s in self.subs))
 
-    def plan(self, x, y, yaw) -> None:
+    def plan(self, x, y, yaw, frame: str = "odom") -> None:
         from geometry_msgs.msg import PoseStamped
         from nav_msgs.msg import Path
 
         m = Path()
-        m.header.frame_id = "odom"  # stamps left zero, as Nav2's planners leave them
+        m.header.frame_id = frame  # stamps left zero, as Nav2's planners leave them
         for xi, yi, a in zip(x, y, yaw):
             ps = PoseStamped()
-            ps.header.frame_id = "odom"
+            ps.header.frame_id = frame
             ps.pose.position.x, ps.pose.position.y = float(xi), float(yi)
             ps.pose.orientation.z, ps.pose.orientation.w = math.sin(a / 2), math.cos(a / 2)
             m.poses.append(ps)
@@ -546,6 +546,75 @@ def _remaining(f, length, px, py):
     i = int(np.argmin(np.hypot(pts[:, 0] - px, pts[:, 1] - py)))
     s0 = s[i]
     return (lambda v: f(min(length, s0 + v))), max(length - s0, 0.0)
+
+
+def test_a_plan_in_another_frame_than_the_odometry_is_refused_in_one_line(procs, ros_env,
+                                                                        three_axle_file):
+    """Issue 32 item 2: Nav2's planner server publishes its plan in ``map``; nothing here
+    transforms, so a map plan taken as odom would drive the vehicle to wherever map's
+    coordinates fall. It is refused with one line and the vehicle is not moved; the same
+    plan in odom is driven; ``plan_frame:=map`` (the frames coincide) takes map plans."""
+    _ros()
+    from msagv.plant import Plant
+    from msagv.plant.vehicle import load_vehicle
+
+    vehicle = load_vehicle(three_axle_file)
+    f, length = _turn()
+    procs.start("ctl", msagv("ros2", "controller", "--vehicle", three_axle_file, "--speed",
+                             "12", "--stale-ms", "1000", "--json"))
+    peer = Peer("frame_vehicle")
+    car = SimVehicle(peer, vehicle, Plant(vehicle))
+    try:
+        assert car.matched(), procs.err("ctl")[-2000:]
+        peer.spin(0.5)
+        plan = _navfn_plan(0.0, 0.0, (f, length), math.pi / 2)
+        car.plan(*plan, frame="map")
+        peer.spin(0.3)
+        moved = []
+        for _ in range(30):  # no plan in the odometry's frame: nothing moves the vehicle
+            car.publish()
+            car.k += 1
+            peer.spin(0.03)
+            moved += [abs(w) for w in car.got.get("wheel", [])]
+        assert max(moved, default=0.0) == 0.0
+        car.plan(*plan)  # in odom
+        peer.spin(0.3)
+        for _ in range(150):  # every state answered, safe or not (lockstep)
+            car.step(lambda: procs.err("ctl"))
+        assert car.plant.state_message()["x"] > 0.1  # it drives off along the plan
+    finally:
+        peer.close()
+    procs.stop_all()
+    summary = procs.json("ctl")
+    err = procs.err("ctl")
+    assert summary["plans"] == 2 and summary["plans_wrong_frame"] == 1, summary
+    # the wait for no plan went safe; the odom plan resumed it and the state that came
+    # while safe was answered by the solve, not after the 1 s staleness bound (a node that
+    # left it unanswered stalled a lockstep simulator 1 s every few periods: 50 safe
+    # events, no solve, in 150 states)
+    assert summary["safe_events"] == 1 and summary["resumes"] == 1, summary
+    assert summary["answered"] >= 140, summary
+    line = [ln for ln in err.splitlines() if "in frame 'map'" in ln]
+    assert len(line) == 1 and "refused" in line[0] and "plan_frame:=map" in line[0], err[-2000:]
+    assert "Traceback" not in err
+    # the frames declared equal: the map plan is taken
+    procs.start("ctl2", msagv("ros2", "controller", "--vehicle", three_axle_file, "--speed",
+                              "12", "--stale-ms", "1000", "--json", "--ros-args", "-p",
+                              "plan_frame:=map"))
+    peer = Peer("frame_vehicle_2")
+    car = SimVehicle(peer, vehicle, Plant(vehicle))
+    try:
+        assert car.matched(), procs.err("ctl2")[-2000:]
+        peer.spin(0.5)
+        car.plan(*plan, frame="map")
+        peer.spin(0.3)
+        for _ in range(150):
+            st, tgt, wheels = car.step(lambda: procs.err("ctl2"))
+        assert car.plant.state_message()["x"] > 0.1
+    finally:
+        peer.close()
+    procs.stop_all()
+    assert procs.json("ctl2")["plans_wrong_frame"] == 0
 
 
 def test_a_navfn_plan_through_a_turn_with_replanning(procs, ros_env, three_axle_file,

@@ -100,6 +100,10 @@ def controller_parser() -> argparse.ArgumentParser:
                         "(default 1)")
     g.add_argument("--plan-lat-accel", type=float, default=1.5, metavar="M/S2",
                    help="at most this across the path in its curves (default 1.5)")
+    g.add_argument("--plan-frame", default="", metavar="FRAME",
+                   help="the frame a plan must be in (default: the odometry's "
+                        "header.frame_id); a plan in another frame is refused: nothing is "
+                        "transformed (set it to map where map and odom coincide)")
     g.add_argument("--low-speed", type=float, default=LOW_SPEED_KMH, metavar="KMH",
                    help="below this speed (the vehicle's and the reference's) the policy's "
                         "plain feed-forward commands instead of the solver: the MPC's "
@@ -147,7 +151,7 @@ def controller_main(argv: list[str]) -> int:
                     "goal_yaw_tolerance_deg": a.goal_yaw_tolerance,
                     "stale_ms": a.stale_ms, "resume_periods": a.resume_periods,
                     "safe_decel": a.safe_decel, "max_age_ms": a.max_age_ms,
-                    "low_speed_kmh": a.low_speed}
+                    "low_speed_kmh": a.low_speed, "plan_frame": a.plan_frame}
     except USAGE_ERRORS as e:
         return _ros_error(prog, e)
 

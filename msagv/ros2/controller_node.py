@@ -246,7 +246,7 @@ PARAMETERS = {
     "R": list, "plan_speed_kmh": float, "plan_accel": float, "plan_decel": float,
     "plan_lat_accel": float, "goal_tolerance": float, "goal_yaw_tolerance_deg": float,
     "stale_ms": float, "resume_periods": int, "safe_decel": float, "max_age_ms": float,
-    "low_speed_kmh": float,
+    "low_speed_kmh": float, "plan_frame": str,
 }
 
 
@@ -319,7 +319,8 @@ def declare_parameters(node, defaults: dict) -> dict:
 # configure). Weights: the MPC is built again from them at once (for the annealer
 # and the feed-forward; IPOPT and acados build them into their problem at configure).
 WEIGHTS = ("Q", "L", "E", "R", "deadline_ms")
-PLAN = ("plan_speed_kmh", "plan_accel", "plan_decel", "plan_lat_accel")  # the next plan
+PLAN = ("plan_speed_kmh", "plan_accel", "plan_decel", "plan_lat_accel",
+        "plan_frame")  # the next plan
 LIMITS = ("goal_tolerance", "goal_yaw_tolerance_deg", "low_speed_kmh", "stale_ms",
           "resume_periods", "safe_decel", "max_age_ms")
 RUNTIME = WEIGHTS + PLAN + LIMITS
@@ -386,6 +387,7 @@ class RosControllerConfig:
     goal_yaw_tolerance_deg: float = 2.0
     max_age_ms: float | None = None
     low_speed_kmh: float = LOW_SPEED_KMH
+    plan_frame: str = ""  # the frame a plan must be in ("": the odometry's)
     node_name: str = "msagv_controller"
     vehicle_id: str = "agv0"
 
@@ -429,7 +431,7 @@ class RosController:
                       "dropped_stale": 0, "no_reference": 0, "goals_reached": 0,
                       "held_at_goal": 0, "plans_at_goal": 0, "plans_same_route": 0,
                       "low_speed": 0, "rearms": 0, "resets": 0, "parameter_changes": 0,
-                      "parameters_refused": 0}
+                      "parameters_refused": 0, "plans_wrong_frame": 0}
         self.solve_ms: list = []
         self.goal_errors: list = []  # (distance [m], heading [deg]) at each goal reached
         self.rej = M.Rejections("ros2 controller", log)
@@ -491,7 +493,8 @@ class RosController:
             plan_accel=p["plan_accel"], plan_decel=p["plan_decel"],
             plan_lat_accel=p["plan_lat_accel"], goal_tolerance=p["goal_tolerance"],
             goal_yaw_tolerance_deg=p["goal_yaw_tolerance_deg"],
-            max_age_ms=p["max_age_ms"] or None, low_speed_kmh=p["low_speed_kmh"])
+            max_age_ms=p["max_age_ms"] or None, low_speed_kmh=p["low_speed_kmh"],
+            plan_frame=p["plan_frame"].strip())
         positive = ("stale_ms", "safe_decel", "plan_speed_kmh", "plan_accel", "plan_decel",
                     "plan_lat_accel", "goal_tolerance", "goal_yaw_tolerance_deg")
         bad = [f"{k} must be > 0, got {getattr(cfg, k):g}" for k in positive
@@ -544,11 +547,13 @@ class RosController:
         self._tick = 0
         self._fresh_tick: int | None = None
         self._plan_msg = None
+        self._unanswered: tuple | None = None  # (state, rx, seq) received while safe
         self._safe = False
         self._safe_why = ""
         self._seq = 0
         self._cmd_seq = 0
         self._told_arc = False
+        self._odom_frame = ""  # the newest state's header.frame_id
         self._retime = False  # the plan's limits changed: the next plan is timed afresh
         self._restart = False  # ~/reset: the next state starts a new run
         self._goal_held: tuple | None = None  # the goal (x, y, phi) reached and held
@@ -805,6 +810,7 @@ class RosController:
         if not force and R.stamp_seconds(j.header.stamp) < to:
             return  # the joint states of this period are on their way
         self._odom = None
+        self._odom_frame = o.header.frame_id
         try:
             st = R.state_from_ros(o, j, self.nw)
         except R.RosMessageError as e:
@@ -821,6 +827,17 @@ class RosController:
             self._goal_held = None
             return
         c = self.cfg
+        frame = msg.header.frame_id
+        want = c.plan_frame or self._odom_frame or R.FRAME_ODOM
+        if frame and frame != want:
+            # nothing here transforms (no tf2): a plan in map taken as odom would drive the
+            # vehicle to wherever map's coordinates fall in odom
+            self.stats["plans_wrong_frame"] += 1
+            why = (f"plan: in frame '{frame}', the odometry is in '{want}': refused (this "
+                   f"node does not transform plans: publish it in '{want}', or set "
+                   f"plan_frame:={frame} where the two frames coincide)")
+            self.rej.add(M.MessageError(M.BAD_VALUE, why), R.PLAN)  # (logged, rate-limited)
+            return
         arrays = R.path_arrays(msg)
         if self._goal_held is not None and self._same_goal(
                 (arrays[1][-1], arrays[2][-1], arrays[3][-1]), self._goal_held):
@@ -879,7 +896,16 @@ class RosController:
             self.stats["no_reference"] += 1
             return
         if self._safe:
-            return  # the timer decides when the inputs are fresh again
+            # the timer decides when the inputs are fresh again; its next hold answers this
+            # state, or, resuming, the solve does (a simulator in lockstep waits for it)
+            self._unanswered = (st, rx_perf, seq)
+            return
+        self._answer(st, rx_perf, seq)
+
+    def _answer(self, st: dict, rx_perf: float, seq: int) -> None:
+        """Command the state ``st`` (its sequence number ``seq``): the goal's hold, or the
+        controller's solve."""
+        t = st["t"]
         if self._at_goal(st):
             return
         ctl = self._controller_for(st)
@@ -1010,6 +1036,12 @@ class RosController:
             self.stats["resumes"] += 1
             log.warning("inputs fresh again: commanding")
             self.rec.event("safe", on=False)
+            held, self._unanswered = self._unanswered, None
+            if held is not None and self.reference is not None:
+                # the newest state came after the last hold: answered now, not at the next
+                # state, which a simulator in lockstep sends only once this one is answered
+                # (it waited out the staleness bound, then went safe again, every time)
+                self._answer(*held)
         if d.state != SAFE:
             return
         if d.entered_safe is not None and not self._safe:
@@ -1030,6 +1062,7 @@ class RosController:
         tgt = self._delta if self._delta is not None else np.zeros(self.nw)
         self._last_cmd = (self._last_t, tgt, w)
         self._publish_cmd(tgt, w)
+        self._unanswered = None  # the hold answers the newest state
 
     # ---- running -------------------------------------------------------------------------
     def run(self) -> dict:
