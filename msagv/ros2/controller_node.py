@@ -742,7 +742,17 @@ class RosController:
         log.warning("re-armed: commanding")
         self.rec.event("safe", on=False, why="rearm")
         response.success, response.message = True, "re-armed: commanding"
+        self._answer_unanswered()
         return response
+
+    def _answer_unanswered(self) -> None:
+        """Leaving the safe behaviour: the newest state, if it came after the last hold, is
+        answered now, not at the next state, which a simulator in lockstep sends only once
+        this one is answered (it waited out the staleness bound, then went safe again,
+        every time)."""
+        held, self._unanswered = self._unanswered, None
+        if held is not None and self.reference is not None:
+            self._answer(*held)
 
     def _on_reset(self, request, response):
         """``~/reset`` (std_srvs/Trigger): forget the run - the MPC's warm start, its
@@ -1036,12 +1046,7 @@ class RosController:
             self.stats["resumes"] += 1
             log.warning("inputs fresh again: commanding")
             self.rec.event("safe", on=False)
-            held, self._unanswered = self._unanswered, None
-            if held is not None and self.reference is not None:
-                # the newest state came after the last hold: answered now, not at the next
-                # state, which a simulator in lockstep sends only once this one is answered
-                # (it waited out the staleness bound, then went safe again, every time)
-                self._answer(*held)
+            self._answer_unanswered()
         if d.state != SAFE:
             return
         if d.entered_safe is not None and not self._safe:
