@@ -770,6 +770,7 @@ class RosController:
         self.reference = None
         self._restart = True  # the next state starts a new run; meanwhile, no plan: the
         self.stats["resets"] += 1  # timer's safe behaviour ramps the wheels down
+        self._unanswered = None  # a state of the run forgotten
         log.warning("reset: the run is forgotten; waiting for a plan")
         self.rec.event("reset")
         response.success, response.message = True, "reset: waiting for a plan"
