@@ -895,6 +895,54 @@ def test_a_second_publisher_never_drives_until_an_operator_rearms(procs, ros_env
     assert max(after) > 0.35 and all(g for g in s["sources"].values())
 
 
+def test_the_two_command_topics_are_never_taken_from_two_nodes(procs, ros_env):
+    """Issue 30: each command topic bound to its first publisher, the steering could come
+    from one node and the wheel speeds from another (each the only publisher of its topic):
+    two controllers driving one vehicle half each. Both topics are taken from one node:
+    another node's publisher on the second topic is rejected as ``not_owner``, naming the
+    node that drives, and the plant, never answered state 0 by a whole command, ends as
+    without a controller (exit 3, one line)."""
+    _ros()
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    procs.start("plant", msagv("ros2", "plant", "--run-mode", "realtime", "--case", "curve",
+                               "--duration", "4", "--stale-ms", "100", "--json", "-q"))
+    peer = Peer("steering_node")
+    other = peer.rclpy.create_node("wheel_node", context=peer.ctx)
+    peer.ex.add_node(other)
+    t_odom, steer = [], []
+    peer.node.create_subscription(Odometry, "odom", lambda m: t_odom.append(_stamp(m.header)),
+                                  10)
+    peer.node.create_subscription(JointState, "joint_states", lambda m: steer.append(
+        max(abs(p) for nm, p in zip(m.name, m.position) if nm.startswith("steer"))), 10)
+    # (the plant starts once its odometry is read and both command topics have publishers)
+    ps = peer.node.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
+    pw = other.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
+    try:
+        assert peer.spin(120, until=lambda: t_odom), procs.err("plant")[-2000:]
+        peer.node.create_timer(0.01, lambda: ps.publish(Float64MultiArray(data=[0.3] * 4)))
+        other.create_timer(0.01, lambda: pw.publish(Float64MultiArray(data=[5.0] * 4)))
+        peer.spin(60, until=lambda: procs.p["plant"].poll() is not None)
+    finally:
+        other.destroy_node()
+        peer.close()
+    assert procs.wait("plant", 60) == 3, procs.err("plant")[-2000:]
+    s = procs.json("plant")
+    bound = [t for t, g in s["sources"].items() if g]
+    assert len(bound) == 1, s["sources"]  # the first topic's; the second never from the other
+    assert s["rejected"]["by_reason"].get("not_owner", 0) > 50
+    assert max(steer) < 0.05  # the 0.3 rad never applied
+    err = procs.err("plant")
+    assert "no commands on steering_controller/commands and wheel_controller/commands " \
+           "answering state 0" in err
+    assert "Traceback" not in err
+    assert s["source_node"] in ("/steering_node", "/wheel_node")
+    other_node = ({"/steering_node", "/wheel_node"} - {s["source_node"]}).pop()
+    assert f"its publisher is node {other_node}, while {s['source_node']} drives" in err
+
+
 # ---- a managed node: lifecycle, parameters at run time, diagnostics, services --------------
 def _call(peer, client, request):
     """A service call by real rclpy: the response (the node answers within 60 s)."""

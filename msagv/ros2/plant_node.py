@@ -29,7 +29,9 @@ speed) is rejected, counted by reason and never applied.
 
 One publisher per command topic drives: the first whose valid command arrives once state 0
 is out while it is the topic's only publisher (its GID, from rclpy's message info; with two
-publishers neither binds). Another publisher's commands are
+publishers neither binds), and both topics from one node (the node of that GID in the ROS
+graph: the steering of one controller and the wheel speeds of another are not taken
+together). Another publisher's commands are
 rejected as ``not_owner`` before they are read and counted, also after the bound one fell
 silent or left (the safe behaviour or the lockstep timeout follows, never a takeover), until
 an operator calls ``~/rearm`` (std_srvs/Trigger): then the next publisher to send binds.
@@ -132,6 +134,7 @@ class RosPlant:
         # the publisher (GID) each command topic is bound to (None: the next one to send)
         self.sources: dict[str, bytes | None] = {R.STEERING_COMMANDS: None,
                                                  R.WHEEL_COMMANDS: None}
+        self.source_node: str | None = None  # the node both topics are taken from
         self.rearms = 0
         self._subs = [self.ctx.subscription(R.STEERING_COMMANDS, self._on_steer),
                       self.ctx.subscription(R.WHEEL_COMMANDS, self._on_wheel)]
@@ -195,10 +198,36 @@ class RosPlant:
             self.rej.add(M.MessageError(M.NOT_OWNER, f"{why}: none drives until one is "
                                                      f"left (or ~/rearm)"), topic)
             return False
+        # both topics from one node: the steering of one controller and the wheel speeds
+        # of another are no command of anyone's
+        node = self._node_of(sub, gid)
+        why = ("its publisher is not in the ROS graph yet" if node is None else
+               f"its publisher is node {node}, while {self.source_node} drives the other "
+               f"command topic (both commands must come from one node; ~/rearm lets the "
+               f"next publisher drive)"
+               if self.source_node is not None and node != self.source_node else None)
+        if why is not None:
+            self.rej.add(M.MessageError(M.NOT_OWNER, why), topic)
+            return False
         self.sources[topic] = gid
-        log.info("commands on %s from publisher %s", topic, gid.hex()[:16])
-        self.rec.event("source", topic=topic, gid=gid.hex())
+        self.source_node = node
+        log.info("commands on %s from publisher %s of node %s", topic, gid.hex()[:16], node)
+        self.rec.event("source", topic=topic, gid=gid.hex(), node=node)
         return True
+
+    def _node_of(self, sub, gid: bytes) -> str | None:
+        """The fully qualified name of the node whose publisher on ``sub``'s topic has the
+        GID ``gid`` (from the ROS graph), or None where the graph does not (yet) have it."""
+        try:
+            infos = self.ctx.node.get_publishers_info_by_topic(sub.topic_name)
+        except Exception as e:  # noqa: BLE001 - a closing context: taken as unknown
+            log.debug("publishers of %s: %s", sub.topic_name, e)
+            return None
+        for i in infos:
+            if bytes(i.endpoint_gid)[:len(gid)] == gid:
+                ns = i.node_namespace.rstrip("/")
+                return f"{ns}/{i.node_name}"
+        return None
 
     def _on_steer(self, msg, info) -> None:  # (two arguments: rclpy passes the info)
         if not self._from_source(R.STEERING_COMMANDS, info):
@@ -223,6 +252,7 @@ class RosPlant:
         drives (the safe behaviour ends as ever: once its commands keep up)."""
         was = {t: (g.hex()[:16] if g is not None else None) for t, g in self.sources.items()}
         self.sources = dict.fromkeys(self.sources)
+        self.source_node = None
         self.rearms += 1
         log.warning("re-armed by an operator: the next publisher on %s and %s drives "
                     "(was %s)", R.STEERING_COMMANDS, R.WHEEL_COMMANDS, was)
@@ -320,5 +350,6 @@ class RosPlant:
                 "clock": "ros" if self.sim_time else "wall",
                 "commands": {"accepted": st.accepted, "after_end": st.after_end},
                 "sources": {t: (g.hex() if g is not None else None)
-                            for t, g in self.sources.items()}, "rearms": self.rearms,
+                            for t, g in self.sources.items()},
+                "source_node": self.source_node, "rearms": self.rearms,
                 "rejected": self.rej.summary(), "tf": self.tf_published}
