@@ -156,7 +156,7 @@ def read_bag(bag: Path) -> tuple[RunData, dict | None]:
     if len(rows) < 3:
         raise CalibrationInputError(f"{bag}: fewer than three odom messages with joint states")
     t = np.array([st["t"] for _, st in rows])
-    period = float(np.median(np.diff(t))) if t.size > 1 else 0.01
+    period = float(np.median(np.diff(t)))  # (at least three rows: checked above)
     body = np.array([[st[f] for f in ("x", "y", "phi", "vx", "vy", "r")] for _, st in rows])
     delta = np.array([st["delta"] for _, st in rows])
     om = np.array([st["omega_w"] for _, st in rows])
