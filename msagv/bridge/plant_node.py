@@ -265,11 +265,11 @@ class PlantNode:
                 who, c["action"], token_present=self._tokens is not None and self._tokens.present(who),
                 wheel_wear=bool(c.get("wheel_wear", False)), pk=pk, link=link, proven=proven)
             if grant.granted:
-                # a granted claim is the owner heard: right after a first grant its token
-                # query through a router may still miss (issue 30, item 4), and the owner,
-                # waiting for its first state, sends nothing else yet (a CI run latched a
-                # live owner that way)
-                self._heard = (who, time.monotonic())
+                if owner == who and (held is None or proven):
+                    # the owner's claim again, proven (or no key to prove it with): heard.
+                    # (A new grant is heard in _on_owner_change; an unproven claim with the
+                    # owner's pk, which any copier can send, is not.)
+                    self._heard = (who, time.monotonic())
                 self._tell_wheel_wear()
             if c["action"] == CLAIM and not grant.granted:
                 self._refused_logged += 1
@@ -348,6 +348,12 @@ class PlantNode:
 
     def _on_owner_change(self, owner: str | None, why: str) -> None:
         log.info("vehicle %s: %s", self.keys.id, why)
+        if owner is not None:
+            # a new owner is heard (its claim) before its token is queried: right after a
+            # first grant the query through a router may still miss the token (issue 30,
+            # item 4) while the owner, waiting for its first state, sends nothing yet (a CI
+            # run latched a live owner that way)
+            self._heard = (owner, time.monotonic())
         if self._tokens is not None:
             self._tokens.focus(owner)
         self.rec.event("owner", owner=owner, why=why)
@@ -426,7 +432,6 @@ class PlantNode:
             self.rec.message("rx", self.keys.cmd, sample.payload, time.time(),
                              why=M.NOT_OWNER)
             return
-        self._heard = (sender, time.monotonic())
         self.handle_cmd(sample.payload, time.perf_counter(), time.time(), sender)
 
     # ---- commands ----------------------------------------------------------------------
@@ -449,6 +454,8 @@ class PlantNode:
                 if why is not None:
                     raise M.MessageError(M.BAD_MAC, f"from {sender}: {why} (the owner's "
                                                     f"commands carry the grant's mac)")
+            # the owner heard: its mac checked (a copied identity without the key is not)
+            self._heard = (sender, time.monotonic())
             with self._lock:
                 newest_pub = self.seq
             j = c["state_seq"]
