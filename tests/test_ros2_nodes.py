@@ -571,7 +571,10 @@ def test_a_plan_in_another_frame_than_the_odometry_is_refused_in_one_line(procs,
         car.plan(*plan, frame="map")
         peer.spin(0.3)
         moved = []
-        for _ in range(30):  # no plan in the odometry's frame: nothing moves the vehicle
+        for i in range(30):  # no plan in the odometry's frame: nothing moves the vehicle
+            if i == 15:
+                car.plan(*plan, frame="map")  # Nav2 replanning: refused again, said once
+                peer.spin(0.1)
             car.publish()
             car.k += 1
             peer.spin(0.03)
@@ -587,15 +590,16 @@ def test_a_plan_in_another_frame_than_the_odometry_is_refused_in_one_line(procs,
     procs.stop_all()
     summary = procs.json("ctl")
     err = procs.err("ctl")
-    assert summary["plans"] == 2 and summary["plans_wrong_frame"] == 1, summary
+    assert summary["plans"] == 3 and summary["plans_wrong_frame"] == 2, summary
     # the wait for no plan went safe; the odom plan resumed it and the state that came
     # while safe was answered by the solve, not after the 1 s staleness bound (a node that
     # left it unanswered stalled a lockstep simulator 1 s every few periods: 50 safe
-    # events, no solve, in 150 states)
-    assert summary["safe_events"] == 1 and summary["resumes"] == 1, summary
-    assert summary["answered"] >= 140, summary
+    # events, 0 answers in 150 states; a loaded machine may add a stale second or two)
+    assert 1 <= summary["safe_events"] <= 3 and summary["resumes"] >= 1, summary
+    assert summary["answered"] >= 120, summary
     line = [ln for ln in err.splitlines() if "in frame 'map'" in ln]
     assert len(line) == 1 and "refused" in line[0] and "plan_frame:=map" in line[0], err[-2000:]
+    assert "not the odometry's 'odom'" in line[0]
     assert "Traceback" not in err
     # the frames declared equal: the map plan is taken
     procs.start("ctl2", msagv("ros2", "controller", "--vehicle", three_axle_file, "--speed",

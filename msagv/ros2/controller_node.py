@@ -319,10 +319,9 @@ def declare_parameters(node, defaults: dict) -> dict:
 # configure). Weights: the MPC is built again from them at once (for the annealer
 # and the feed-forward; IPOPT and acados build them into their problem at configure).
 WEIGHTS = ("Q", "L", "E", "R", "deadline_ms")
-PLAN = ("plan_speed_kmh", "plan_accel", "plan_decel", "plan_lat_accel",
-        "plan_frame")  # the next plan
+PLAN = ("plan_speed_kmh", "plan_accel", "plan_decel", "plan_lat_accel")  # the next plan
 LIMITS = ("goal_tolerance", "goal_yaw_tolerance_deg", "low_speed_kmh", "stale_ms",
-          "resume_periods", "safe_decel", "max_age_ms")
+          "resume_periods", "safe_decel", "max_age_ms", "plan_frame")
 RUNTIME = WEIGHTS + PLAN + LIMITS
 REBUILT = ("sa", "ff")  # the solvers whose weights change at run time
 
@@ -554,6 +553,7 @@ class RosController:
         self._cmd_seq = 0
         self._told_arc = False
         self._odom_frame = ""  # the newest state's header.frame_id
+        self._told_frames: set[str] = set()  # plan frames refused (each said once)
         self._retime = False  # the plan's limits changed: the next plan is timed afresh
         self._restart = False  # ~/reset: the next state starts a new run
         self._goal_held: tuple | None = None  # the goal (x, y, phi) reached and held
@@ -601,6 +601,7 @@ class RosController:
 
     def _activate(self) -> None:
         self._odom = self._joints = None  # only states received from now on are answered
+        self._unanswered = None
         self.active = True
 
     def _deactivate(self) -> None:
@@ -839,15 +840,18 @@ class RosController:
             return
         c = self.cfg
         frame = msg.header.frame_id
-        want = c.plan_frame or self._odom_frame or R.FRAME_ODOM
-        if frame and frame != want:
+        odom = self._odom_frame or R.FRAME_ODOM  # (odometry naming no frame: odom)
+        if frame and frame not in (odom, c.plan_frame):
             # nothing here transforms (no tf2): a plan in map taken as odom would drive the
             # vehicle to wherever map's coordinates fall in odom
             self.stats["plans_wrong_frame"] += 1
-            why = (f"plan: in frame '{frame}', the odometry is in '{want}': refused (this "
-                   f"node does not transform plans: publish it in '{want}', or set "
-                   f"plan_frame:={frame} where the two frames coincide)")
-            self.rej.add(M.MessageError(M.BAD_VALUE, why), R.PLAN)  # (logged, rate-limited)
+            if frame not in self._told_frames:  # once per frame (Nav2 replans at 1-20 Hz)
+                self._told_frames.add(frame)
+                also = f" or plan_frame '{c.plan_frame}'" if c.plan_frame else ""
+                log.warning("plan: in frame '%s', not the odometry's '%s'%s: refused (this node "
+                            "does not transform plans: publish it in '%s', or set "
+                            "plan_frame:=%s where the two frames coincide); counted "
+                            "plans_wrong_frame", frame, odom, also, odom, frame)
             return
         arrays = R.path_arrays(msg)
         if self._goal_held is not None and self._same_goal(

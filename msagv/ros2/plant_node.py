@@ -66,6 +66,9 @@ def _gid(info) -> bytes:
     return bytes(g) if g is not None else b""
 
 
+UNKNOWN_NODE = ("_NODE_NAME_UNKNOWN_", "_NODE_NAMESPACE_UNKNOWN_")  # rmw_dds_common's names
+# for an endpoint whose node the graph has not learnt yet
+
 RosPlantError = PlantRunError  # the run cannot go on (no controller, a timeout, a failed step)
 SIM_LOOK_S = 0.002  # under use_sim_time the clock's pace is the simulator's: look this often
 
@@ -135,6 +138,7 @@ class RosPlant:
         self.sources: dict[str, bytes | None] = {R.STEERING_COMMANDS: None,
                                                  R.WHEEL_COMMANDS: None}
         self.source_node: str | None = None  # the node both topics are taken from
+        self._gid_apart_told = False
         self.rearms = 0
         self._subs = [self.ctx.subscription(R.STEERING_COMMANDS, self._on_steer),
                       self.ctx.subscription(R.WHEEL_COMMANDS, self._on_wheel)]
@@ -217,16 +221,33 @@ class RosPlant:
 
     def _node_of(self, sub, gid: bytes) -> str | None:
         """The fully qualified name of the node whose publisher on ``sub``'s topic has the
-        GID ``gid`` (from the ROS graph), or None where the graph does not (yet) have it."""
+        GID ``gid`` (from the ROS graph), or None where the graph does not (yet) know it.
+        Where no GID of the graph matches (Cyclone DDS gives the message's and the graph's
+        GIDs apart: ros2/rmw_cyclonedds #377) and the topic has one publisher, that
+        publisher's node (said once)."""
         try:
             infos = self.ctx.node.get_publishers_info_by_topic(sub.topic_name)
         except Exception as e:  # noqa: BLE001 - a closing context: taken as unknown
             log.debug("publishers of %s: %s", sub.topic_name, e)
             return None
+
+        def name(i) -> str | None:
+            if i.node_name in UNKNOWN_NODE or i.node_namespace in UNKNOWN_NODE:
+                return None  # the graph has the endpoint, not yet its node
+            return f"{i.node_namespace.rstrip('/')}/{i.node_name}"
+
         for i in infos:
-            if bytes(i.endpoint_gid)[:len(gid)] == gid:
-                ns = i.node_namespace.rstrip("/")
-                return f"{ns}/{i.node_name}"
+            g = bytes(i.endpoint_gid)
+            n = min(len(g), len(gid))
+            if n and g[:n] == gid[:n]:
+                return name(i)
+        if len(infos) == 1:
+            if not self._gid_apart_told:
+                self._gid_apart_told = True
+                log.warning("the middleware's publisher GIDs in messages and in the ROS graph "
+                            "differ: %s's only publisher is taken as the one sending",
+                            sub.topic_name)
+            return name(infos[0])
         return None
 
     def _on_steer(self, msg, info) -> None:  # (two arguments: rclpy passes the info)
