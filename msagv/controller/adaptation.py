@@ -11,7 +11,9 @@ factors of the prediction's Magic Formula tires,
 
 so that the cornering stiffness ``B C D`` of each curve scales with ``c`` alone and its peak
 ``D = mu F_N`` with ``f`` alone (a run that never reaches past the linear part of the curve
-identifies ``c`` and leaves ``f`` where it was). Each control period, from the state measured
+identifies ``c`` and leaves ``f`` where it was). With the Dugoff model (DH) the same three
+factors scale its own cornering and longitudinal stiffnesses and its friction
+(``C_alpha c_lat``, ``C_s c_lon``, ``mu f``). Each control period, from the state measured
 at ``t - T``, the command sent then and the state measured at ``t``, a Kalman filter on
 ``theta`` (a random walk, :class:`AdaptOptions`) takes the one-period velocity prediction
 error of the prediction model *without* the offset-free disturbance,
@@ -76,8 +78,10 @@ class TireAdaptation:
     """
 
     def __init__(self, model, period: float, options: AdaptOptions | None = None):
-        if model.model_id not in (_ro.MODEL_MF,):
-            raise ValueError("tire adaptation needs the Magic Formula prediction model 'mf'")
+        if model.model_id not in (_ro.MODEL_MF, _ro.MODEL_DUGOFF):
+            raise ValueError("tire adaptation needs a tire prediction model: 'mf' or "
+                             "'dugoff'")
+        self.dugoff = model.model_id == _ro.MODEL_DUGOFF
         self.model = model
         self.period = float(period)
         self.options = options or AdaptOptions()
@@ -104,6 +108,10 @@ class TireAdaptation:
         P[lay.P_LON_B] = P0[lay.P_LON_B] * c_lon / f
         P[lay.P_LAT_MU] = P0[lay.P_LAT_MU] * f
         P[lay.P_LON_MU] = P0[lay.P_LON_MU] * f
+        if self.dugoff:  # Dugoff's own stiffnesses and friction: the same three factors
+            P[lay.P_DUGOFF_C_ALPHA] = P0[lay.P_DUGOFF_C_ALPHA] * c_lat
+            P[lay.P_DUGOFF_C_S] = P0[lay.P_DUGOFF_C_S] * c_lon
+            P[lay.P_DUGOFF_MU] = P0[lay.P_DUGOFF_MU] * f
 
     def _velocity(self, theta, x0, z) -> np.ndarray:
         """The body-frame velocity (u, v, r) one period after ``x0`` under the raw command
