@@ -195,12 +195,13 @@ def _adapted_run(scale: float, **kw):
     return e, mpc.adapted_tires()
 
 
-@pytest.mark.parametrize("model", ["mf", "dugoff"])
+@pytest.mark.parametrize("model", ["mf", "dugoff", "tct"])
 def test_the_adaptation_finds_the_plants_cornering_stiffness(model):
     """Plant tires B and mu x1.2: the cornering stiffness B C D is x1.44 (the friction is not
     reached on this curve, so the friction factor stays where it was); the adapted controller
     tracks within 1.5x of the controller given the plant's tires. The same for DH's Dugoff
-    model, whose own stiffnesses (the Magic Formula's slopes at the load) scale alike."""
+    model, whose own stiffnesses (the Magic Formula's slopes at the load) scale alike, and
+    for TCT's (its lateral Magic Formula; it holds the reference's forward speed)."""
     e_adapt, est = _adapted_run(1.2, model=model)
     assert est["c_lat"] == pytest.approx(1.2 ** 2, rel=0.03), est
     assert est["c_lat_excited"] > 500

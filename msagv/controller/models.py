@@ -198,9 +198,9 @@ class MPCSettings:
             bad = f"offset_free: expected true or false, got {self.offset_free!r}"
         elif not (math.isfinite(self.adapt_sigma_v) and self.adapt_sigma_v > 0):
             bad = f"adapt_sigma_v: must be a finite speed > 0 m/s, got {self.adapt_sigma_v}"
-        elif self.adapt and self.model not in ("mf", "dugoff"):
-            bad = (f"adapt: the online tire adaptation needs a tire model, 'mf' or 'dugoff', "
-                   f"not {self.model!r}")
+        elif self.adapt and self.model not in ("mf", "dugoff", "tct"):
+            bad = (f"adapt: the online tire adaptation needs a tire model, 'mf', 'dugoff' or "
+                   f"'tct', not {self.model!r}")
         elif not (math.isfinite(self.disturbance_tau) and self.disturbance_tau > 0):
             bad = f"disturbance_tau: must be a finite time > 0 s, got {self.disturbance_tau}"
         elif self.deadline_ms is not None and not self.deadline_ms > 0:
