@@ -108,8 +108,9 @@ class MPCSettings:
       dugoff and tct; measured in docs/CONTROLLER.md), off for kinematic.
       disturbance_tau [s]: its filter's time constant.
     adapt: re-estimate the prediction's tire factors (cornering and longitudinal stiffness,
-      friction) online (:mod:`controller.adaptation`); the 'mf' model and the annealer or
-      feed-forward solvers only (IPOPT and acados build the tires into their code).
+      friction) online (:mod:`controller.adaptation`); the 'mf', 'dugoff' and 'tct'
+      models with the annealer or feed-forward solvers only (IPOPT and acados build the
+      tires into their code).
       adapt_sigma_v [m/s]: the standard deviation of a measured body velocity, the
       adaptation's measurement noise (raise it for noisy odometry: the factors then move
       more slowly and less on noise).
