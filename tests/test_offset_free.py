@@ -195,16 +195,19 @@ def _adapted_run(scale: float, **kw):
     return e, mpc.adapted_tires()
 
 
-def test_the_adaptation_finds_the_plants_cornering_stiffness():
+@pytest.mark.parametrize("model", ["mf", "dugoff", "tct"])
+def test_the_adaptation_finds_the_plants_cornering_stiffness(model):
     """Plant tires B and mu x1.2: the cornering stiffness B C D is x1.44 (the friction is not
     reached on this curve, so the friction factor stays where it was); the adapted controller
-    tracks within 1.5x of the controller given the plant's tires."""
-    e_adapt, est = _adapted_run(1.2)
+    tracks within 1.5x of the controller given the plant's tires. The same for DH's Dugoff
+    model, whose own stiffnesses (the Magic Formula's slopes at the load) scale alike, and
+    for TCT's (its lateral Magic Formula; it holds the reference's forward speed)."""
+    e_adapt, est = _adapted_run(1.2, model=model)
     assert est["c_lat"] == pytest.approx(1.2 ** 2, rel=0.03), est
     assert est["c_lat_excited"] > 500
     base = Scenario(case="curve", plant_tire_scale=1.2)
     truth = Scenario(case="curve", speed=25.0, vehicle=base.actual_vehicle(base.resolve_vehicle()),
-                     settings={"method": "ntwo"}).build()
+                     settings={"method": "ntwo", "model": model}).build()
     log = closed_loop(truth.plant, truth.controller, truth.reference, 8.0, period=0.01,
                       progress=False, outputs=False)
     e_true = log.metrics()["e_y_cm"]
@@ -227,7 +230,7 @@ def test_a_straight_line_does_not_excite_the_lateral_tire(tmp_path):
 def test_adapt_is_refused_where_it_cannot_act():
     from msagv.controller.mpc import MPC, ControllerError
 
-    with pytest.raises(ValueError, match="adapt: the online tire adaptation needs the model 'mf'"):
+    with pytest.raises(ValueError, match="adapt: the online tire adaptation needs a tire model"):
         MPCSettings(adapt=True, model="kinematic", policy="twist")
     pytest.importorskip("casadi")
     with pytest.raises(ControllerError, match="adapt: the ipopt solver builds the tires"):

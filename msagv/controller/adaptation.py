@@ -11,7 +11,10 @@ factors of the prediction's Magic Formula tires,
 
 so that the cornering stiffness ``B C D`` of each curve scales with ``c`` alone and its peak
 ``D = mu F_N`` with ``f`` alone (a run that never reaches past the linear part of the curve
-identifies ``c`` and leaves ``f`` where it was). Each control period, from the state measured
+identifies ``c`` and leaves ``f`` where it was). With the Dugoff model (DH) the same three
+factors scale its own cornering and longitudinal stiffnesses and its friction
+(``C_alpha c_lat``, ``C_s c_lon``, ``mu f``); TCT's lateral Magic Formula as ``mf``'s (it
+holds the reference's forward speed, so nothing informs ``c_lon``). Each control period, from the state measured
 at ``t - T``, the command sent then and the state measured at ``t``, a Kalman filter on
 ``theta`` (a random walk, :class:`AdaptOptions`) takes the one-period velocity prediction
 error of the prediction model *without* the offset-free disturbance,
@@ -76,8 +79,10 @@ class TireAdaptation:
     """
 
     def __init__(self, model, period: float, options: AdaptOptions | None = None):
-        if model.model_id not in (_ro.MODEL_MF,):
-            raise ValueError("tire adaptation needs the Magic Formula prediction model 'mf'")
+        if model.model_id not in (_ro.MODEL_MF, _ro.MODEL_DUGOFF, _ro.MODEL_TCT):
+            raise ValueError("tire adaptation needs a tire prediction model: 'mf', "
+                             "'dugoff' or 'tct'")
+        self.dugoff = model.model_id == _ro.MODEL_DUGOFF
         self.model = model
         self.period = float(period)
         self.options = options or AdaptOptions()
@@ -104,32 +109,37 @@ class TireAdaptation:
         P[lay.P_LON_B] = P0[lay.P_LON_B] * c_lon / f
         P[lay.P_LAT_MU] = P0[lay.P_LAT_MU] * f
         P[lay.P_LON_MU] = P0[lay.P_LON_MU] * f
+        if self.dugoff:  # Dugoff's own stiffnesses and friction: the same three factors
+            P[lay.P_DUGOFF_C_ALPHA] = P0[lay.P_DUGOFF_C_ALPHA] * c_lat
+            P[lay.P_DUGOFF_C_S] = P0[lay.P_DUGOFF_C_S] * c_lon
+            P[lay.P_DUGOFF_MU] = P0[lay.P_DUGOFF_MU] * f
 
-    def _velocity(self, theta, x0, z) -> np.ndarray:
+    def _velocity(self, theta, x0, z, ref) -> np.ndarray:
         """The body-frame velocity (u, v, r) one period after ``x0`` under the raw command
-        ``z`` with the factors ``theta`` (no disturbance)."""
+        ``z`` with the factors ``theta`` (no disturbance; ``ref``: the solve's first two
+        reference rows, for TCT, which holds the forward speed at the reference's)."""
         self._apply(theta, self._Pk)
-        phi1, vx, vy, r = self.step.predict(x0, z, self._Pk, _NO_DISTURBANCE)
+        phi1, vx, vy, r = self.step.predict(x0, z, self._Pk, _NO_DISTURBANCE, ref)
         return body_frame(phi1, vx, vy, r)
 
     def update(self, t: float, x0: np.ndarray) -> None:
         """Take the state measured at ``t`` (the MPC's state vector); update the factors from
         the last period's state and command, and put them into the model's ``P``."""
         last = self._last
-        self._last = (t, x0.copy(), None)
+        self._last = (t, x0.copy(), None, None)
         if (last is None or last[2] is None
                 or abs((t - last[0]) - self.period) > 0.25 * self.period):
             return
-        _, xp, z = last
+        _, xp, z, ref = last
         xp = np.ascontiguousarray(xp)
-        g = self._velocity(self.theta, xp, z)
+        g = self._velocity(self.theta, xp, z, ref)
         J = np.empty((3, 3))
         for i in range(3):
             h = 1e-4 * self.theta[i]
             tp, tm = self.theta.copy(), self.theta.copy()
             tp[i] += h
             tm[i] -= h
-            J[:, i] = (self._velocity(tp, xp, z) - self._velocity(tm, xp, z)) / (2 * h)
+            J[:, i] = (self._velocity(tp, xp, z, ref) - self._velocity(tm, xp, z, ref)) / (2 * h)
         e = body_frame(x0[lay.X0_PHI], x0[lay.X0_VX], x0[lay.X0_VY], x0[lay.X0_R]) - g
         o = self.options
         Rn = o.sigma_v ** 2
@@ -152,11 +162,14 @@ class TireAdaptation:
         # the feed-forward's steady cornering slip angle follows the cornering stiffness
         self.model.S[lay.S_K_ALPHA] = self.k_alpha0 / self.theta[0]
 
-    def commanded(self, om_w: np.ndarray, om_s: np.ndarray) -> None:
-        """The command sent for the state of the last :meth:`update`."""
+    def commanded(self, om_w: np.ndarray, om_s: np.ndarray, ref: np.ndarray | None = None
+                  ) -> None:
+        """The command sent for the state of the last :meth:`update` (``ref``: that
+        solve's reference rows, ``R[:2]`` taken)."""
         if self._last is not None:
-            t, x0, _ = self._last
-            self._last = (t, x0, np.r_[om_w, om_s].astype(float))
+            t, x0 = self._last[:2]
+            self._last = (t, x0, np.r_[om_w, om_s].astype(float),
+                          None if ref is None else np.array(ref[:2], dtype=float))
 
     def as_dict(self) -> dict:
         """The estimate for reports: each factor with its standard deviation, the periods

@@ -108,8 +108,9 @@ class MPCSettings:
       dugoff and tct; measured in docs/CONTROLLER.md), off for kinematic.
       disturbance_tau [s]: its filter's time constant.
     adapt: re-estimate the prediction's tire factors (cornering and longitudinal stiffness,
-      friction) online (:mod:`controller.adaptation`); the 'mf' model and the annealer or
-      feed-forward solvers only (IPOPT and acados build the tires into their code).
+      friction) online (:mod:`controller.adaptation`); the 'mf', 'dugoff' and 'tct'
+      models with the annealer or feed-forward solvers only (IPOPT and acados build the
+      tires into their code).
       adapt_sigma_v [m/s]: the standard deviation of a measured body velocity, the
       adaptation's measurement noise (raise it for noisy odometry: the factors then move
       more slowly and less on noise).
@@ -198,8 +199,9 @@ class MPCSettings:
             bad = f"offset_free: expected true or false, got {self.offset_free!r}"
         elif not (math.isfinite(self.adapt_sigma_v) and self.adapt_sigma_v > 0):
             bad = f"adapt_sigma_v: must be a finite speed > 0 m/s, got {self.adapt_sigma_v}"
-        elif self.adapt and self.model != "mf":
-            bad = f"adapt: the online tire adaptation needs the model 'mf', not {self.model!r}"
+        elif self.adapt and self.model not in ("mf", "dugoff", "tct"):
+            bad = (f"adapt: the online tire adaptation needs a tire model, 'mf', 'dugoff' or "
+                   f"'tct', not {self.model!r}")
         elif not (math.isfinite(self.disturbance_tau) and self.disturbance_tau > 0):
             bad = f"disturbance_tau: must be a finite time > 0 s, got {self.disturbance_tau}"
         elif self.deadline_ms is not None and not self.deadline_ms > 0:

@@ -183,7 +183,7 @@ class MPC:
         if self.observer is not None:
             self.observer.commanded(om_w, om_s, R)
         if self.adaptation is not None:
-            self.adaptation.commanded(om_w, om_s)
+            self.adaptation.commanded(om_w, om_s, R)
         ms = (time.perf_counter() - t0) * 1000.0
         self.solve_times_ms.append(ms)
         self._check_budget()

@@ -344,7 +344,9 @@ def column_settings(column: dict, family: dict, solver: str) -> dict:
     online tire adaptation (``adapt``) only where the family predicts with the Magic Formula
     model and solves with the annealer or the feed-forward (the adaptation scales the Magic
     Formula's tires; IPOPT and acados build them into their code); everything else as it
-    is."""
+    is. (``--adapt`` also scales DH's and TCT's tires now; this column keeps them
+    unadapted, as RESULTS.md's mismatch figures were measured, until the experiment is
+    rerun.)"""
     out = dict(column)
     if out.get("adapt") and (family.get("model", "mf") != "mf" or solver in ("ipopt", "acados")):
         out.pop("adapt")
