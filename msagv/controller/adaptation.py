@@ -41,6 +41,7 @@ from msagv.plant import layout as lay
 
 from . import rollout as _ro
 from .disturbance import OnePeriod, body_frame
+from .models import ADAPTABLE, MODELS
 
 NAMES = ("c_lat", "c_lon", "f")
 _NO_DISTURBANCE = np.zeros(3)  # the adaptation explains the motion with the tires alone
@@ -79,9 +80,9 @@ class TireAdaptation:
     """
 
     def __init__(self, model, period: float, options: AdaptOptions | None = None):
-        if model.model_id not in (_ro.MODEL_MF, _ro.MODEL_DUGOFF, _ro.MODEL_TCT):
-            raise ValueError("tire adaptation needs a tire prediction model: 'mf', "
-                             "'dugoff' or 'tct'")
+        if model.model_id not in {MODELS[m].model_id for m in ADAPTABLE}:
+            raise ValueError(f"tire adaptation needs a tire prediction model: "
+                             f"{', '.join(ADAPTABLE)}")
         self.dugoff = model.model_id == _ro.MODEL_DUGOFF
         self.model = model
         self.period = float(period)

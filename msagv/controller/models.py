@@ -199,9 +199,9 @@ class MPCSettings:
             bad = f"offset_free: expected true or false, got {self.offset_free!r}"
         elif not (math.isfinite(self.adapt_sigma_v) and self.adapt_sigma_v > 0):
             bad = f"adapt_sigma_v: must be a finite speed > 0 m/s, got {self.adapt_sigma_v}"
-        elif self.adapt and self.model not in ("mf", "dugoff", "tct"):
-            bad = (f"adapt: the online tire adaptation needs a tire model, 'mf', 'dugoff' or "
-                   f"'tct', not {self.model!r}")
+        elif self.adapt and self.model not in ADAPTABLE:
+            bad = (f"adapt: the online tire adaptation needs a tire model "
+                   f"({', '.join(repr(m) for m in ADAPTABLE)}), not {self.model!r}")
         elif not (math.isfinite(self.disturbance_tau) and self.disturbance_tau > 0):
             bad = f"disturbance_tau: must be a finite time > 0 s, got {self.disturbance_tau}"
         elif self.deadline_ms is not None and not self.deadline_ms > 0:
@@ -464,6 +464,7 @@ class TCTModel(PredictionModel):
 # error is its missing velocity dynamics (the twist follows the command at once), not a
 # constant: the disturbance chases the lag and tracks worse with the right tires.
 OFFSET_FREE_DEFAULT = {"mf": True, "dugoff": True, "tct": True, "kinematic": False}
+ADAPTABLE = ("mf", "dugoff", "tct")  # the models whose tires --adapt scales (adaptation.py)
 
 MODELS = {"mf": MagicFormulaModel, "dugoff": DugoffModel, "kinematic": KinematicModel,
           "tct": TCTModel}
