@@ -104,9 +104,16 @@ def _numba(model, x0, R, z):
 
 # ---- (a) the symbolic rollout is the numba rollout ---------------------------------------
 @needs_casadi
-@pytest.mark.parametrize("axles", [2, 3])
-def test_symbolic_rollout_matches_numba(axles):
-    model, nlp = _nlp(axles, MPCSettings())
+@pytest.mark.parametrize("axles,adapt", [(2, False), (3, False), (2, True)])
+def test_symbolic_rollout_matches_numba(axles, adapt):
+    """(With ``adapt``, the tires that the online adaptation moves are the NLP's parameters:
+    each draw scales them in the model, as the adaptation does, and the NLP follows without a
+    rebuild.)"""
+    from msagv.controller import adaptation as ad
+
+    model, nlp = _nlp(axles, MPCSettings(adapt=adapt))
+    P0, S0 = model.P.copy(), model.S.copy()
+    trng = np.random.default_rng(300)  # the tires' own draws (the states' stay the same)
     fast, _ = make_case("curve", 25.0)
     slow, _ = make_case("curve", 5.0)  # low feed-forward wheel speeds: offsets clip them at 0
     rng = np.random.default_rng(100 + axles)
@@ -118,8 +125,16 @@ def test_symbolic_rollout_matches_numba(axles):
         x0, R, z, _ = _random_case(rng, model, ref, "far" if kind == "zero" else kind)
         # the offset-free disturbance (body accelerations) carried by both, zero or not
         model.S[dist] = 0.0 if kind == "zero" else rng.uniform(-1.0, 1.0, 3) * [0.5, 0.5, 0.1]
+        if adapt:  # tires between 0.6 and 1.6 times the file's
+            model.P[list(ad.TIRE_P)] = P0[list(ad.TIRE_P)] * trng.uniform(0.6, 1.6, len(ad.TIRE_P))
+            model.S[list(ad.TIRE_S)] = S0[list(ad.TIRE_S)] * trng.uniform(0.6, 1.6, len(ad.TIRE_S))
         poses, wear, cmds = _numba(model, x0, R, z)
-        P, W, C = (np.asarray(v) for v in nlp.rollout_fn(x0, R, z, 0.0, nlp.disturbance()))  # eps = 0: exact |.|
+        P, W, C = (np.asarray(v) for v in nlp.rollout_fn(x0, R, z, 0.0, nlp.disturbance(),
+                                                         nlp.tires()))  # eps = 0: exact |.|
+        if adapt:  # (the parameters were really taken: the file's tires predict otherwise)
+            moved = np.asarray(nlp.rollout_fn(x0, R, z, 0.0, nlp.disturbance(),
+                                              np.r_[P0[list(ad.TIRE_P)], S0[list(ad.TIRE_S)]])[0])
+            assert np.abs(moved - poses).max() > 1e-6, kind
         assert np.all(np.isfinite(poses)) and np.all(np.isfinite(wear))
         np.testing.assert_allclose(P, poses, rtol=1e-9, atol=1e-9, err_msg=f"poses ({kind})")
         np.testing.assert_allclose(W, wear, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(wear).max()),
@@ -129,7 +144,8 @@ def test_symbolic_rollout_matches_numba(axles):
         hit["om_s at a rate limit"] |= bool(np.any(np.isclose(om_s, lim.omega_s_max))
                                             or np.any(np.isclose(om_s, lim.omega_s_min)))
         hit["om_w clipped to 0"] |= bool(np.any(cmds[0] == 0.0))
-    model.S[dist] = 0.0  # (the model is shared by the session's tests)
+    model.P[:], model.S[:] = P0, S0  # (the model is shared by the session's tests)
+    model.S[dist] = 0.0
     # the draws really exercised the policy's clips (not only its smooth interior)
     assert all(hit.values()), hit
 
@@ -144,7 +160,7 @@ def test_smoothing_bounds_the_wear_powers():
     for kind in ("near", "far"):
         x0, R, z, _ = _random_case(rng, model, ref, kind)
         _, wear, _ = _numba(model, x0, R, z)
-        W = np.asarray(nlp.rollout_fn(x0, R, z, 1.0, nlp.disturbance())[1])
+        W = np.asarray(nlp.rollout_fn(x0, R, z, 1.0, nlp.disturbance(), nlp.tires())[1])
         assert np.all(W >= wear - 1e-9 * np.abs(wear).max())
         assert np.all(W <= wear + model.n_wheels * 1.0 + 1e-9 * np.abs(wear).max())
 

@@ -54,11 +54,11 @@ needs_acados = pytest.mark.skipif(not HAVE_ACADOS, reason="acados not installed 
 
 
 @functools.lru_cache(maxsize=None)
-def _mpc(method: str = "two"):
+def _mpc(method: str = "two", adapt: bool = False):
     from msagv.controller.mpc import MPC
 
     ref, _ = make_case("curve", 25.0)
-    return MPC(VEH, MPCSettings(method=method), ref, solver="acados")
+    return MPC(VEH, MPCSettings(method=method, adapt=adapt), ref, solver="acados")
 
 
 def _state(init, t=0.0, **over):
@@ -108,6 +108,60 @@ def test_ocp_cost_is_the_nlp_cost(method):
         assert J_ocp == pytest.approx(J_nlp, rel=1e-10)
         # and the smoothing adds at most eps_w per wheel and term to the exact cost's powers
         assert J_nlp >= mpc.horizon.cost(x0, R, z, zprev) - 1e-9 * J_nlp
+
+
+@needs_acados
+def test_the_adapted_tires_are_stage_parameters():
+    """With ``--adapt`` the tires the online adaptation moves are acados' stage parameters
+    (after the reference row and the disturbance): with the model's tires scaled as the
+    adaptation scales them, the OCP's cost at a decision vector's trajectory is IPOPT's NLP
+    cost with the same tires, and differs from the cost with the file's tires."""
+    from msagv.controller import adaptation as ad
+    from msagv.controller.ipopt import HorizonNLP, IpoptOptions
+
+    mpc = _mpc("ntwo", adapt=True)
+    ocp = mpc.solver.ocp
+    nlp = HorizonNLP(mpc.model, mpc.settings, IpoptOptions(eps_w=mpc.solver.options.eps_w))
+    ref, init = make_case("curve", 25.0)
+    rng = np.random.default_rng(5)
+    mpc.reset()
+    st = _state(init(VEH), t=2.0)
+    mpc.step(st)
+    x0, R, zprev, warm = mpc.horizon_problem(st)
+    sv = ocp.solver
+    dist = np.array([0.1, -0.2, 0.03])
+    mpc.model.S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = dist
+    file_tires = ad.values(mpc.model)
+    costs = []
+    try:
+        for theta in ((1.0, 1.0, 1.0), (1.44, 0.8, 1.2), (0.64, 1.3, 0.8)):
+            mpc.adaptation._apply(np.array(theta), mpc.model.P)  # as an update does
+            mpc.model.S[list(ad.TIRE_S)] = file_tires[len(ad.TIRE_P):] / theta[0]
+            tires = ad.values(mpc.model)
+            z = np.clip(warm + rng.normal(0.0, 0.5, warm.size) * mpc.horizon.sigma,
+                        mpc.horizon.lower, mpc.horizon.upper)
+            s0 = np.r_[x0, zprev, np.ones(3)]
+            S = ocp.trajectory(s0, R, z, dist, tires).copy()
+            U = np.zeros((ocp.N, ocp.nu))
+            zb = zprev
+            for b, k in enumerate(ocp.starts):
+                U[k] = z[b * ocp.nu:(b + 1) * ocp.nu] - zb
+                zb = z[b * ocp.nu:(b + 1) * ocp.nu]
+            for k in range(ocp.N + 1):
+                sv.set(k, "p", np.r_[R[k], dist, tires])
+                sv.set(k, "x", S[k])
+                if k < ocp.N:
+                    sv.set(k, "u", U[k])
+            J_ocp = sv.get_cost()
+            J_nlp = float(nlp.cost_fn(z, nlp.params(x0, R, zprev)))
+            assert J_ocp == pytest.approx(J_nlp, rel=1e-10), theta
+            # the file's tires give another trajectory: the parameters were taken
+            S_file = ocp.trajectory(s0, R, z, dist, file_tires)
+            costs.append(np.abs(S_file[:, :3] - S[:, :3]).max())
+    finally:
+        mpc.reset()
+        mpc.model.S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = 0.0
+    assert costs[0] == 0.0 and min(costs[1:]) > 1e-4, costs
 
 
 @needs_acados

@@ -93,6 +93,7 @@ import numpy as np
 
 from msagv.plant import layout as lay
 
+from . import adaptation as _ad
 from . import rollout as _ro
 from .mirrors.casadi_rollout import _wrap, ca, symbolic_step
 from .horizon import Horizon, Solution
@@ -102,6 +103,7 @@ from .models import MPCSettings
 ACADOS_ENV = "MSAGV_ACADOS"  # the directory of an isolated install (pip install --target)
 CACHE_ENV = "MSAGV_ACADOS_CACHE"
 N_PARAM = lay.N_REF + 3  # a stage's parameters: the reference row, the disturbance
+# (+ adaptation.N_TIRE with --adapt: the tires the online adaptation moves)
 FORMULATION = 4  # bump when the generated problem changes (part of the cache key)
 RUNTIME_OPTIONS = ("iterations", "keep_best", "line_search")  # not in the generated code
 LINE_SEARCH = tuple(0.5 ** i for i in range(_ro.LANES))  # step sizes, one SIMD tile
@@ -267,6 +269,8 @@ class HorizonOCP:
         self.N = settings.N_p
         self.starts = [int(k) for k in np.cumsum((0,) + settings.blocks[:-1])]  # blocks' first steps
         self.linear = any(v > 0 for v in settings.effective_L[3:])
+        self.adapt = bool(settings.adapt)  # the adapted tires: stage parameters
+        self.n_param = N_PARAM + (_ad.N_TIRE if self.adapt else 0)
         s, u, p, f, y, ye = self._export_model(model)
         self.ny = int(y.shape[0])
         self._weights(settings)
@@ -287,7 +291,11 @@ class HorizonOCP:
         nx6, nu = self.nx6, self.nu
         s = ca.SX.sym("s", self.nx)
         u = ca.SX.sym("u", nu)
-        p = ca.SX.sym("p", N_PARAM)  # the reference row, then the offset-free disturbance
+        p = ca.SX.sym("p", self.n_param)  # the reference row, the offset-free disturbance
+        # (, the adapted tires)
+        P, S = model.P, model.S
+        if self.adapt:
+            P, S = _ad.symbolic(P, S, [p[N_PARAM + i] for i in range(_ad.N_TIRE)])
         zc = s[nx6:nx6 + nu]
         wp = s[nx6 + nu:]
         znew = zc + u
@@ -296,7 +304,7 @@ class HorizonOCP:
         V = [s[lay.X0_VX], s[lay.X0_VY], s[lay.X0_R]]
         delta = [s[lay.X0_DELTA + j] for j in range(self.nw)]
         refk = [p[i] for i in range(lay.N_REF)]
-        X1, V1, delta1, wear, _ = symbolic_step(X, V, delta, refk, znew, 0, model.P, model.S,
+        X1, V1, delta1, wear, _ = symbolic_step(X, V, delta, refk, znew, 0, P, S,
                                                 model.wx, model.wy, eps=self.options.eps_w,
                                                 dist=[p[lay.N_REF + i] for i in range(3)])
         nxt = [None] * nx6
@@ -352,7 +360,7 @@ class HorizonOCP:
         # acados scales each stage's cost by its time step: 1, so that the OCP's cost is
         # J (the dynamics are discrete and do not see it)
         ocp.solver_options.tf = float(Np)
-        ocp.parameter_values = np.zeros(N_PARAM)
+        ocp.parameter_values = np.zeros(self.n_param)
         ocp.cost.cost_type = "NONLINEAR_LS"
         ocp.cost.cost_type_e = "NONLINEAR_LS"
         ocp.cost.W = self.W[1]
@@ -392,6 +400,7 @@ class HorizonOCP:
         ref = ca.SX.sym("ref", Np + 1, lay.N_REF)
         z = ca.SX.sym("z", model.dim)
         dist = ca.SX.sym("dist", 3)
+        tires = ca.SX.sym("tires", _ad.N_TIRE if self.adapt else 0)
         Fs = ca.Function("f", [s, u, p], [f])
         traj = [x0]
         cur = x0
@@ -399,9 +408,10 @@ class HorizonOCP:
             b = int(model.block[k])
             uk = z[b * nu:(b + 1) * nu] - cur[nx6:nx6 + nu] if k in self.starts \
                 else ca.DM.zeros(nu)
-            cur = Fs(cur, uk, ca.vertcat(ref[k, :].T, dist))
+            cur = Fs(cur, uk, ca.vertcat(ref[k, :].T, dist, tires))
             traj.append(cur)
-        return ca.Function("msagv_traj", [x0, ref, z, dist], [ca.horzcat(*traj)]).expand()
+        args = [x0, ref, z, dist] + ([tires] if self.adapt else [])
+        return ca.Function("msagv_traj", args, [ca.horzcat(*traj)]).expand()
 
     def _build(self, ocp, d: Path) -> None:
         """Generate and compile the solver and the trajectory into ``d`` once per
@@ -477,19 +487,22 @@ class HorizonOCP:
         fn.restype = ctypes.c_int
         f = self.traj_fn
         self._traj_lib, self._traj = lib, fn
-        self._traj_arg = (ctypes.c_void_p * max(f.sz_arg(), 4))()
+        self._traj_arg = (ctypes.c_void_p * max(f.sz_arg(), 5))()
         self._traj_res = (ctypes.c_void_p * max(f.sz_res(), 1))()
         self._traj_iw = np.zeros(max(f.sz_iw(), 1), dtype=np.int64)
         self._traj_w = np.zeros(max(f.sz_w(), 1))
         self._traj_out = np.zeros((self.N + 1, self.nx))
         self._traj_ref = np.zeros((lay.N_REF, self.N + 1))  # column-major (N + 1, 6)
         self._dist = np.zeros(3)
-        self._stage_p = np.zeros((self.N + 1, N_PARAM))  # per stage: reference row, dist
+        self._tires = np.zeros(self.n_param - N_PARAM)
+        self._stage_p = np.zeros((self.N + 1, self.n_param))  # per stage: ref row, dist, tires
 
     def trajectory(self, s0: np.ndarray, ref: np.ndarray, z: np.ndarray,
-                   dist: np.ndarray | None = None) -> np.ndarray:
+                   dist: np.ndarray | None = None, tires: np.ndarray | None = None
+                   ) -> np.ndarray:
         """``(N + 1, nx)``: the OCP's states along the prediction of ``z`` from ``s0`` (with
-        the offset-free disturbance ``dist``; None: zero)."""
+        the offset-free disturbance ``dist``, None: zero; with ``--adapt`` the adapted tire
+        entries ``tires``, :func:`controller.adaptation.values`)."""
         s0 = np.ascontiguousarray(s0, dtype=float)
         z = np.ascontiguousarray(z, dtype=float)
         self._traj_ref[:] = ref.T
@@ -497,6 +510,11 @@ class HorizonOCP:
         a = self._traj_arg
         a[0], a[1], a[2] = s0.ctypes.data, self._traj_ref.ctypes.data, z.ctypes.data
         a[3] = self._dist.ctypes.data
+        if self.adapt:
+            if tires is None:
+                raise ValueError("acados: --adapt: the trajectory needs the adapted tires")
+            self._tires[:] = tires
+            a[4] = self._tires.ctypes.data
         self._traj_res[0] = self._traj_out.ctypes.data
         if self._traj(a, self._traj_res, self._traj_iw.ctypes.data, self._traj_w.ctypes.data, 0):
             raise RuntimeError("acados: the trajectory function failed")
@@ -507,7 +525,11 @@ class HorizonOCP:
         """The cache key: what the generated code depends on."""
         S = model.S.copy()
         S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = 0.0  # a parameter, not in the code
-        cfg = {"formulation": FORMULATION, "P": list(map(float, model.P)),
+        P = model.P.copy()
+        if settings.adapt:  # the adapted tires are parameters, not in the code either
+            P[list(_ad.TIRE_P)] = 0.0
+            S[list(_ad.TIRE_S)] = 0.0
+        cfg = {"formulation": FORMULATION, "P": list(map(float, P)),
                "S": list(map(float, S)), "wx": list(map(float, model.wx)),
                "wy": list(map(float, model.wy)), "block": list(map(int, model.block)),
                # the weights and bounds are set at run time: only the residual's shape
@@ -515,6 +537,8 @@ class HorizonOCP:
                "options": {k: v for k, v in asdict(options).items()
                            if k not in RUNTIME_OPTIONS}, "casadi": ca.__version__,
                "acados": getattr(acados, "__file__", ""), "python": sys.version_info[:2]}
+        if settings.adapt:  # (only then: the keys of every other configuration stay)
+            cfg["adapt"] = [list(_ad.TIRE_P), list(_ad.TIRE_S)]
         return hashlib.sha256(json.dumps(cfg, sort_keys=True, default=str).encode()).hexdigest()
 
     # ---- direct setters (the Python wrapper re-declares ctypes types on every call) ----
@@ -550,16 +574,17 @@ class HorizonOCP:
         v = np.ascontiguousarray(v, dtype=float)
         self._cons(self._cfg, self._dims, self._in, k, field.encode(), v.ctypes.data)
 
-    def solve(self, x0, ref, zprev, z_init, dist=None):
+    def solve(self, x0, ref, zprev, z_init, dist=None, tires=None):
         """One SQP iteration from ``z_init`` (its state trajectory as the linearisation
-        point) with the offset-free disturbance ``dist`` (None: zero): ``(z, status)``, the
-        new offsets (unclipped) and acados' status."""
+        point) with the offset-free disturbance ``dist`` (None: zero) and, with ``--adapt``,
+        the adapted tires ``tires``: ``(z, status)``, the new offsets (unclipped) and
+        acados' status."""
         Np, nu, nx6 = self.N, self.nu, self.nx6
         s0 = np.empty(self.nx)
         s0[:nx6] = x0
         s0[nx6:nx6 + nu] = zprev
         s0[nx6 + nu:] = 1.0  # the wear slots of stage 0 are not weighed (> 0 for sqrt)
-        S = self.trajectory(s0, ref, z_init, dist)
+        S = self.trajectory(s0, ref, z_init, dist, tires)
         U = np.zeros((Np, nu))
         zb_prev = zprev
         blocks = z_init.reshape(-1, nu)
@@ -573,9 +598,10 @@ class HorizonOCP:
         dp = ctypes.POINTER(ctypes.c_double)
         sp = self._stage_p
         sp[:, :lay.N_REF] = ref
-        sp[:, lay.N_REF:] = self._dist
+        sp[:, lay.N_REF:N_PARAM] = self._dist
+        sp[:, N_PARAM:] = self._tires
         for k in range(Np + 1):
-            self._params(self._capsule, k, sp[k].ctypes.data_as(dp), N_PARAM)
+            self._params(self._capsule, k, sp[k].ctypes.data_as(dp), self.n_param)
             self._out_set(cfg, dims, out, k, b"x", S[k].ctypes.data)
             if k < Np:
                 self._out_set(cfg, dims, out, k, b"u", U[k].ctypes.data)
@@ -629,11 +655,12 @@ class Acados:
         h = self.horizon
         z, J = h.better_start(x0, R, zprev, warm)
         dist = h.model.S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]]  # offset-free
+        tires = _ad.values(h.model) if self.ocp.adapt else None  # --adapt's tires
         its = 0
         for _ in range(self.options.iterations):
             its += 1
             try:
-                zn, status = self.ocp.solve(x0, R, zprev, z, dist)
+                zn, status = self.ocp.solve(x0, R, zprev, z, dist, tires)
             except RuntimeError:  # CasADi's evaluation of the trajectory
                 status, zn = -1, z
             self.last_status = status

@@ -44,6 +44,28 @@ from .disturbance import OnePeriod, body_frame
 from .models import ADAPTABLE, MODELS
 
 NAMES = ("c_lat", "c_lon", "f")
+# The prediction's entries the adaptation writes with the Magic Formula tires (``_apply`` and
+# the feed-forward's gain): a solver that builds the prediction into its own code (IPOPT,
+# acados) takes them as parameters of each solve when ``--adapt`` is on (:func:`values`).
+TIRE_P = (lay.P_LAT_B, lay.P_LON_B, lay.P_LAT_MU, lay.P_LON_MU)
+TIRE_S = (lay.S_K_ALPHA,)
+N_TIRE = len(TIRE_P) + len(TIRE_S)
+
+
+def values(model) -> np.ndarray:
+    """The adapted entries' values in the model now (``TIRE_P`` then ``TIRE_S``)."""
+    return np.r_[model.P[list(TIRE_P)], model.S[list(TIRE_S)]].astype(float)
+
+
+def symbolic(P, S, sym):
+    """``(P, S)`` as lists with the adapted entries replaced by ``sym[0..N_TIRE-1]`` (the
+    symbolic parameters of a solver's generated prediction)."""
+    P, S = list(P), list(S)
+    for i, k in enumerate(TIRE_P):
+        P[k] = sym[i]
+    for i, k in enumerate(TIRE_S):
+        S[k] = sym[len(TIRE_P) + i]
+    return P, S
 _NO_DISTURBANCE = np.zeros(3)  # the adaptation explains the motion with the tires alone
 
 

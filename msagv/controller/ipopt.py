@@ -52,6 +52,7 @@ import numpy as np
 from msagv.plant import layout as lay
 
 from .mirrors.casadi_rollout import TINY_SQ, TINY_W2, ca, symbolic_cost, symbolic_rollout  # noqa: F401
+from . import adaptation as _ad
 from .horizon import Horizon, Solution
 from .interface import ControllerError
 from .models import MPCSettings
@@ -124,14 +125,18 @@ class HorizonNLP:
         eps = ca.SX.sym("eps")
         dist = ca.SX.sym("dist", 3)  # the offset-free disturbance (controller.disturbance)
         self.model = model
-        poses, wear, cmds = symbolic_rollout(x0, ref, z, model.block, model.P, model.S,
+        # --adapt: the tires the adaptation moves are parameters of each solve, not constants
+        self.adapt = bool(settings.adapt)
+        tires = ca.SX.sym("tires", _ad.N_TIRE if self.adapt else 0)
+        P, S = _ad.symbolic(model.P, model.S, tires) if self.adapt else (model.P, model.S)
+        poses, wear, cmds = symbolic_rollout(x0, ref, z, model.block, P, S,
                                              model.wx, model.wy, eps=eps,
                                              dist=[dist[i] for i in range(3)])
         L = settings.effective_L
         J = symbolic_cost(poses, wear, ref, z, zprev, settings.Q, L, settings.R, nw)
-        p = ca.vertcat(x0, ca.vec(ref), zprev, eps, dist)
+        p = ca.vertcat(x0, ca.vec(ref), zprev, eps, dist, tires)
         self.rollout_fn = ca.Function(
-            "rollout", [x0, ref, z, eps, dist],
+            "rollout", [x0, ref, z, eps, dist, tires],
             [ca.vertcat(*[ca.horzcat(*pk) for pk in poses]),
              ca.vertcat(*[ca.horzcat(*wk) for wk in wear]),
              ca.vertcat(ca.horzcat(*cmds[0]), ca.horzcat(*cmds[1]))])
@@ -146,10 +151,15 @@ class HorizonNLP:
 
     def params(self, x0, ref, zprev, eps=None) -> np.ndarray:
         """The NLP's parameters: the state, the reference rows, the previous first block,
-        the |.| smoothing and the model's current offset-free disturbance."""
+        the |.| smoothing, the model's current offset-free disturbance and (``--adapt``) its
+        current tires."""
         e = self.options.eps_w if eps is None else eps
         return np.r_[np.asarray(x0, float), np.asarray(ref, float).reshape(-1, order="F"),
-                     np.asarray(zprev, float), e, self.disturbance()]
+                     np.asarray(zprev, float), e, self.disturbance(), self.tires()]
+
+    def tires(self) -> np.ndarray:
+        """The adapted tire entries the prediction carries now (empty without ``--adapt``)."""
+        return _ad.values(self.model) if self.adapt else np.zeros(0)
 
     def disturbance(self) -> np.ndarray:
         """The offset-free disturbance the prediction carries now (the model's ``S``)."""

@@ -83,9 +83,6 @@ class MPC:
         self.period = float(period)
         cls = solvers.solver_class(solver)
         cls.check_supported(self.settings)
-        if self.settings.adapt and solver in ("ipopt", "acados"):
-            raise ControllerError(f"adapt: the {solver} solver builds the tires into its code; "
-                                  f"the online adaptation runs with the annealer (--solver sa)")
         self.name = solver
         self.horizon = Horizon(vehicle, self.settings, self.period)
         self.model = self.horizon.model

@@ -342,11 +342,10 @@ def run_specs(scenarios: list[StudyScenario], quick: bool = False) -> list[RunSp
 def column_settings(column: dict, family: dict, solver: str) -> dict:
     """A column's settings (:mod:`experiments.mismatch`) as they apply to one family: the
     online tire adaptation (``adapt``) only where the family predicts with the Magic Formula
-    model and solves with the annealer or the feed-forward (the adaptation scales the Magic
-    Formula's tires; IPOPT and acados build them into their code); everything else as it
-    is. (``--adapt`` also scales DH's and TCT's tires now; this column keeps them
-    unadapted, as RESULTS.md's mismatch figures were measured, until the experiment is
-    rerun.)"""
+    model and solves with the annealer or the feed-forward; everything else as it is.
+    (``--adapt`` also scales DH's and TCT's tires now, and IPOPT and acados take the adapted
+    tires as solve parameters; this column keeps the rule under which RESULTS.md's mismatch
+    figures were measured, until the experiment is rerun.)"""
     out = dict(column)
     if out.get("adapt") and (family.get("model", "mf") != "mf" or solver in ("ipopt", "acados")):
         out.pop("adapt")

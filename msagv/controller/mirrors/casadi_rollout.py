@@ -41,6 +41,11 @@ TINY_W2 = 1e-20  # W^2 under the smoothed |.| of the wear powers (eps_w = 0 guar
 assert CMD_W == 0 and CMD_S == 1  # the commands are returned as the pair (om_w, om_s)
 
 
+def _number(v):
+    """A plain float, or the CasADi expression itself (``float()`` of a symbol is NaN)."""
+    return v if isinstance(v, (ca.SX, ca.MX)) else float(v)
+
+
 def _sabs(p, eps):
     """|p| smoothed: sqrt(p^2 + eps^2 + TINY_W2) [W] (|p| to 1e-10 W for eps = 0, with
     finite derivatives everywhere: ``eps`` may be a CasADi parameter equal to 0)."""
@@ -91,7 +96,8 @@ def _policy(X, delta, refk, z, base, nw, P, S, wx, wy, dt):
     kservo = (1.0 - math.exp(-S[S_K_SERVO] * dt)) / dt
     dmin, dmax = P[P_DELTA_MIN], P[P_DELTA_MAX]
     k_alpha = S[S_K_ALPHA]
-    acorner = k_alpha * ca.sqrt(vdx * vdx + vdy * vdy + TINY_SQ) * rd if k_alpha != 0.0 else 0.0
+    acorner = k_alpha * ca.sqrt(vdx * vdx + vdy * vdy + TINY_SQ) * rd \
+            if isinstance(k_alpha, ca.SX) or k_alpha != 0.0 else 0.0
     om_w, om_s = [], []
     for k in range(nw):
         wvx = ub - rd * wy[k]
@@ -129,14 +135,15 @@ def symbolic_step(X, V, delta, refk, z, base, P, S, wx, wy, eps=0.0, dist=None):
     pose ``X`` (x, y, phi in :mod:`plant.layout`'s POSE order), the global-frame velocity
     ``V`` (vx, vy, r) and the steering angles ``delta`` (lists of CasADi expressions), the
     reference row ``refk`` (6) and the offsets ``z[base : base + 2n]`` of the step's block.
-    ``P``, ``S``, ``wx``, ``wy`` are plain numbers. Returns ``(X, V, delta, wear, cmds)``
+    ``P``, ``S``, ``wx``, ``wy`` are plain numbers (entries of ``P`` and ``S`` may be CasADi
+    symbols: the tires ``--adapt`` moves are parameters of a solve). Returns ``(X, V, delta, wear, cmds)``
     after the step: the new pose, velocity and angles (lists), the step's wear powers
     ``(P_s, P_alpha, P_t)`` [W] in WEAR order and its commands ``(om_w, om_s)``. ``dist``:
     the offset-free disturbance (body-frame accelerations, three numbers or expressions);
     None: ``S``'s (:data:`plant.layout.S_DIST_U` ..)."""
     nw = len(wx)
-    P = [float(p) for p in P]
-    S = [float(v) for v in S]
+    P = [_number(p) for p in P]
+    S = [_number(v) for v in S]
     dt = S[S_DT]
     m, Iz, r_w, k_t, v_eps = (P[i] for i in (P_MASS, P_YAW_INERTIA, P_WHEEL_RADIUS, P_K_T,
                                              P_V_EPS))
