@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from msagv.controller.disturbance import SLOTS, DisturbanceObserver
+from msagv.controller.disturbance import SLOTS, DisturbanceObserver, OnePeriod
 from msagv.controller.loop import closed_loop
 from msagv.controller.models import MPCSettings, make_model
 from msagv.controller.reference import make_case
@@ -86,16 +86,15 @@ def test_the_observer_finds_a_constant_disturbance(model):
     truth = np.array([0.3, -0.4, 0.05]) if model == "mf" else np.array([0.1, -0.05, 0.01])
     for d_true in (np.zeros(3), truth):
         obs = DisturbanceObserver(m, T, 0.05, (5.0, 2.0))
-        plant = DisturbanceObserver(make_model(v, s), T, 0.05, (5.0, 2.0))  # the 'plant'
-        plant.d = d_true.copy()
+        plant = OnePeriod(make_model(v, s), T)  # the 'plant': the model with d_true
         x = _x0(v, ref)
         om_w = np.full(v.n_wheels, x[lay.X0_VX] / v.wheel_radius)
         om_s = np.zeros(v.n_wheels)
         for k in range(150):
             obs.update(k * T, x)
             obs.commanded(om_w, om_s)
-            phi, vx, vy, r = plant.predict_velocity(x, om_w, om_s)
-            x1, y1, phi1 = plant.step.poses[0, 0]
+            phi, vx, vy, r = plant.predict(x, np.r_[om_w, om_s], plant.model.P, d_true)
+            x1, y1, phi1 = plant.poses[0, 0]
             x = x.copy()
             x[lay.X0_X], x[lay.X0_Y], x[lay.X0_PHI] = x1, y1, phi1
             x[lay.X0_VX], x[lay.X0_VY], x[lay.X0_R] = vx, vy, r

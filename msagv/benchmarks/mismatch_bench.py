@@ -9,7 +9,8 @@ Per path and plant tire factor (B and mu of both Magic Formula curves times the 
 ``Scenario.plant_tire_scale``), four controllers:
 
 - ``wrong``: the file's tires, no offset-free disturbance (the MPC before issue 28);
-- ``offset-free``: the file's tires, the disturbance on (the default of the mf model);
+- ``offset-free``: the file's tires, the disturbance on (the default of the tire models;
+  the kinematic model's is off, so it is switched on here);
 - ``adapted``: the file's tires adapted online (``--adapt``) and the disturbance on (not
   run for a model without tires, ``kinematic``: its cells say ``n/a``);
 - ``true``: the plant's own tires (the model right), the default settings, on the same path
@@ -40,6 +41,8 @@ def run_one(case: str, speed: float, scale: float, variant: str, method: str,
     settings = {**(extra or {}), "method": method}
     if variant == "wrong":
         settings["offset_free"] = False
+    elif variant == "offset-free":  # (on: the kinematic model's default is off)
+        settings["offset_free"] = True
     elif variant == "adapted":
         settings["adapt"] = True
     sc = Scenario(case=case, speed=speed, path_seed=path_seed, settings=settings,

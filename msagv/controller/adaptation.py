@@ -40,7 +40,7 @@ import numpy as np
 from msagv.plant import layout as lay
 
 from . import rollout as _ro
-from .disturbance import OnePeriod, body_frame
+from .disturbance import LastPeriod, OnePeriod, body_frame
 from .models import ADAPTABLE, MODELS
 
 NAMES = ("c_lat", "c_lon", "f")
@@ -112,6 +112,7 @@ class TireAdaptation:
         self.P0 = model.P.copy()  # the file's tires
         self.k_alpha0 = float(model.S[lay.S_K_ALPHA])  # the feed-forward's m / (n C_alpha)
         self.step = OnePeriod(model, period)
+        self.last = LastPeriod(period)
         self._Pk = model.P.copy()
         self.reset()
 
@@ -121,7 +122,7 @@ class TireAdaptation:
         self.cov = np.eye(3) * self.options.sigma0 ** 2
         self._apply(self.theta, self.model.P)
         self.model.S[lay.S_K_ALPHA] = self.k_alpha0
-        self._last = None
+        self.last.clear()
         self.updates = 0
         self.excited = np.zeros(3, dtype=np.int64)
 
@@ -148,12 +149,10 @@ class TireAdaptation:
     def update(self, t: float, x0: np.ndarray) -> None:
         """Take the state measured at ``t`` (the MPC's state vector); update the factors from
         the last period's state and command, and put them into the model's ``P``."""
-        last = self._last
-        self._last = (t, x0.copy(), None, None)
-        if (last is None or last[2] is None
-                or abs((t - last[0]) - self.period) > 0.25 * self.period):
+        last = self.last.measured(t, x0)
+        if last is None:
             return
-        _, xp, z, ref = last
+        xp, z, ref = last
         xp = np.ascontiguousarray(xp)
         g = self._velocity(self.theta, xp, z, ref)
         J = np.empty((3, 3))
@@ -189,10 +188,7 @@ class TireAdaptation:
                   ) -> None:
         """The command sent for the state of the last :meth:`update` (``ref``: that
         solve's reference rows, ``R[:2]`` taken)."""
-        if self._last is not None:
-            t, x0 = self._last[:2]
-            self._last = (t, x0, np.r_[om_w, om_s].astype(float),
-                          None if ref is None else np.array(ref[:2], dtype=float))
+        self.last.commanded(om_w, om_s, ref)
 
     def as_dict(self) -> dict:
         """The estimate for reports: each factor with its standard deviation, the periods

@@ -89,6 +89,34 @@ class OnePeriod:
                 2.0 * (phi1 - x0[lay.X0_PHI]) / T - x0[lay.X0_R])
 
 
+class LastPeriod:
+    """The last control period as an estimator sees it: the state measured at ``t``, then
+    the raw command sent for it (omega_w, then omega_s) and that solve's first two reference
+    rows. The disturbance observer and the online adaptation each keep one."""
+
+    def __init__(self, period: float):
+        self.period = float(period)
+        self.clear()
+
+    def clear(self) -> None:
+        self.t = self.x0 = self.z = self.ref = None
+
+    def measured(self, t: float, x0: np.ndarray):
+        """Take the state measured at ``t``: the last period's ``(x0, z, ref)`` if it was
+        commanded and ended one period (within a quarter) before ``t``, else None."""
+        done = (self.z is not None and abs((t - self.t) - self.period) <= 0.25 * self.period)
+        out = (self.x0, self.z, self.ref) if done else None
+        self.t, self.x0, self.z, self.ref = t, x0.copy(), None, None
+        return out
+
+    def commanded(self, om_w: np.ndarray, om_s: np.ndarray, ref: np.ndarray | None) -> None:
+        """The command sent for the last measured state, held over T (and ``ref``'s first
+        two rows, for TCT, which holds the forward speed at the reference's)."""
+        if self.x0 is not None:
+            self.z = np.r_[om_w, om_s].astype(float)
+            self.ref = None if ref is None else np.array(ref[:2], dtype=float)
+
+
 def body_frame(phi: float, vx: float, vy: float, r: float) -> np.ndarray:
     """A global-frame velocity ``(vx, vy, r)`` in the body frame of heading ``phi``."""
     c, s = math.cos(phi), math.sin(phi)
@@ -119,32 +147,24 @@ class DisturbanceObserver:
         self.lateral_only = model.model_id == _ro.MODEL_TCT
         self.limit = np.array([limit[0], limit[0], limit[1]], dtype=float)
         self.step = OnePeriod(model, period)
+        self.last = LastPeriod(period)
         self.reset()
 
     def reset(self) -> None:
         """Forget the estimate and the last state (d = 0)."""
         self.d = np.zeros(3)
         self.model.S[SLOTS] = 0.0
-        self._last = None  # (t, x0, omega_w, omega_s, reference rows) of the last period
+        self.last.clear()
         self.updates = 0
-
-    def predict_velocity(self, x0: np.ndarray, om_w: np.ndarray, om_s: np.ndarray,
-                         ref: np.ndarray | None = None) -> tuple[float, float, float, float]:
-        """The model's prediction one control period after ``x0`` under the commands
-        ``(om_w, om_s)`` and the current ``d``: ``(phi, vx, vy, r)`` (global frame).
-        ``ref``: the reference's first two rows of that solve (TCT holds the forward speed
-        at the reference's)."""
-        return self.step.predict(x0, np.r_[om_w, om_s], self.model.P, self.d, ref)
 
     def update(self, t: float, x0: np.ndarray) -> np.ndarray:
         """Take the state measured at ``t`` (the MPC's state vector): compare it with the
         prediction from the last period's state and command, update ``d`` and put it into
         the model's ``S``. Returns ``d``."""
-        last = self._last
-        if (last is not None and last[2] is not None
-                and abs((t - last[0]) - self.period) <= 0.25 * self.period):
-            _, xp, omw, oms, ref = last
-            _, vx, vy, r = self.predict_velocity(xp, omw, oms, ref)
+        last = self.last.measured(t, x0)
+        if last is not None:
+            xp, z, ref = last
+            _, vx, vy, r = self.step.predict(xp, z, self.model.P, self.d, ref)
             e = body_frame(x0[lay.X0_PHI], x0[lay.X0_VX] - vx, x0[lay.X0_VY] - vy,
                            x0[lay.X0_R] - r)
             if self.lateral_only:
@@ -153,17 +173,13 @@ class DisturbanceObserver:
             self.d = np.clip(self.d + gain * e, -self.limit, self.limit)
             self.updates += 1
         self.model.S[SLOTS] = self.d
-        self._last = (t, x0.copy(), None, None, None)
         return self.d
 
     def commanded(self, om_w: np.ndarray, om_s: np.ndarray, ref: np.ndarray | None = None
                   ) -> None:
         """The command sent for the state of the last :meth:`update` (held over T), and the
         reference rows of that solve (``R[:2]``)."""
-        if self._last is not None:
-            t, x0 = self._last[:2]
-            self._last = (t, x0, np.array(om_w, dtype=float), np.array(om_s, dtype=float),
-                          None if ref is None else np.array(ref[:2], dtype=float))
+        self.last.commanded(om_w, om_s, ref)
 
     def as_dict(self) -> dict:
         """The estimate for reports: ``d_u``, ``d_v``, ``d_r`` and the number of updates."""
