@@ -101,3 +101,21 @@ def test_the_scenario_default_solver_is_the_tables():
     from msagv.experiments.scenario import Scenario
 
     assert Scenario().solver == solvers.DEFAULT_SOLVER
+
+
+def test_the_dugoff_models_files_are_the_ones_listed_here():
+    """ARCHITECTURE.md's count of what a prediction model with parameters of its own takes
+    (DH's Dugoff model) is the code's: the modules that name Dugoff's parameter slots, model
+    id, tire law, FMU variables or vehicle-file section are exactly the page's list."""
+    text = DOC.read_text()
+    m = re.search(r"<!-- files: dugoff -->(.*?)<!-- end files -->", text, re.S)
+    assert m, "docs/ARCHITECTURE.md has no list of the Dugoff model's files"
+    listed = set(re.findall(r"`([a-z_/]+\.py)`", m.group(1)))
+    pkg = DOC.parent.parent / "msagv"
+    names = re.compile(r"P_DUGOFF|MODEL_DUGOFF|dugoff_forces|tire_dugoff|[\"']dugoff[\"']")
+    found = {str(f.relative_to(pkg)) for f in pkg.rglob("*.py") if names.search(f.read_text())}
+    assert found == listed, (f"in the code, not on the page: {sorted(found - listed)}; "
+                             f"on the page, not in the code: {sorted(listed - found)}")
+    heading = re.search(r"### A prediction model: two files, or (\w+) with", text)
+    words = {"nine": 9, "ten": 10, "eleven": 11, "twelve": 12, "thirteen": 13}
+    assert heading and words.get(heading.group(1)) == len(listed), heading
