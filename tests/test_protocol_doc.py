@@ -386,3 +386,98 @@ def test_the_params_vehicle_row_names_every_key_the_plant_sends():
     d = default_vehicle().to_dict()
     want = set(d) | set(d["tire"]) | set(d["plant"])
     assert want <= named, f"PROTOCOL.md 3.4's vehicle row does not name {sorted(want - named)}"
+
+
+def _section_table(doc: str, heading: str, header: str = "| field |") -> list[list[str]]:
+    """The rows of the first table whose header starts with ``header`` after the line
+    that starts with ``heading`` (``### 3.2``), in the section (not past the next
+    heading)."""
+    lines = [ln.strip() for ln in doc.splitlines()]
+    start = next(k for k, ln in enumerate(lines) if ln.startswith(heading))
+    for k in range(start + 1, len(lines)):
+        assert not lines[k].startswith("#"), f"no table {header!r} under {heading!r}"
+        if lines[k].startswith(header):
+            return _table("\n".join(lines[k:]), header)
+    raise AssertionError(f"no table {header!r} under {heading!r}")
+
+
+def _fields(rows: list[list[str]], type_col: int, req_col: int) -> dict[str, tuple[str, bool]]:
+    """``{field: (type, required)}`` of a field table: a row may name several fields
+    (``x, y``); its type is the cell's first word (``bin (16 bytes)``: ``bin``)."""
+    out = {}
+    for r in rows:
+        for name in r[0].split(","):
+            assert name.strip() not in out, f"{name.strip()} twice in one table"
+            out[name.strip()] = (r[type_col].split()[0], r[req_col] == "yes")
+    return out
+
+
+def test_protocol_md_field_tables_are_the_codecs_schema():
+    """Issue 27, item 3: sections 3.2-3.5 and 3.7-3.8 list exactly the fields the codec
+    (msagv.bridge.messages, msagv.bridge.ownership) accepts, with its types and which are
+    required, and a plant's real messages carry no field the page does not name: a field
+    added to the schema and not to the page fails here (as ``combined_slip`` in params
+    once passed a strict client's reading of the page by)."""
+    from pathlib import Path
+
+    from msagv.bridge import link_key
+    from msagv.bridge import messages as Msg
+    from msagv.bridge import ownership as O
+    from msagv.plant import Plant, default_vehicle
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "PROTOCOL.md").read_text()
+    # the page's name of each of the codec's kinds (bridge.messages, "field tables")
+    kinds = {"int": "int", "float": "float", "float+": "float", "wheels": "float[2n]",
+             "wheels+": "float[2n]", "bool": "bool", "str": "str", "bin": "bin",
+             "map": "map", "series": "float[N]"}
+
+    def schema(required: dict, optional: dict) -> dict[str, tuple[str, bool]]:
+        return {**{k: (kinds[v], True) for k, v in required.items()},
+                **{k: (kinds[v], False) for k, v in optional.items()}}
+
+    # the bus maps (unit column: field | type | unit | req. | meaning)
+    tables = {"### 3.2": (Msg.STATE_REQUIRED, Msg.STATE_OPTIONAL),
+              "### 3.3": (Msg.CMD_REQUIRED, Msg.CMD_OPTIONAL),
+              "### 3.4": (Msg.PARAMS_REQUIRED, Msg.PARAMS_OPTIONAL),
+              "### 3.5": (Msg.REFERENCE_REQUIRED, Msg.REFERENCE_OPTIONAL)}
+    page = {}
+    for heading, (req, opt) in tables.items():
+        page[heading] = _fields(_section_table(doc, heading), 1, 3)
+        assert page[heading] == schema(req, opt), heading
+    # the handover maps (field | type | req. | meaning), in the order claim, grant / arm,
+    # armed of their sections
+    lines = doc.splitlines()
+    for heading, pairs in (("### 3.7", [(O.CLAIM_REQUIRED, O.CLAIM_OPTIONAL),
+                                        (O.GRANT_REQUIRED, O.GRANT_OPTIONAL)]),
+                           ("### 3.8", [(O.ARM_REQUIRED, O.ARM_OPTIONAL),
+                                        (O.ARMED_REQUIRED, {})])):
+        start = next(k for k, ln in enumerate(lines) if ln.startswith(heading))
+        rest = "\n".join(lines[start:])
+        first = _section_table(rest, heading, "| field | type | req. | meaning |")
+        after = rest.split("| field | type | req. | meaning |", 2)
+        assert len(after) == 3, f"{heading}: two field tables expected"
+        second = _table("| field | type | req. | meaning |" + after[2],
+                        "| field | type | req. | meaning |")
+        for rows, (req, opt) in zip((first, second), pairs):
+            assert _fields(rows, 1, 2) == schema(req, opt), heading
+    # section 3.5's sample bound is the codec's (and section 3.1's)
+    t_row = next(r for r in _section_table(doc, "### 3.5") if r[0] == "t")
+    assert t_row[4].startswith(f"3 <= N <= {Msg.MAX_REFERENCE_SAMPLES:,},"), t_row
+
+    # what the encoders write: a real plant's state with every option, a command with
+    # every option, the params of the built-in vehicle, a reference with its options
+    plant = Plant(default_vehicle())
+    nw = plant.vehicle.n_wheels
+    key = bytes(32)
+    msgs = {"### 3.2": Msg.encode_state(3, plant.state_message(), safe=False, end=True,
+                                        wheel_wear=True, mac_key=key),
+            "### 3.3": Msg.encode_cmd(3, 0.03, 3, [1.0] * nw, [0.0] * nw, solve_ms=1.0,
+                                      cost=2.0, mac_key=key),
+            "### 3.4": Msg.encode_params("agv0", plant.vehicle.to_dict(), 0.01, "lockstep",
+                                         nw),
+            "### 3.5": Msg.encode_reference([0.0, 1.0, 2.0], [0.0] * 3, [0.0] * 3,
+                                            [0.0] * 3, name="line", relative=True)}
+    for heading, payload in msgs.items():
+        sent = set(msgpack.unpackb(payload, raw=False))
+        assert sent == set(page[heading]), (heading, sorted(sent ^ set(page[heading])))
+    assert len(link_key.LinkKeys.tag(key, {"v": 1})) == 16  # the page's "bin (16 bytes)"
