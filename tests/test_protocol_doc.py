@@ -311,6 +311,117 @@ def test_a_controller_written_from_protocol_md_completes_a_lockstep_run(tmp_path
           f"answered {seen['other']['answer_after_open_s'] * 1000:.0f} ms after it opened")
 
 
+def errors(session, key: str, payload: dict | None, source_info: bool = True) -> list[str]:
+    """The texts of the error replies to a get (section 2)."""
+    kw = {"source_info": zenoh.SourceInfo(session.id, 0)} if source_info else {}
+    return [r.err.payload.to_bytes().decode()
+            for r in session.get(key, payload=None if payload is None else msgpack.packb(payload),
+                                 timeout=1.0, **kw)
+            if r.err is not None and r.replier_id is not None]
+
+
+@pytest.mark.timeout(120)
+def test_claims_and_arms_are_answered_as_protocol_md_says(tmp_path):
+    """Issue 27, item 3: what a client written from the page had to guess, now in the page,
+    against a real ``msagv plant``: the error text of an unnamed claim and arm (section 2);
+    an unknown ``action`` (3.7) and an arm for a name that is no identity (3.8); the one ban
+    rule and the reason a banned identity is told in each state (4.7)."""
+    port = free_port()
+    vid = "agv_doc_ban"
+    out, err = tmp_path / "plant.out", tmp_path / "plant.err"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    with out.open("w") as fo, err.open("w") as fe:
+        plant = subprocess.Popen(msagv("plant", "--run-mode", "lockstep", "--id", vid,
+                                       "--duration", DURATION, "--listen",
+                                       f"tcp/127.0.0.1:{port}", "--timeout", 60, "--wait", 60,
+                                       "--json", "-q"),
+                                 stdout=fo, stderr=fe, env=env, cwd=tmp_path)
+    got = {}
+    try:
+        with zenoh.open(client_config(port)) as a, zenoh.open(client_config(port)) as b, \
+                zenoh.open(client_config(port)) as o:
+            _, plant_id, _ = get_params(a, vid, deadline_s=60.0)
+            for s in (b, o):  # every session has learnt the plant's queryables
+                assert get_params(s, vid, deadline_s=30.0)[1] == plant_id
+
+            def me(s):
+                return str(s.zid())
+
+            def claim_(s, action="claim"):
+                r = ask(s, f"msagv/{vid}/claim/{plant_id}/{me(s)}", {"v": 2, "action": action})
+                assert len(r) == 1 and r[0]["v"] == 2, r
+                return (r[0]["granted"], r[0]["reason"])
+
+            def arm_(s, **m):
+                r = ask(s, f"msagv/{vid}/arm/{plant_id}/{me(s)}", {"v": 2, **m})
+                assert len(r) == 1 and r[0]["v"] == 2, r
+                return (r[0]["armed"], r[0]["reason"])
+
+            def command(s):
+                # a command of s's own, not the owner's: rejected, and s banned. Its claim
+                # that follows goes on the same link at the same priority, after it, so the
+                # plant has taken the command when it answers the claim
+                s.put(f"msagv/{vid}/cmd/{me(s)}", msgpack.packb({"v": 1}),
+                      source_info=zenoh.SourceInfo(s.id, 0),
+                      congestion_control=zenoh.CongestionControl.BLOCK)
+
+            # section 2: an unnamed query is answered with an error naming the key to ask
+            hint = ("msagv protocol 2 (docs/PROTOCOL.md): this query carried no identity, as "
+                    "a client of the first version asks; ask msagv/{}/{}/*/{{your identity}} "
+                    "instead")
+            got["bare claim"] = errors(b, f"msagv/{vid}/claim", {"v": 2, "action": "claim"})
+            got["bare arm"] = errors(b, f"msagv/{vid}/arm", {"v": 2})
+            got["wildcard claim"] = errors(b, f"msagv/{vid}/claim/*/*",
+                                           {"v": 2, "action": "claim"})
+            got["claim without source info"] = errors(
+                b, f"msagv/{vid}/claim/{plant_id}/{me(b)}", {"v": 2, "action": "claim"},
+                source_info=False)
+            assert got["bare claim"] == [hint.format(vid, "claim")]
+            assert got["bare arm"] == [hint.format(vid, "arm")]
+            assert got["wildcard claim"] == got["claim without source info"] == got["bare claim"]
+            # 3.7: an unknown action is a malformed claim; 3.8: an arm for no identity
+            assert claim_(b, "grab") == (False, "bad_claim")
+            assert arm_(o, controller="*") == (False, "bad_arm")
+            assert arm_(o, controller="") == (False, "bad_arm")
+            # 4.7: B commands while A owns the vehicle (before the run: A has no token)
+            assert claim_(a) == (True, "granted")
+            command(b)
+            assert claim_(b) == (False, "owned")  # owned: the state's reason first
+            assert claim_(a, "release") == (False, "released")  # before the run: free
+            assert claim_(b) == (False, "banned")
+            assert arm_(o) == (True, "armed")  # for the first claimer
+            assert claim_(b) == (False, "banned")
+            assert arm_(o, controller=me(a)) == (True, "armed")
+            assert claim_(b) == (False, "armed_for_another")
+            assert arm_(o, controller=me(b)) == (True, "armed")  # by name: the ban is lifted
+            assert claim_(b) == (True, "granted")
+            # the run starts with B (its state subscriber and token); O commands meanwhile
+            states: queue.Queue = queue.Queue()
+            sub = b.declare_subscriber(f"msagv/{vid}/state/*", lambda s: states.put(1))
+            token = b.liveliness().declare_token(f"msagv/{vid}/alive/controller/{me(b)}")
+            states.get(timeout=30.0)  # state 0: the run has started
+            command(o)
+            assert claim_(o) == (False, "owned")
+            assert claim_(b, "release") == (False, "released")  # during the run: latched
+            assert claim_(o) == (False, "latched")
+            assert arm_(a) == (True, "armed")
+            assert claim_(o) == (False, "banned")
+            token.undeclare()
+            sub.undeclare()
+    finally:
+        stop(plant)
+    lines = [ln for ln in out.read_text().splitlines() if ln.startswith("{")]
+    assert lines, err.read_text()[-3000:]
+    s = json.loads(lines[-1])
+    # the bad claim and the two bad arms by their reason and key (section 5), the four
+    # unnamed queries as old clients; one identity still banned (B's ban the arm lifted)
+    assert s["rejected"]["by_reason"] == {"value": 3, "not_owner": 2}
+    assert s["rejected"]["by_key"] == {f"msagv/{vid}/claim": 1, f"msagv/{vid}/arm": 2,
+                                       f"msagv/{vid}/cmd": 2}
+    assert s["old_clients"] == 4
+    assert s["ownership"]["banned"] == 1 and s["ownership"]["latches"] == 1
+
+
 # ---- the page against the code, where a table can be read ----------------------------------
 def _table(doc: str, header: str) -> list[list[str]]:
     """The rows (cells, backticks stripped) of the markdown table whose header row starts
