@@ -203,6 +203,45 @@ def test_resent_states_counts_the_periodic_re_sends_not_the_one_to_a_new_owner(v
     del a_token, b_token
 
 
+def test_rearm_same_n_in_lockstep_counts_periods_of_the_clock_not_of_the_run(vehicle, bus):
+    """docs/PROTOCOL.md 4.7 and 8 (issue 27, item 3): with ``--rearm same:N`` a lockstep
+    plant, which steps no state while latched, lets the lost owner back N*T seconds after
+    the latch all the same: the owner is granted again with the vehicle still at state 0,
+    and the run then completes."""
+    from msagv.bridge.ownership import RELEASE
+
+    steps, nw = 2, vehicle.n_wheels
+    pn = PlantNode(Plant(vehicle, initial={"vx": 4.0}), K,
+                   PlantConfig(run_mode="lockstep", steps=steps, timeout_s=30.0, linger_s=0.0,
+                               rearm="same:5"))
+    pn.open(bus.endpoint("p1"))
+    a = bus.endpoint("a")
+    states: list[dict] = []
+    a.subscribe(K.state, lambda smp: states.append(M.decode_state(smp.payload, nw)))
+    token = a.declare_token(K.controller_token("a"))
+    assert claim(a, K, 0)[0][1]["reason"] == "granted"
+    try:
+        with Running(pn) as loop:
+            wait_until(lambda: states, 30, "state 0")
+            assert claim(a, K, 1, action=RELEASE)[0][1]["reason"] == "released"
+            reasons = []
+            wait_until(lambda: reasons.append(claim(a, K, 2)[0][1]["reason"]) or
+                       reasons[-1] == "granted", 30, "a granted again")
+            assert pn.seq == 0 and set(reasons[:-1]) <= {"latched"}  # no state stepped
+            pub = a.publisher(K.cmd)
+            for k in range(steps):
+                wait_until(lambda: states[-1]["seq"] == k, 30, f"state {k}")
+                pub.put(_cmd(k, k, nw=nw), k)
+            loop.thread.join(30)
+        s = loop.result
+    finally:
+        pn.close()
+    assert s["completed"] and s["commands"]["accepted"] == steps
+    o = s["ownership"]
+    assert (o["latches"], o["grants"], o["arms"], o["rearm"]) == (1, 2, [], "same:5")
+    del token
+
+
 def test_plant_config_rejects_bad_values():
     with pytest.raises(ValueError, match="run mode"):
         PlantConfig(run_mode="fast")
