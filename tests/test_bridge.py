@@ -152,6 +152,96 @@ def test_the_lost_count_spans_the_states_in_fixed_memory(plant_node, owner):
     assert len(node._answered) == size  # allocated once, for the run's steps
 
 
+def test_resent_states_counts_the_periodic_re_sends_not_the_one_to_a_new_owner(vehicle, bus):
+    """docs/PROTOCOL.md 4.1 and 8 (issue 27, item 3): ``resent_states`` counts the states
+    published again every ``resend_s`` while unanswered, not the re-send to an owner whose
+    token (re)appears. An observer sees every copy of every state: a first owner leaves
+    state 0 unanswered until it came again, releases it (latched), an operator arms the
+    vehicle for a second controller, whose claim brings state 0 once more; it answers to
+    the end."""
+    from msagv.bridge.ownership import RELEASE, arm
+
+    steps, nw = 3, vehicle.n_wheels
+    pn = PlantNode(Plant(vehicle, initial={"vx": 4.0}), K,
+                   PlantConfig(run_mode="lockstep", steps=steps, timeout_s=30.0, linger_s=0.0,
+                               resend_s=0.2))
+    pn.open(bus.endpoint("p1"))
+    seen: list[int] = []  # every copy of every state, in order
+    observer = bus.endpoint("obs")
+    observer.subscribe(K.state, lambda smp: seen.append(M.decode_state(smp.payload, nw)["seq"]))
+    a, b, op = bus.endpoint("a"), bus.endpoint("b"), bus.endpoint("op")
+    a.subscribe(K.state, lambda smp: None)
+    a_token = a.declare_token(K.controller_token("a"))
+    assert claim(a, K, 0)[0][1]["reason"] == "granted"
+    try:
+        with Running(pn) as loop:
+            wait_until(lambda: seen.count(0) >= 2, 30, "state 0 sent again")
+            assert claim(a, K, 1, action=RELEASE)[0][1]["reason"] == "released"
+            assert arm(op, K, controller="b")[0][1]["armed"]
+            answers = []
+            b.subscribe(K.state, lambda smp: answers.append(M.decode_state(smp.payload, nw)))
+            pub = b.publisher(K.cmd)
+            b_token = b.declare_token(K.controller_token("b"))
+            assert claim(b, K, 0)[0][1]["reason"] == "granted"
+            done, n = set(), 0
+            while not (answers and answers[-1].get("end")):
+                wait_until(lambda: len(answers) > n, 30, "a state for b")
+                st = answers[n]
+                n += 1
+                if not st.get("end") and st["seq"] not in done:
+                    done.add(st["seq"])
+                    pub.put(_cmd(st["seq"], st["seq"], nw=nw), st["seq"])
+            loop.thread.join(30)
+        s = loop.result
+    finally:
+        pn.close()
+    assert s["completed"] and s["commands"]["accepted"] == steps
+    assert sorted(set(seen)) == list(range(steps + 1))
+    again = len(seen) - (steps + 1)  # copies beyond the first of each state
+    assert again >= 2  # state 0 came again to a, and once to b on its token
+    assert s["resent_states"] == again - 1
+    del a_token, b_token
+
+
+def test_rearm_same_n_in_lockstep_counts_periods_of_the_clock_not_of_the_run(vehicle, bus):
+    """docs/PROTOCOL.md 4.7 and 8 (issue 27, item 3): with ``--rearm same:N`` a lockstep
+    plant, which steps no state while latched, lets the lost owner back N*T seconds after
+    the latch all the same: the owner is granted again with the vehicle still at state 0,
+    and the run then completes."""
+    from msagv.bridge.ownership import RELEASE
+
+    steps, nw = 2, vehicle.n_wheels
+    pn = PlantNode(Plant(vehicle, initial={"vx": 4.0}), K,
+                   PlantConfig(run_mode="lockstep", steps=steps, timeout_s=30.0, linger_s=0.0,
+                               rearm="same:5"))
+    pn.open(bus.endpoint("p1"))
+    a = bus.endpoint("a")
+    states: list[dict] = []
+    a.subscribe(K.state, lambda smp: states.append(M.decode_state(smp.payload, nw)))
+    token = a.declare_token(K.controller_token("a"))
+    assert claim(a, K, 0)[0][1]["reason"] == "granted"
+    try:
+        with Running(pn) as loop:
+            wait_until(lambda: states, 30, "state 0")
+            assert claim(a, K, 1, action=RELEASE)[0][1]["reason"] == "released"
+            reasons = []
+            wait_until(lambda: reasons.append(claim(a, K, 2)[0][1]["reason"]) or
+                       reasons[-1] == "granted", 30, "a granted again")
+            assert pn.seq == 0 and set(reasons[:-1]) <= {"latched"}  # no state stepped
+            pub = a.publisher(K.cmd)
+            for k in range(steps):
+                wait_until(lambda: states[-1]["seq"] == k, 30, f"state {k}")
+                pub.put(_cmd(k, k, nw=nw), k)
+            loop.thread.join(30)
+        s = loop.result
+    finally:
+        pn.close()
+    assert s["completed"] and s["commands"]["accepted"] == steps
+    o = s["ownership"]
+    assert (o["latches"], o["grants"], o["arms"], o["rearm"]) == (1, 2, [], "same:5")
+    del token
+
+
 def test_plant_config_rejects_bad_values():
     with pytest.raises(ValueError, match="run mode"):
         PlantConfig(run_mode="fast")

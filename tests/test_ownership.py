@@ -414,6 +414,12 @@ def test_params_are_read_only_and_only_the_owners_claim_asks_for_the_wheel_wear(
         claim(c1, k, 1, wheel_wear=False)  # the owner itself may switch it off
         n.publish_state(2)
         assert not n.wheel_wear and "W_s_ij" not in M.decode_state(states[-1].payload, 4)
+        # a change applies from the next state encoded, a re-send of the same seq included
+        # (docs/PROTOCOL.md 3.2)
+        claim(c1, k, 2, wheel_wear=True)
+        n.publish_state(2)
+        again = M.decode_state(states[-1].payload, 4)
+        assert again["seq"] == 2 and "W_s_ij" in again
     finally:
         n.close()
 

@@ -311,6 +311,117 @@ def test_a_controller_written_from_protocol_md_completes_a_lockstep_run(tmp_path
           f"answered {seen['other']['answer_after_open_s'] * 1000:.0f} ms after it opened")
 
 
+def errors(session, key: str, payload: dict | None, source_info: bool = True) -> list[str]:
+    """The texts of the error replies to a get (section 2)."""
+    kw = {"source_info": zenoh.SourceInfo(session.id, 0)} if source_info else {}
+    return [r.err.payload.to_bytes().decode()
+            for r in session.get(key, payload=None if payload is None else msgpack.packb(payload),
+                                 timeout=1.0, **kw)
+            if r.err is not None and r.replier_id is not None]
+
+
+@pytest.mark.timeout(120)
+def test_claims_and_arms_are_answered_as_protocol_md_says(tmp_path):
+    """Issue 27, item 3: what a client written from the page had to guess, now in the page,
+    against a real ``msagv plant``: the error text of an unnamed claim and arm (section 2);
+    an unknown ``action`` (3.7) and an arm for a name that is no identity (3.8); the one ban
+    rule and the reason a banned identity is told in each state (4.7)."""
+    port = free_port()
+    vid = "agv_doc_ban"
+    out, err = tmp_path / "plant.out", tmp_path / "plant.err"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    with out.open("w") as fo, err.open("w") as fe:
+        plant = subprocess.Popen(msagv("plant", "--run-mode", "lockstep", "--id", vid,
+                                       "--duration", DURATION, "--listen",
+                                       f"tcp/127.0.0.1:{port}", "--timeout", 60, "--wait", 60,
+                                       "--json", "-q"),
+                                 stdout=fo, stderr=fe, env=env, cwd=tmp_path)
+    got = {}
+    try:
+        with zenoh.open(client_config(port)) as a, zenoh.open(client_config(port)) as b, \
+                zenoh.open(client_config(port)) as o:
+            _, plant_id, _ = get_params(a, vid, deadline_s=60.0)
+            for s in (b, o):  # every session has learnt the plant's queryables
+                assert get_params(s, vid, deadline_s=30.0)[1] == plant_id
+
+            def me(s):
+                return str(s.zid())
+
+            def claim_(s, action="claim"):
+                r = ask(s, f"msagv/{vid}/claim/{plant_id}/{me(s)}", {"v": 2, "action": action})
+                assert len(r) == 1 and r[0]["v"] == 2, r
+                return (r[0]["granted"], r[0]["reason"])
+
+            def arm_(s, **m):
+                r = ask(s, f"msagv/{vid}/arm/{plant_id}/{me(s)}", {"v": 2, **m})
+                assert len(r) == 1 and r[0]["v"] == 2, r
+                return (r[0]["armed"], r[0]["reason"])
+
+            def command(s):
+                # a command of s's own, not the owner's: rejected, and s banned. Its claim
+                # that follows goes on the same link at the same priority, after it, so the
+                # plant has taken the command when it answers the claim
+                s.put(f"msagv/{vid}/cmd/{me(s)}", msgpack.packb({"v": 1}),
+                      source_info=zenoh.SourceInfo(s.id, 0),
+                      congestion_control=zenoh.CongestionControl.BLOCK)
+
+            # section 2: an unnamed query is answered with an error naming the key to ask
+            hint = ("msagv protocol 2 (docs/PROTOCOL.md): this query carried no identity, as "
+                    "a client of the first version asks; ask msagv/{}/{}/*/{{your identity}} "
+                    "instead")
+            got["bare claim"] = errors(b, f"msagv/{vid}/claim", {"v": 2, "action": "claim"})
+            got["bare arm"] = errors(b, f"msagv/{vid}/arm", {"v": 2})
+            got["wildcard claim"] = errors(b, f"msagv/{vid}/claim/*/*",
+                                           {"v": 2, "action": "claim"})
+            got["claim without source info"] = errors(
+                b, f"msagv/{vid}/claim/{plant_id}/{me(b)}", {"v": 2, "action": "claim"},
+                source_info=False)
+            assert got["bare claim"] == [hint.format(vid, "claim")]
+            assert got["bare arm"] == [hint.format(vid, "arm")]
+            assert got["wildcard claim"] == got["claim without source info"] == got["bare claim"]
+            # 3.7: an unknown action is a malformed claim; 3.8: an arm for no identity
+            assert claim_(b, "grab") == (False, "bad_claim")
+            assert arm_(o, controller="*") == (False, "bad_arm")
+            assert arm_(o, controller="") == (False, "bad_arm")
+            # 4.7: B commands while A owns the vehicle (before the run: A has no token)
+            assert claim_(a) == (True, "granted")
+            command(b)
+            assert claim_(b) == (False, "owned")  # owned: the state's reason first
+            assert claim_(a, "release") == (False, "released")  # before the run: free
+            assert claim_(b) == (False, "banned")
+            assert arm_(o) == (True, "armed")  # for the first claimer
+            assert claim_(b) == (False, "banned")
+            assert arm_(o, controller=me(a)) == (True, "armed")
+            assert claim_(b) == (False, "armed_for_another")
+            assert arm_(o, controller=me(b)) == (True, "armed")  # by name: the ban is lifted
+            assert claim_(b) == (True, "granted")
+            # the run starts with B (its state subscriber and token); O commands meanwhile
+            states: queue.Queue = queue.Queue()
+            sub = b.declare_subscriber(f"msagv/{vid}/state/*", lambda s: states.put(1))
+            token = b.liveliness().declare_token(f"msagv/{vid}/alive/controller/{me(b)}")
+            states.get(timeout=30.0)  # state 0: the run has started
+            command(o)
+            assert claim_(o) == (False, "owned")
+            assert claim_(b, "release") == (False, "released")  # during the run: latched
+            assert claim_(o) == (False, "latched")
+            assert arm_(a) == (True, "armed")
+            assert claim_(o) == (False, "banned")
+            token.undeclare()
+            sub.undeclare()
+    finally:
+        stop(plant)
+    lines = [ln for ln in out.read_text().splitlines() if ln.startswith("{")]
+    assert lines, err.read_text()[-3000:]
+    s = json.loads(lines[-1])
+    # the bad claim and the two bad arms by their reason and key (section 5), the four
+    # unnamed queries as old clients; one identity still banned (B's ban the arm lifted)
+    assert s["rejected"]["by_reason"] == {"value": 3, "not_owner": 2}
+    assert s["rejected"]["by_key"] == {f"msagv/{vid}/claim": 1, f"msagv/{vid}/arm": 2,
+                                       f"msagv/{vid}/cmd": 2}
+    assert s["old_clients"] == 4
+    assert s["ownership"]["banned"] == 1 and s["ownership"]["latches"] == 1
+
+
 # ---- the page against the code, where a table can be read ----------------------------------
 def _table(doc: str, header: str) -> list[list[str]]:
     """The rows (cells, backticks stripped) of the markdown table whose header row starts
@@ -386,3 +497,98 @@ def test_the_params_vehicle_row_names_every_key_the_plant_sends():
     d = default_vehicle().to_dict()
     want = set(d) | set(d["tire"]) | set(d["plant"])
     assert want <= named, f"PROTOCOL.md 3.4's vehicle row does not name {sorted(want - named)}"
+
+
+def _section_table(doc: str, heading: str, header: str = "| field |") -> list[list[str]]:
+    """The rows of the first table whose header starts with ``header`` after the line
+    that starts with ``heading`` (``### 3.2``), in the section (not past the next
+    heading)."""
+    lines = [ln.strip() for ln in doc.splitlines()]
+    start = next(k for k, ln in enumerate(lines) if ln.startswith(heading))
+    for k in range(start + 1, len(lines)):
+        assert not lines[k].startswith("#"), f"no table {header!r} under {heading!r}"
+        if lines[k].startswith(header):
+            return _table("\n".join(lines[k:]), header)
+    raise AssertionError(f"no table {header!r} under {heading!r}")
+
+
+def _fields(rows: list[list[str]], type_col: int, req_col: int) -> dict[str, tuple[str, bool]]:
+    """``{field: (type, required)}`` of a field table: a row may name several fields
+    (``x, y``); its type is the cell's first word (``bin (16 bytes)``: ``bin``)."""
+    out = {}
+    for r in rows:
+        for name in r[0].split(","):
+            assert name.strip() not in out, f"{name.strip()} twice in one table"
+            out[name.strip()] = (r[type_col].split()[0], r[req_col] == "yes")
+    return out
+
+
+def test_protocol_md_field_tables_are_the_codecs_schema():
+    """Issue 27, item 3: sections 3.2-3.5 and 3.7-3.8 list exactly the fields the codec
+    (msagv.bridge.messages, msagv.bridge.ownership) accepts, with its types and which are
+    required, and a plant's real messages carry no field the page does not name: a field
+    added to the schema and not to the page fails here (as ``combined_slip`` in params
+    once passed a strict client's reading of the page by)."""
+    from pathlib import Path
+
+    from msagv.bridge import link_key
+    from msagv.bridge import messages as Msg
+    from msagv.bridge import ownership as O
+    from msagv.plant import Plant, default_vehicle
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "PROTOCOL.md").read_text()
+    # the page's name of each of the codec's kinds (bridge.messages, "field tables")
+    kinds = {"int": "int", "float": "float", "float+": "float", "wheels": "float[2n]",
+             "wheels+": "float[2n]", "bool": "bool", "str": "str", "bin": "bin",
+             "map": "map", "series": "float[N]"}
+
+    def schema(required: dict, optional: dict) -> dict[str, tuple[str, bool]]:
+        return {**{k: (kinds[v], True) for k, v in required.items()},
+                **{k: (kinds[v], False) for k, v in optional.items()}}
+
+    # the bus maps (unit column: field | type | unit | req. | meaning)
+    tables = {"### 3.2": (Msg.STATE_REQUIRED, Msg.STATE_OPTIONAL),
+              "### 3.3": (Msg.CMD_REQUIRED, Msg.CMD_OPTIONAL),
+              "### 3.4": (Msg.PARAMS_REQUIRED, Msg.PARAMS_OPTIONAL),
+              "### 3.5": (Msg.REFERENCE_REQUIRED, Msg.REFERENCE_OPTIONAL)}
+    page = {}
+    for heading, (req, opt) in tables.items():
+        page[heading] = _fields(_section_table(doc, heading), 1, 3)
+        assert page[heading] == schema(req, opt), heading
+    # the handover maps (field | type | req. | meaning), in the order claim, grant / arm,
+    # armed of their sections
+    lines = doc.splitlines()
+    for heading, pairs in (("### 3.7", [(O.CLAIM_REQUIRED, O.CLAIM_OPTIONAL),
+                                        (O.GRANT_REQUIRED, O.GRANT_OPTIONAL)]),
+                           ("### 3.8", [(O.ARM_REQUIRED, O.ARM_OPTIONAL),
+                                        (O.ARMED_REQUIRED, {})])):
+        start = next(k for k, ln in enumerate(lines) if ln.startswith(heading))
+        rest = "\n".join(lines[start:])
+        first = _section_table(rest, heading, "| field | type | req. | meaning |")
+        after = rest.split("| field | type | req. | meaning |", 2)
+        assert len(after) == 3, f"{heading}: two field tables expected"
+        second = _table("| field | type | req. | meaning |" + after[2],
+                        "| field | type | req. | meaning |")
+        for rows, (req, opt) in zip((first, second), pairs):
+            assert _fields(rows, 1, 2) == schema(req, opt), heading
+    # section 3.5's sample bound is the codec's (and section 3.1's)
+    t_row = next(r for r in _section_table(doc, "### 3.5") if r[0] == "t")
+    assert t_row[4].startswith(f"3 <= N <= {Msg.MAX_REFERENCE_SAMPLES:,},"), t_row
+
+    # what the encoders write: a real plant's state with every option, a command with
+    # every option, the params of the built-in vehicle, a reference with its options
+    plant = Plant(default_vehicle())
+    nw = plant.vehicle.n_wheels
+    key = bytes(32)
+    msgs = {"### 3.2": Msg.encode_state(3, plant.state_message(), safe=False, end=True,
+                                        wheel_wear=True, mac_key=key),
+            "### 3.3": Msg.encode_cmd(3, 0.03, 3, [1.0] * nw, [0.0] * nw, solve_ms=1.0,
+                                      cost=2.0, mac_key=key),
+            "### 3.4": Msg.encode_params("agv0", plant.vehicle.to_dict(), 0.01, "lockstep",
+                                         nw),
+            "### 3.5": Msg.encode_reference([0.0, 1.0, 2.0], [0.0] * 3, [0.0] * 3,
+                                            [0.0] * 3, name="line", relative=True)}
+    for heading, payload in msgs.items():
+        sent = set(msgpack.unpackb(payload, raw=False))
+        assert sent == set(page[heading]), (heading, sorted(sent ^ set(page[heading])))
+    assert len(link_key.LinkKeys.tag(key, {"v": 1})) == 16  # the page's "bin (16 bytes)"

@@ -250,6 +250,19 @@ def test_a_config_file_is_merged_with_the_safe_defaults(tmp_path):
         make_config(SessionOptions(config_file=str(f)), "plant")
 
 
+def test_a_config_file_may_set_the_session_id(tmp_path):
+    """docs/PROTOCOL.md section 1 (issue 27, item 3): the file's ``id`` is kept (on a plain
+    bus it is then the process's identity); one Zenoh refuses (a leading zero) is a
+    SessionError naming the file (exit 2)."""
+    f = tmp_path / "z.json5"
+    f.write_text('{ id: "abc123" }')
+    c = make_config(SessionOptions(config_file=str(f)), "plant")
+    assert json.loads(c.get_json("id")) == "abc123"
+    f.write_text('{ id: "0abc123" }')
+    with pytest.raises(SessionError, match="--zenoh-config .*0abc123"):
+        make_config(SessionOptions(config_file=str(f)), "plant")
+
+
 # ---- processes ----------------------------------------------------------------------------
 OWNER = "msagv-controller-agv0"  # the controller's certificate: its name on the bus
 
