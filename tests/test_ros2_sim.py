@@ -561,3 +561,46 @@ def test_a_free_running_simulator_at_0_4x_drives_a_replanned_navfn_plan(procs, r
     and 15 m, up to 19 km/h, replanned at 1 Hz from the vehicle's position (Nav2)."""
     _navfn_run(procs, tmp_path, kmh=19.0, leg1=20.0, radius=16.0, leg2=15.0, accel=1.0,
                replan_hz=1.0)
+
+
+# ---- the first answer compiles nothing ----------------------------------------------------------
+WARM_CHECK = """
+import numpy as np
+from msagv.bridge import ros_msgs as R
+from msagv.plant.vehicle import load_vehicle
+from msagv.ros2 import controller_node as C
+
+class Node:  # the parts of the node its warm-up uses
+    cfg = C.RosControllerConfig()
+    _wear_msg = C.RosController._wear_msg
+
+node = Node()
+vehicle = load_vehicle({vehicle!r})
+node.nw, node.wear = vehicle.n_wheels, C.WearEstimate(vehicle)
+C.RosController._warm_extras(node)
+before = set(R.typestore().cache)
+# what an answer encodes: the commands, the horizon (N_p + 1 poses), the wear estimate
+for topic in (R.STEERING_COMMANDS, R.WHEEL_COMMANDS):
+    R.encode(R.float_array(np.ones(node.nw)), R.TYPES[topic])
+R.encode(R.predicted_path(1.0, 0.1, np.ones((11, 3))), R.TYPES[R.PREDICTED_PATH])
+R.encode(node._wear_msg(np.ones(node.nw), np.ones(node.nw)), R.TYPES[R.WEAR])
+print(sorted(set(R.typestore().cache) - before))
+"""
+
+
+def test_the_first_answer_generates_no_serializer(tmp_path):
+    """The node's warm-up at configure leaves nothing for the first answer to generate:
+    the typestore's CDR serializers of every message an answer publishes are built (in a
+    fresh process, whose typestore has none). Generated at the first state, they took
+    0.2-2.1 s while a free-running simulator sent on, and the states behind it fell out
+    of the keep-last-10 queue (the tests above)."""
+    import subprocess
+    import sys
+
+    from helpers import ROOT
+
+    f, _ = _load(tmp_path)
+    r = subprocess.run([sys.executable, "-c", WARM_CHECK.format(vehicle=str(f))], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.strip() == "[]", r.stdout
