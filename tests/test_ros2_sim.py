@@ -604,3 +604,39 @@ def test_the_first_answer_generates_no_serializer(tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.strip() == "[]", r.stdout
+
+
+def test_a_replan_is_measured_against_the_path_exactly():
+    """``off_path`` (does a replan follow the route being driven?) takes each pose's k
+    nearest path vertices from a k-d tree instead of every segment: the same largest
+    distance as every point against every segment, written here again, on random polylines
+    with segments long and short (where the k nearest vertices do not hold the nearest
+    segment, the fallback must find it) and on a long smooth path."""
+    from msagv.ros2.controller_node import off_path
+
+    def every_segment(px, py, x, y):
+        best = np.full(len(px), np.inf)
+        for i in range(len(x) - 1):
+            ax, ay, bx, by = x[i], y[i], x[i + 1], y[i + 1]
+            L2 = max((bx - ax) ** 2 + (by - ay) ** 2, 1e-18)
+            u = np.clip(((px - ax) * (bx - ax) + (py - ay) * (by - ay)) / L2, 0.0, 1.0)
+            best = np.minimum(best, np.hypot(ax + u * (bx - ax) - px, ay + u * (by - ay) - py))
+        return float(best.max())
+
+    rng = np.random.default_rng(1)
+    for trial in range(200):
+        n, m = int(rng.integers(2, 60)), int(rng.integers(1, 80))
+        if trial % 3 == 0:  # a spiral: short segments, then long ones
+            s = np.cumsum(rng.uniform(0.0, 3.0, n))
+            x, y = s * np.cos(0.1 * s), s * np.sin(0.1 * s)
+        else:  # a zigzag of long segments crossing each other
+            x, y = rng.normal(0.0, 5.0, n), rng.normal(0.0, 5.0, n)
+        px, py = rng.normal(0.0, 6.0, m), rng.normal(0.0, 6.0, m)
+        assert off_path(px, py, x, y) == pytest.approx(every_segment(px, py, x, y),
+                                                       rel=1e-12, abs=1e-12), trial
+    s = np.linspace(0.0, 120.0, 3000)
+    t = np.linspace(0.0, 120.0, 1181)
+    off = off_path(t, 10 * np.sin(t / 15) + 0.02, s, 10 * np.sin(s / 15))
+    assert off == pytest.approx(every_segment(t, 10 * np.sin(t / 15) + 0.02, s,
+                                              10 * np.sin(s / 15)), rel=1e-12)
+    assert 0.015 < off < 0.021  # the 2 cm offset, give or take the chords

@@ -150,13 +150,45 @@ REPLAN_SAME = 0.10  # m: a plan to the same goal whose poses all lie this close 
 # path being driven is that path again (Nav2 replanning): the reference goes on unchanged
 
 
-def off_path(px, py, x, y) -> float:
-    """The largest distance of the points (px, py) from the polyline (x, y)."""
-    px, py = np.asarray(px, float)[:, None], np.asarray(py, float)[:, None]
-    ax, ay, dx, dy = x[:-1], y[:-1], np.diff(x), np.diff(y)
+def _to_segments(px, py, ax, ay, dx, dy) -> np.ndarray:
+    """Distances of the points ``(px, py)`` (shape (m, 1)) from the segments starting at
+    ``(ax, ay)`` with extents ``(dx, dy)`` (shape (m, k) or (k,)): shape (m, k)."""
     n2 = np.maximum(dx * dx + dy * dy, 1e-18)
     u = np.clip(((px - ax) * dx + (py - ay) * dy) / n2, 0.0, 1.0)
-    return float(np.max(np.min(np.hypot(ax + u * dx - px, ay + u * dy - py), axis=1)))
+    return np.hypot(ax + u * dx - px, ay + u * dy - py)
+
+
+def off_path(px, py, x, y, k: int = 8) -> float:
+    """The largest distance of the points (px, py) from the polyline (x, y), exactly, in
+    about O((m + n) log n) for m points and n vertices (a replan against a long path at
+    Nav2's 1-20 Hz; every point against every segment took 40-105 ms for a 1181-pose plan
+    on a loaded 2-core machine, 2-4 periods of a simulator at 0.4x).
+
+    Each point is measured against the segments next to its ``k`` nearest vertices (a
+    k-d tree, scipy). That is exact where the k-th nearest vertex lies farther than the
+    distance found plus half the longest segment (the nearest point of any closer segment
+    has an endpoint within that radius, so among the k); the other points are measured
+    against every segment."""
+    from scipy.spatial import cKDTree
+
+    px, py = np.asarray(px, float), np.asarray(py, float)
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if len(x) < 2:
+        return float(np.max(np.hypot(px - x[0], py - y[0])))
+    ax, ay, dx, dy = x[:-1], y[:-1], np.diff(x), np.diff(y)
+    k = min(k, len(x))
+    r, idx = cKDTree(np.column_stack([x, y])).query(np.column_stack([px, py]), k=k)
+    r, idx = r.reshape(len(px), k), idx.reshape(len(px), k)
+    segs = np.clip(np.concatenate([idx - 1, idx], axis=1), 0, len(ax) - 1)
+    d = _to_segments(px[:, None], py[:, None], ax[segs], ay[segs], dx[segs],
+                     dy[segs]).min(axis=1)
+    if k < len(x):
+        half = 0.5 * float(np.max(np.hypot(dx, dy)))
+        rest = r[:, -1] <= d + half
+        if rest.any():
+            d[rest] = _to_segments(px[rest, None], py[rest, None], ax, ay, dx,
+                                   dy).min(axis=1)
+    return float(np.max(d))
 
 
 def plan_start_speed(st: dict, current: Reference | None) -> float:
