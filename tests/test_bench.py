@@ -81,3 +81,38 @@ def test_polish_bench_parts_and_variants():
     assert w["default"]["cost_over_default"] == {"p50": 1.0, "p90": 1.0, "max": 1.0, "min": 1.0}
     assert np.array_equal(sk.GN_MUS, before[0]) and np.array_equal(sk.GN_ALPHAS, before[1])
     assert sk.GN_REFRESH == before[2]
+
+
+def test_front_anatomy_finds_the_dear_step_of_a_blind_front(tmp_path, capsys):
+    """benchmarks/front_anatomy.py over hand-made stored runs: the blind front is 80 kJ up to
+    0.4 cm and 44 kJ from there (a step of 1.8x its cheapest run), so the step's share of the
+    log grid is the share of grid points below 0.4 cm; the ratio there is 40/80; an unknown
+    plant is one line and exit 2."""
+    import json as _json
+
+    import numpy as np
+
+    from msagv.benchmarks import front_anatomy as fa
+
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    made = [("TWO", True, 0.2, 40e3), ("TWO", True, 1.0, 30e3),
+            ("NTWO", False, 0.2, 80e3), ("NTWO-wheel", False, 0.4, 44e3),
+            ("NTWO-wheel", False, 1.0, 44e3)]
+    for i, (fam, aware, e, w) in enumerate(made):
+        doc = {"status": "ok", "metrics": {"W_tw": w, "e_lat_rms_cm": e},
+               "spec": {"tags": {"family": fam, "level": None, "model": "wrong",
+                                 "plant": "tires x0.9", "aware": aware,
+                                 "scenario": "mismatch random-1-15kmh, tires x0.9"}}}
+        (runs / f"{i}.json").write_text(_json.dumps(doc))
+    rows = fa.load(str(tmp_path), "tires x0.9")
+    assert len(rows) == 5 and fa.load(str(tmp_path), "tires x1.1") == []
+    d = fa.anatomy(rows)
+    grid = np.geomspace(d["lo"], d["hi"], fa.GRID)
+    assert d["lo"] == 0.2 and d["share"] == pytest.approx(np.mean(grid < 0.4))
+    assert d["on"] == pytest.approx(0.5)
+    assert fa.main([str(tmp_path), "--plant", "tires x0.9"]) == 0
+    assert "random-1-15kmh" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as ex:
+        fa.main([str(tmp_path), "--plant", "tires x1.1"])
+    assert ex.value.code == 2

@@ -337,6 +337,7 @@ def test_claims_and_arms_are_answered_as_protocol_md_says(tmp_path):
                                        "--json", "-q"),
                                  stdout=fo, stderr=fe, env=env, cwd=tmp_path)
     got = {}
+    sent_cmds: list = []  # the senders of the rejected commands, one entry per copy
     try:
         with zenoh.open(client_config(port)) as a, zenoh.open(client_config(port)) as b, \
                 zenoh.open(client_config(port)) as o:
@@ -358,12 +359,19 @@ def test_claims_and_arms_are_answered_as_protocol_md_says(tmp_path):
                 return (r[0]["armed"], r[0]["reason"])
 
             def command(s):
-                # a command of s's own, not the owner's: rejected, and s banned. Its claim
-                # that follows goes on the same link at the same priority, after it, so the
-                # plant has taken the command when it answers the claim
-                s.put(f"msagv/{vid}/cmd/{me(s)}", msgpack.packb({"v": 1}),
-                      source_info=zenoh.SourceInfo(s.id, 0),
-                      congestion_control=zenoh.CongestionControl.BLOCK)
+                # a command of s's own, not the owner's: rejected, and s banned - if the plant
+                # handles it while the other still owns the vehicle. The owner's release that
+                # follows comes on another session's link and may overtake it (a clean
+                # clone's make test saw the release first, and no ban, once), and nothing on
+                # the bus shows when the plant has taken a rejected command: the command is
+                # sent again while 1.5 s go by, each copy able to ban on its own
+                t_end = time.monotonic() + 1.5
+                while time.monotonic() < t_end:
+                    sent_cmds.append(me(s))
+                    s.put(f"msagv/{vid}/cmd/{me(s)}", msgpack.packb({"v": 1}),
+                          source_info=zenoh.SourceInfo(s.id, 0),
+                          congestion_control=zenoh.CongestionControl.BLOCK)
+                    time.sleep(0.1)
 
             # section 2: an unnamed query is answered with an error naming the key to ask
             hint = ("msagv protocol 2 (docs/PROTOCOL.md): this query carried no identity, as "
@@ -415,9 +423,9 @@ def test_claims_and_arms_are_answered_as_protocol_md_says(tmp_path):
     s = json.loads(lines[-1])
     # the bad claim and the two bad arms by their reason and key (section 5), the four
     # unnamed queries as old clients; one identity still banned (B's ban the arm lifted)
-    assert s["rejected"]["by_reason"] == {"value": 3, "not_owner": 2}
+    assert s["rejected"]["by_reason"] == {"value": 3, "not_owner": len(sent_cmds)}
     assert s["rejected"]["by_key"] == {f"msagv/{vid}/claim": 1, f"msagv/{vid}/arm": 2,
-                                       f"msagv/{vid}/cmd": 2}
+                                       f"msagv/{vid}/cmd": len(sent_cmds)}
     assert s["old_clients"] == 4
     assert s["ownership"]["banned"] == 1 and s["ownership"]["latches"] == 1
 
