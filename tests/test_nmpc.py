@@ -68,6 +68,26 @@ def _state(init, t=0.0, **over):
     return st
 
 
+def _ocp_cost(ocp, x0, R, z, zprev, extra) -> tuple[float, np.ndarray]:
+    """acados' cost at the trajectory of ``z`` from ``x0`` (what each solve linearises at),
+    with the stage parameters after the reference row ``extra`` (the disturbance, then with
+    ``--adapt`` the tires): ``(cost, trajectory)``."""
+    s0 = np.r_[x0, zprev, np.ones(3)]
+    S = ocp.trajectory(s0, R, z, extra[:3], extra[3:] if ocp.adapt else None).copy()
+    U = np.zeros((ocp.N, ocp.nu))
+    zb = zprev
+    for b, k in enumerate(ocp.starts):
+        U[k] = z[b * ocp.nu:(b + 1) * ocp.nu] - zb
+        zb = z[b * ocp.nu:(b + 1) * ocp.nu]
+    sv = ocp.solver
+    for k in range(ocp.N + 1):
+        sv.set(k, "p", np.r_[R[k], extra])
+        sv.set(k, "x", S[k])
+        if k < ocp.N:
+            sv.set(k, "u", U[k])
+    return sv.get_cost(), S
+
+
 @needs_acados
 @pytest.mark.parametrize("method", ["two", "two-energy", "ntwo"])
 def test_ocp_cost_is_the_nlp_cost(method):
@@ -84,26 +104,13 @@ def test_ocp_cost_is_the_nlp_cost(method):
     st = _state(init(VEH), t=2.0)
     mpc.step(st)  # (acados' cost evaluation reads weights that its first solve prepares)
     x0, R, zprev, warm = mpc.horizon_problem(st)
-    sv = ocp.solver
     slots = [lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]
     for dist in ([0.0, 0.0, 0.0], [0.3, -0.2, 0.05], [0.0, 0.0, 0.0]):
         # the offset-free disturbance: acados' stage parameter, IPOPT's NLP parameter
         mpc.model.S[slots] = dist
         z = np.clip(warm + rng.normal(0.0, 1.0, warm.size) * mpc.horizon.sigma, mpc.horizon.lower, mpc.horizon.upper)
         zprev = rng.normal(0.0, 0.1, zprev.size)
-        s0 = np.r_[x0, zprev, np.ones(3)]
-        S = ocp.trajectory(s0, R, z, np.asarray(dist)).copy()
-        U = np.zeros((ocp.N, ocp.nu))
-        zb = zprev
-        for b, k in enumerate(ocp.starts):
-            U[k] = z[b * ocp.nu:(b + 1) * ocp.nu] - zb
-            zb = z[b * ocp.nu:(b + 1) * ocp.nu]
-        for k in range(ocp.N + 1):
-            sv.set(k, "p", np.r_[R[k], dist])
-            sv.set(k, "x", S[k])
-            if k < ocp.N:
-                sv.set(k, "u", U[k])
-        J_ocp = sv.get_cost()
+        J_ocp, _ = _ocp_cost(ocp, x0, R, z, zprev, np.asarray(dist, float))
         J_nlp = float(nlp.cost_fn(z, nlp.params(x0, R, zprev)))
         assert J_ocp == pytest.approx(J_nlp, rel=1e-10)
         # and the smoothing adds at most eps_w per wheel and term to the exact cost's powers
@@ -128,7 +135,6 @@ def test_the_adapted_tires_are_stage_parameters():
     st = _state(init(VEH), t=2.0)
     mpc.step(st)
     x0, R, zprev, warm = mpc.horizon_problem(st)
-    sv = ocp.solver
     dist = np.array([0.1, -0.2, 0.03])
     mpc.model.S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = dist
     file_tires = ad.values(mpc.model)
@@ -140,23 +146,11 @@ def test_the_adapted_tires_are_stage_parameters():
             tires = ad.values(mpc.model)
             z = np.clip(warm + rng.normal(0.0, 0.5, warm.size) * mpc.horizon.sigma,
                         mpc.horizon.lower, mpc.horizon.upper)
-            s0 = np.r_[x0, zprev, np.ones(3)]
-            S = ocp.trajectory(s0, R, z, dist, tires).copy()
-            U = np.zeros((ocp.N, ocp.nu))
-            zb = zprev
-            for b, k in enumerate(ocp.starts):
-                U[k] = z[b * ocp.nu:(b + 1) * ocp.nu] - zb
-                zb = z[b * ocp.nu:(b + 1) * ocp.nu]
-            for k in range(ocp.N + 1):
-                sv.set(k, "p", np.r_[R[k], dist, tires])
-                sv.set(k, "x", S[k])
-                if k < ocp.N:
-                    sv.set(k, "u", U[k])
-            J_ocp = sv.get_cost()
+            J_ocp, S = _ocp_cost(ocp, x0, R, z, zprev, np.r_[dist, tires])
             J_nlp = float(nlp.cost_fn(z, nlp.params(x0, R, zprev)))
             assert J_ocp == pytest.approx(J_nlp, rel=1e-10), theta
             # the file's tires give another trajectory: the parameters were taken
-            S_file = ocp.trajectory(s0, R, z, dist, file_tires)
+            S_file = ocp.trajectory(np.r_[x0, zprev, np.ones(3)], R, z, dist, file_tires)
             costs.append(np.abs(S_file[:, :3] - S[:, :3]).max())
     finally:
         mpc.reset()

@@ -237,20 +237,27 @@ def run_controller(port: int, vid: str, plant: subprocess.Popen, bad_at: int = 3
             "other": other}
 
 
+def start_plant(tmp_path, vid: str, port: int, timeout: float):
+    """``msagv plant`` in lockstep for ``vid`` on ``port``: ``(process, stdout file, stderr
+    file)``."""
+    out, err = tmp_path / "plant.out", tmp_path / "plant.err"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    with out.open("w") as fo, err.open("w") as fe:
+        plant = subprocess.Popen(msagv("plant", "--run-mode", "lockstep", "--id", vid,
+                                       "--duration", DURATION, "--listen",
+                                       f"tcp/127.0.0.1:{port}", "--timeout", timeout,
+                                       "--wait", 60, "--json", "-q"),
+                                 stdout=fo, stderr=fe, env=env, cwd=tmp_path)
+    return plant, out, err
+
+
 # ---- the test -----------------------------------------------------------------------------
 @pytest.mark.timeout(120)
 def test_a_controller_written_from_protocol_md_completes_a_lockstep_run(tmp_path):
     port = free_port()
     steps = int(round(DURATION / 0.01))
-    out, err = tmp_path / "plant.out", tmp_path / "plant.err"
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
     t0 = time.monotonic()
-    with out.open("w") as fo, err.open("w") as fe:
-        plant = subprocess.Popen(msagv("plant", "--run-mode", "lockstep", "--id", VID,
-                                       "--duration", DURATION, "--listen",
-                                       f"tcp/127.0.0.1:{port}", "--timeout", 20, "--wait", 60,
-                                       "--json", "-q"),
-                                 stdout=fo, stderr=fe, env=env, cwd=tmp_path)
+    plant, out, err = start_plant(tmp_path, VID, port, timeout=20)
     try:
         seen = run_controller(port, VID, plant)
         rc = plant.wait(30)
@@ -328,14 +335,7 @@ def test_claims_and_arms_are_answered_as_protocol_md_says(tmp_path):
     rule and the reason a banned identity is told in each state (4.7)."""
     port = free_port()
     vid = "agv_doc_ban"
-    out, err = tmp_path / "plant.out", tmp_path / "plant.err"
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    with out.open("w") as fo, err.open("w") as fe:
-        plant = subprocess.Popen(msagv("plant", "--run-mode", "lockstep", "--id", vid,
-                                       "--duration", DURATION, "--listen",
-                                       f"tcp/127.0.0.1:{port}", "--timeout", 60, "--wait", 60,
-                                       "--json", "-q"),
-                                 stdout=fo, stderr=fe, env=env, cwd=tmp_path)
+    plant, out, err = start_plant(tmp_path, vid, port, timeout=60)
     got = {}
     sent_cmds: list = []  # the senders of the rejected commands, one entry per copy
     try:

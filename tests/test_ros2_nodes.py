@@ -32,6 +32,7 @@ def _ros():
     try:
         import rclpy  # noqa: F401
         from nav_msgs.msg import Odometry, Path  # noqa: F401
+        from rosgraph_msgs.msg import Clock  # noqa: F401
         from sensor_msgs.msg import JointState  # noqa: F401
         from std_msgs.msg import Float64MultiArray  # noqa: F401
     except Exception as e:  # noqa: BLE001 - missing wheels or a broken install

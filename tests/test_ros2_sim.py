@@ -43,7 +43,7 @@ import numpy as np
 import pytest
 
 from helpers import msagv
-from test_ros2_nodes import Peer, ros_env  # noqa: F401 - ros_env is a fixture
+from test_ros2_nodes import Peer, _ros, _stamp, ros_env  # noqa: F401 - ros_env is a fixture
 
 T = 0.01  # the simulator's period [s of sim time]
 RATE = 0.4  # sim time / wall time
@@ -83,22 +83,6 @@ omega_w_max = 28.0
 delta_min = -1.45
 delta_max = 1.45
 """
-
-
-def _ros():
-    try:
-        import rclpy  # noqa: F401
-        from nav_msgs.msg import Odometry, Path  # noqa: F401
-        from rosgraph_msgs.msg import Clock  # noqa: F401
-        from sensor_msgs.msg import JointState  # noqa: F401
-        from std_msgs.msg import Float64MultiArray  # noqa: F401
-    except Exception as e:  # noqa: BLE001 - missing wheels or a broken install
-        pytest.skip(f"ROS 2 (rclpy and the message packages) not available here: "
-                    f"{type(e).__name__}: {e}")
-
-
-def _stamp(h) -> float:
-    return h.stamp.sec + h.stamp.nanosec * 1e-9
 
 
 def _time(msg, t: float) -> None:
