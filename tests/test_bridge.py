@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import time
 import threading
 from types import SimpleNamespace
@@ -665,3 +666,86 @@ def test_the_realtime_watchdog_goes_safe_while_the_loop_is_stuck(vehicle, bus):
     assert s["safe"]["events"] >= 1
     after = [m for m in states if m["seq"] > 30]
     assert after and after[0]["safe"] is True  # the first state after the stall is safe
+
+
+class _HoldingTransport:
+    """A transport whose publisher on ``key`` holds the put of ``seq`` until released (as
+    Zenoh held a plant's put for 1.4 s while its tables took in the close of a peer that
+    had declared 10,000 tokens); everything else is ``inner``'s."""
+
+    def __init__(self, inner, key: str, seq: int):
+        self.inner, self.key, self.seq = inner, key, seq
+        self.held, self.release = threading.Event(), threading.Event()
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def publisher(self, key):
+        pub = self.inner.publisher(key)
+        if key != self.key:
+            return pub
+        outer = self
+
+        class Held:
+            matching = property(lambda self: pub.matching)
+            close = staticmethod(pub.close)
+
+            def put(self, payload, sn):
+                if sn == outer.seq:
+                    outer.held.set()
+                    outer.release.wait(120)
+                pub.put(payload, sn)
+
+        return Held()
+
+
+def test_a_signal_ends_the_run_with_its_summary_while_the_bus_holds_the_loop(vehicle, bus):
+    """SIGTERM while the realtime loop is held inside a put for longer than a stop may take
+    (issue 30: SIGTERM ends a run within 1 s, whatever the bus does): serve() returns with
+    the run's summary, names the signal and says that the loop was left behind in the bus
+    (``run_abandoned``), while the put is still held; nothing after the held state went
+    out. Before, the loop ran on the thread that takes the signal and serve() returned only
+    when the bus let go."""
+    from msagv.bridge.plant_node import serve
+    from msagv.bridge.process import StopOnSignal
+
+    held_seq = 30
+    cfg = PlantConfig(run_mode="realtime", steps=100_000, stale_ms=50.0, timeout_s=60.0,
+                      linger_s=0.0)
+    tr = _HoldingTransport(bus.endpoint("p1"), K.state, held_seq)
+    sig = StopOnSignal(threading.Event())
+    out: dict = {}
+    th = threading.Thread(target=lambda: out.update(r=serve(
+        Plant(vehicle, initial={"vx": 4.0}), cfg, SessionOptions(id=K.id), transport=tr,
+        signals=sig)), daemon=True)
+    c = bus.endpoint("c1")
+    c_pub = c.publisher(K.cmd)
+    seqs: list = []
+
+    def answer(smp):
+        m = M.decode_state(smp.payload, 4)
+        seqs.append(m["seq"])
+        if not m.get("end"):
+            c_pub.put(_cmd(m["seq"], m["seq"], w=8.0), m["seq"])
+
+    c.subscribe(K.state, answer)
+    th.start()
+    token = None
+    try:
+        # as a controller comes: the plant's token (it is declared last), then its own
+        wait_until(lambda: c.tokens(K.plant_token()), 60, "the plant to open")
+        token = c.declare_token(K.controller_token("c1"))
+        assert claim(c, K, 0)[0][1]["granted"]
+        wait_until(tr.held.is_set, 60, f"the loop to be held in the put of state {held_seq}")
+        sig.signum = signal.SIGTERM  # as its handler does
+        sig.event.set()
+        th.join(30)
+        assert not th.is_alive(), "serve() did not return while the bus held the loop"
+        assert not tr.release.is_set()  # the put is still held
+        s, rc = out["r"]
+        assert rc == 0 and s["stopped_by"] == "SIGTERM" and s["run_abandoned"] is True
+        assert seqs == list(range(held_seq))
+    finally:
+        tr.release.set()
+        if token is not None:
+            token.close()

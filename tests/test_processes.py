@@ -636,7 +636,8 @@ def _token_flood(procs, bus, n_tokens: int, hold_periods: int):
     s = procs.json("plant")
     assert s["stopped_by"] == "SIGTERM"
     # the live owner was never taken for lost: no latch, no loss
-    assert s["ownership"]["latches"] == 0 and s["controller_losses"] == 0, s["ownership"]
+    assert s["ownership"]["latches"] == 0 and s["controller_losses"] == 0, \
+        (s["ownership"], procs.err("plant")[-3000:])
     return s, stop_s
 
 
@@ -660,7 +661,8 @@ def test_liveliness_token_flood_10000(procs, bus):
     pr = s["presence"]
     assert pr["tracked_max"] <= pr["bound"] and pr["untracked"] >= 10_000 - pr["bound"]
     print(f"\n10000 tokens: presence {pr}, safe {s['safe']}; the plant stopped {stop_s:.2f} s "
-          f"after SIGTERM (including the process's exit)")
+          f"after SIGTERM (including the process's exit; loop left behind: "
+          f"{s.get('run_abandoned', False)}, close left behind: {s.get('close_abandoned', False)})")
 
 # ---- the router setup holds its live owner (issue 30, item 4) -----------------------------
 def _router_runs(procs, runs: int, duration: float):

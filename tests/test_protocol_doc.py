@@ -487,6 +487,7 @@ def test_protocol_md_tables_match_the_code():
     assert f"(`--stale-ms`, at least {plant_node.QUIET_MIN_S:g} s)" in flat
     assert f"into a list (at most {zenoh_transport.MAX_REPLIES})" in flat
     assert f"given {plant_node.CLOSE_S:g} s to close" in flat
+    assert f"then has {plant_node.RUN_STOP_S:g} s to see the stop" in flat
     assert f"every {presence.POLL_S:g} s, at once on a grant" in flat
 
 

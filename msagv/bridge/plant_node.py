@@ -360,6 +360,13 @@ class PlantNode:
         self._update_presence()
 
     def _on_token(self, zid: str, present: bool) -> None:
+        if self.stop.is_set():
+            # stopping (a signal): the owner is not judged by what the bus says meanwhile,
+            # nor by this node's own close of its token watch (a loop that the bus held
+            # past the stop runs on beside the close: serve's RUN_STOP_S)
+            log.debug("controller token %s %s while stopping: ignored", zid,
+                      "appeared" if present else "gone")
+            return
         if zid != self.ownership.owner:
             log.debug("controller token %s %s (not the owner: ignored)", zid,
                       "appeared" if present else "gone")
@@ -379,6 +386,8 @@ class PlantNode:
         self._update_presence()
 
     def _recheck_owner(self, zid: str) -> None:
+        if self.stop.is_set():  # (as in _on_token)
+            return
         if self._tokens is not None and not self._tokens.present(zid):
             self.ownership.token(zid, False, how="not back after this plant's own stall")
         self._update_presence()
@@ -651,6 +660,7 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
         node.stop = signals.event
     rc = EXIT_OK
     t = None
+    loop = None
     try:
         t = transport if transport is not None else ZenohTransport.open(opts, "plant")
         plant.warmup()  # the integrator compiled before the real-time clock starts
@@ -659,7 +669,7 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
         log.info("%s plant ready: %s, %d steps of %g s", cfg.run_mode, plant.vehicle.name,
                  cfg.steps, cfg.period)
         try:
-            node.run()
+            loop = _run_within(node, RUN_STOP_S)
         except PlantRunError as e:
             log.error("%s", e)
             rc = EXIT_RUNTIME
@@ -675,6 +685,8 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
         summary = node.summary()
         if not closed:
             summary["close_abandoned"] = True
+        if loop is not None and loop.is_alive():
+            summary["run_abandoned"] = True
         if signals is not None and signals.name is not None:
             summary["stopped_by"] = signals.name
             log.info("stopped by %s", signals.name)
@@ -684,6 +696,44 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
 
 
 CLOSE_S = 0.5  # a stopped plant waits this long for its declarations and session to close
+RUN_STOP_S = 0.15  # ... and, before that, this long for its loop (it looks every period) to see the stop
+
+
+def _run_within(node: PlantNode, stop_s: float) -> threading.Thread:
+    """Run ``node`` on a thread of its own while this (the main) thread waits for it;
+    returns that thread (alive: left behind).
+
+    Python runs a signal's handler on the main thread only, between two bytecodes: a loop
+    on the main thread that the bus holds inside a call (a put waiting for Zenoh's tables
+    while they take in the close of a peer that declared 10,000 tokens: 1.4 s, measured)
+    would take SIGTERM only when the call returns. Waiting here in steps of 50 ms, the
+    handler runs at once; once ``node.stop`` is set the loop has ``stop_s`` to see it (it
+    looks every period). If it does not, it is left behind (a daemon thread; the process
+    leaves without it, msagv.cli.nodes) and the summary is written without it. A failure
+    of the run (:class:`PlantRunError`) is raised here."""
+    failed: list[BaseException] = []
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            node.run()
+        except BaseException as e:  # (raised again on the caller's thread)
+            failed.append(e)
+        finally:
+            done.set()
+
+    th = threading.Thread(target=run, daemon=True, name="plant run")
+    th.start()
+    while not done.wait(0.05):
+        if node.stop.is_set():
+            if not done.wait(stop_s):
+                log.warning("the loop did not see the stop within %g s (held in the bus): "
+                            "leaving without it", stop_s)
+                return th
+            break
+    if failed:
+        raise failed[0]
+    return th
 
 
 def _close_within(node: PlantNode, transport, timeout: float | None) -> bool:

@@ -202,13 +202,14 @@ def plant_main(argv: list[str]) -> int:
     finally:
         plant.close()
     _plant_report(summary, a.json)
-    if a.fmu or summary.get("close_abandoned"):
+    if a.fmu or summary.get("close_abandoned") or summary.get("run_abandoned"):
         # Everything is flushed and closed: leave without the interpreter's and the shared
         # libraries' exit handlers. A pythonfmu binary and Zenoh's static destructors in one
         # process intermittently aborted at exit ('corrupted double-linked list', in
         # zenoh_shm's cleanup) after a complete, correct run. A session whose close was
-        # abandoned after a signal (bridge.plant_node.CLOSE_S) is left the same way: the
-        # summary is out, and the interpreter's exit would wait for Zenoh.
+        # abandoned after a signal (bridge.plant_node.CLOSE_S), or a loop the bus held past
+        # the stop (RUN_STOP_S), is left the same way: the summary is out, and the
+        # interpreter's exit would wait for Zenoh.
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(rc)
