@@ -48,7 +48,7 @@ run's (no period missed, no command aged, no wait's bound used, no watchdog), an
 ``activate`` takes it up with the state that was due; ``cleanup`` takes the topics down
 and unbinds the command topics; ``shutdown`` (or a signal) ends the run and the process.
 The transitions run in the run's thread (the node's callbacks run only in its idle), so
-never in the middle of a step. docs/ROS2.md, "A managed node".
+never in the middle of a step. docs/ROS2.md, "A managed plant".
 """
 
 from __future__ import annotations
@@ -188,7 +188,7 @@ class RosPlant:
                         "can then drive only a new run", e)
         self.configured = True
 
-    # ---- the lifecycle (managed: docs/ROS2.md, "A managed node") ----------------------
+    # ---- the lifecycle (managed: docs/ROS2.md, "A managed plant") ---------------------
     # The transitions run in the run's thread (its callbacks run only in the port's idle),
     # between two steps: a deactivated node holds the run in idle, on a clock that stands.
     def _configure(self) -> None:
