@@ -199,3 +199,98 @@ def test_bad_run_settings_are_refused_with_one_line():
             RunConfig(**kw)
         assert "\n" not in str(e.value)
     assert RunConfig(stale_ms=50.0, period=0.01).max_missed == 5
+
+
+class PausingPort(FakePort):
+    """A port that, in its wait before step ``at``, holds the run for ``pause`` s of the
+    clock's time (as a managed node deactivated holds it in its callbacks), with the run's
+    clock paused while it does if ``pausable`` is that clock. The controller was held as
+    well: the answer it owed at the pause comes ``solve_wall`` after the run resumes."""
+
+    def __init__(self, clock: SimClock, pausable, at: int, pause: float):
+        super().__init__(clock, 0.003)
+        self.pausable, self.at, self.pause = pausable, at, pause
+        self.paused_at: float | None = None
+        self.held: set[int] = set()  # the states unanswered at the pause
+
+    def _due(self, k: int) -> float:
+        return self.sent[k] + self.delay + (self.pause if k in self.held else 0.0)
+
+    def _visible(self) -> list[int]:
+        return [k for k in self.sent if self._due(k) <= self.clock.now()]
+
+    def _next_answer(self) -> float:
+        return min((d for d in map(self._due, self.sent) if d > self.clock.now()),
+                   default=float("inf"))
+
+    def idle(self, seconds: float, wake: bool = True) -> None:
+        c = self.clock
+        if self.paused_at is None and self.steps and self.steps[-1][0] == self.at - 1:
+            self.paused_at = c.now()
+            self.held = {k for k in self.sent if self._due(k) > c.now()}
+            if self.pausable is not None:
+                self.pausable.pause()
+            c.t += self.pause
+            if self.pausable is not None:
+                self.pausable.resume()
+            return
+        t = c.t
+        super().idle(seconds, wake)
+        if seconds > 0 and c.t == t < self._next_answer():
+            # a wait shorter than the float's resolution at this time (the paused clock,
+            # 2 s behind, asks for steps finer than it) moves the time one step on, as a real
+            # clock would: else the run would wait for a time that never comes
+            c.t = float(np.nextafter(t, np.inf))
+
+
+@pytest.mark.parametrize("mode", ["realtime", "lockstep"])
+def test_a_paused_run_takes_up_where_it_stood(mode):
+    """A run held for 2 s of its clock (40 times the 50 ms staleness bound, twice the
+    lockstep timeout) between two steps: on a :class:`PausableClock` paused meanwhile, the
+    pause is no time of the run's - the states after it go out on the schedule of those
+    before, nothing is late, stale, safe or re-anchored, the lockstep does not time out. On
+    the bare clock the same pause is a stall: the realtime loop re-anchors its clock (the
+    period across it 2 s long), the lockstep times out waiting for the held answer."""
+    from msagv.bridge.run_core import PausableClock
+
+    n, at, pause = 30, 12, 2.0
+    cfg = RunConfig(run_mode=mode, period=T, steps=n, stale_ms=50.0, resume_periods=3,
+                    timeout_s=1.0, linger_s=0.0)
+    for pausing in (True, False):
+        inner = SimClock(1.0)
+        clock = PausableClock(inner) if pausing else inner
+        port = PausingPort(inner, clock if pausing else None, at, pause)
+        run = PlantRun(Plant(default_vehicle(), initial={"vx": 4.0}), cfg, port, clock=clock)
+        try:
+            if mode == "lockstep" and not pausing:
+                with pytest.raises(PlantRunError, match=f"no answer to state {at}"):
+                    run.run()
+            else:
+                run.run()
+        finally:
+            run.close()
+        s = run.summary()
+        assert port.paused_at is not None
+        if not pausing:
+            if mode == "realtime":  # the stall: re-anchored, one period across it 2 s long
+                assert s["completed"] and s["clock_resyncs"] == 1
+                assert s["period_jitter_ms"]["max"] == pytest.approx((pause - T) * 1000,
+                                                                     abs=1e-6)
+            else:
+                assert not s["completed"] and s["steps"] == at
+            continue
+        assert s["completed"] and s["clock_resyncs"] == 0 and s["missed_periods"] == 0
+        assert s["safe"]["events"] == 0 and s["safe"]["watchdog_trips"] == 0
+        assert [(k, c) for k, _, c in port.steps] == [(k, True) for k in range(n)]
+        # (the inner clock's times): one period (realtime) or one answer (lockstep) apart,
+        # the pause's 2 s more across it
+        gap = port.sent[2] - port.sent[1]
+        assert gap == pytest.approx(T if mode == "realtime" else 0.003, abs=1e-12)
+        for k in range(2, n + 1):
+            across = port.sent[k - 1] <= port.paused_at < port.sent[k]
+            assert port.sent[k] - port.sent[k - 1] == pytest.approx(
+                gap + (pause if across else 0.0), abs=1e-9), k
+        if mode == "realtime":
+            assert s["periods"]["on_time"] == n
+            assert s["lateness_ms"]["max"] == pytest.approx(0.0, abs=1e-6)
+            assert s["period_jitter_ms"]["max"] == pytest.approx(0.0, abs=1e-6)

@@ -135,6 +135,43 @@ class WallClock:
         return dt
 
 
+class PausableClock:
+    """Another clock (``inner``) that stands while paused: the time of a run held between
+    two steps (a managed node deactivated holds it in the port's ``idle``) is none of the
+    run's. Resumed, it goes on from where it stood: no period missed, no command aged, no
+    wait's bound (``wait_s``, ``timeout_s``) used, the watchdog not tripped, the real-time
+    clock not re-anchored. ``paused``: it starts paused (a node not yet activated)."""
+
+    def __init__(self, inner: Clock, paused: bool = False):
+        self.inner = inner
+        self._lock = threading.Lock()  # (the run's thread and the watchdog's read it)
+        self._off = 0.0  # the inner clock's time spent paused
+        self._since: float | None = inner.now() if paused else None  # paused since
+
+    @property
+    def paused(self) -> bool:
+        return self._since is not None
+
+    def now(self) -> float:
+        with self._lock:
+            t = self._since if self._since is not None else self.inner.now()
+            return t - self._off
+
+    def wall(self, dt: float) -> float:
+        return self.inner.wall(dt)
+
+    def pause(self) -> None:
+        with self._lock:
+            if self._since is None:
+                self._since = self.inner.now()
+
+    def resume(self) -> None:
+        with self._lock:
+            if self._since is not None:
+                self._off += max(0.0, self.inner.now() - self._since)
+                self._since = None
+
+
 # ---- the port -------------------------------------------------------------------------------
 @dataclass
 class Command:

@@ -57,6 +57,13 @@ def _safety_args(ap: argparse.ArgumentParser, who: str) -> None:
                     help=f"safe behaviour: wheel ramp-down at the rim (default {SAFE_DECEL:g})")
 
 
+def _managed_arg(ap: argparse.ArgumentParser, held: str = "") -> None:
+    ap.add_argument("--managed", action="store_true",
+                    help="start unconfigured and wait for the lifecycle transitions "
+                         "(configure, activate: Nav2's lifecycle_manager or ros2 lifecycle "
+                         f"set){held}; without it the node configures and activates itself")
+
+
 def _foxglove_args(ap: argparse.ArgumentParser) -> None:
     from .foxglove_cli import add_foxglove_args
 
@@ -88,10 +95,7 @@ def controller_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-age-ms", type=float, metavar="MS",
                     help="never send a command for a state received longer ago (default: none)")
     ap.add_argument("--node-name", default="msagv_controller", help="the ROS node's name")
-    ap.add_argument("--managed", action="store_true",
-                    help="start unconfigured and wait for the lifecycle transitions "
-                         "(configure, activate: Nav2's lifecycle_manager or ros2 lifecycle "
-                         "set); without it the node configures and activates itself")
+    _managed_arg(ap)
     g = ap.add_argument_group("an unstamped plan (Nav2's): its speed profile and its goal")
     g.add_argument("--plan-accel", type=float, default=1.0, metavar="M/S2",
                    help="speeding up along the plan at most at this (default 1)")
@@ -251,6 +255,8 @@ def plant_parser() -> argparse.ArgumentParser:
     add_fmu_args(ap, positional=False)
     add_run_args(ap)
     ap.add_argument("--node-name", default="msagv_plant", help="the ROS node's name")
+    _managed_arg(ap, "; the run goes only while active, deactivated it stands on a clock "
+                     "that stands (docs/ROS2.md)")
     add_record_args(ap)
     _foxglove_args(ap)
     ap.add_argument("--json", action="store_true", help="print the run's summary as JSON")
@@ -297,7 +303,7 @@ def plant_main(argv: list[str]) -> int:
     try:
         rec = open_recording(a, header)
         rec = open_foxglove(a, prog, header, rec)
-        node = RosPlant(plant, cfg, ros_args, recorder=rec, stop=sig.event)
+        node = RosPlant(plant, cfg, ros_args, recorder=rec, stop=sig.event, managed=a.managed)
     except (Ros2Unavailable, *USAGE_ERRORS) as e:
         if rec is not None:
             rec.close({})

@@ -57,7 +57,7 @@ from msagv.bridge.recording import NullRecorder
 from msagv.controller.reference import Reference, from_samples
 
 from msagv.plant.signals import CONTROL_PERIOD
-from .runtime import Context
+from .runtime import Context, Lifecycle
 
 log = logging.getLogger("msagv.ros2.controller")
 
@@ -440,8 +440,6 @@ class RosController:
     def __init__(self, make_mpc: Callable[[dict], object], defaults: dict, vehicle,
                  cfg: RosControllerConfig, ros_args: list[str], reference: Reference | None,
                  recorder=None, stop: threading.Event | None = None, managed: bool = False):
-        from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
-
         self.ctx = Context(cfg.node_name, ros_args, lifecycle=True)
         self.params = declare_parameters(self.ctx.node, defaults)
         self.make_mpc = make_mpc
@@ -456,7 +454,6 @@ class RosController:
         self.configured = False
         self.active = False
         self._ended = False
-        self.transitions: list = []  # (transition, result) in order
         self.stats = {"answered": 0, "repeated": 0, "safe_events": 0, "safe_periods": 0,
                       "resumes": 0, "plans": 0, "rejected": 0, "new_runs": 0,
                       "dropped_stale": 0, "no_reference": 0, "goals_reached": 0,
@@ -469,51 +466,19 @@ class RosController:
         self.mpc = self.low = None
         self.reference: Reference | None = None
         self._safe = False
-        self._config_error: str | None = None
         node = self.ctx.node
-        me = self
-        ok, fail = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
-
-        class _Entity(ManagedEntity):  # the node's transitions (rclpy calls each entity's)
-            def on_configure(self, state):
-                return me._transition("configure", me._configure, ok, fail)
-
-            def on_activate(self, state):
-                return me._transition("activate", me._activate, ok, fail)
-
-            def on_deactivate(self, state):
-                return me._transition("deactivate", me._deactivate, ok, fail)
-
-            def on_cleanup(self, state):
-                return me._transition("cleanup", me._cleanup, ok, fail)
-
-            def on_shutdown(self, state):
-                return me._transition("shutdown", me._shutdown, ok, fail)
-
-            def on_error(self, state):
-                return me._transition("error", me._cleanup, ok, fail)
-
-        node.add_managed_entity(_Entity())
+        self.lifecycle = Lifecycle(node, {
+            "configure": self._configure, "activate": self._activate,
+            "deactivate": self._deactivate, "cleanup": self._cleanup,
+            "shutdown": self._shutdown, "error": self._cleanup},
+            log, say=managed)  # (unmanaged, the command line says a failure: exit 2)
         node.add_on_set_parameters_callback(self._on_set_parameters)
         if not managed:  # configured and activated at once, as a plain node would be
             node.trigger_configure()
             if not self.configured:
                 self.close()
-                raise ValueError(self._config_error or "configure failed")
+                raise ValueError(self.lifecycle.error or "configure failed")
             node.trigger_activate()
-
-    def _transition(self, name: str, fn, ok, fail):
-        try:
-            fn()
-        except Exception as e:  # noqa: BLE001 - a transition that fails says why, once
-            self._config_error = str(e)
-            if self.managed:  # else the command line says it (exit 2)
-                log.error("%s failed: %s", name, e)
-            self.transitions.append((name, "failure"))
-            return fail
-        self.transitions.append((name, "success"))
-        log.info("lifecycle: %s", name)
-        return ok
 
     def _config_from(self, p: dict) -> RosControllerConfig:
         """The node's configuration of the parameters ``p``, or ValueError naming the bad
@@ -1138,9 +1103,7 @@ class RosController:
 
     def state_label(self) -> str:
         """The lifecycle state: unconfigured, inactive, active or finalized."""
-        if self._ended:
-            return "finalized"
-        return "active" if self.active else "inactive" if self.configured else "unconfigured"
+        return Lifecycle.label(self.configured, self.active, self._ended)
 
     # ---- diagnostics ---------------------------------------------------------------------
     def diagnostics(self) -> tuple[int, str, dict]:
@@ -1205,4 +1168,4 @@ class RosController:
                 "goal_errors": [{"distance_m": d, "yaw_deg": y} for d, y in self.goal_errors],
                 "parameters": self.params, "safe": self._safe,
                 "lifecycle": self.state_label(),
-                "transitions": [{"transition": n, "result": r} for n, r in self.transitions]}
+                "transitions": self.lifecycle.summary()}

@@ -38,6 +38,17 @@ an operator calls ``~/rearm`` (std_srvs/Trigger): then the next publisher to sen
 This keeps a second, stale or misconfigured controller from driving; it authenticates
 nobody (a process may publish under any node name): SROS2's access control decides who may
 publish on the command topics at all (docs/ROS2.md).
+
+With ``managed`` (``--managed``) it is an ``rclpy.lifecycle`` managed node, as the
+controller: unconfigured it has no topics; ``configure`` declares them and ``~/rearm``;
+only while active does the run go (its first state once active and a controller is
+there); ``deactivate`` holds the run between two steps on a clock that stands
+(:class:`bridge.run_core.PausableClock`): the vehicle stands, the pause is no time of the
+run's (no period missed, no command aged, no wait's bound used, no watchdog), and
+``activate`` takes it up with the state that was due; ``cleanup`` takes the topics down
+and unbinds the command topics; ``shutdown`` (or a signal) ends the run and the process.
+The transitions run in the run's thread (the node's callbacks run only in its idle), so
+never in the middle of a step. docs/ROS2.md, "A managed plant".
 """
 
 from __future__ import annotations
@@ -51,9 +62,10 @@ import numpy as np
 
 from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
-from msagv.bridge.run_core import Command, PlantRun, PlantRunError, RunConfig, WallClock
+from msagv.bridge.run_core import (Command, PausableClock, PlantRun, PlantRunError, RunConfig,
+                                   WallClock)
 
-from .runtime import Context, Ros2Unavailable
+from .runtime import Context, Lifecycle, Ros2Unavailable
 
 log = logging.getLogger("msagv.ros2.plant")
 
@@ -71,6 +83,7 @@ UNKNOWN_NODE = ("_NODE_NAME_UNKNOWN_", "_NODE_NAMESPACE_UNKNOWN_")  # rmw_dds_co
 
 RosPlantError = PlantRunError  # the run cannot go on (no controller, a timeout, a failed step)
 SIM_LOOK_S = 0.002  # under use_sim_time the clock's pace is the simulator's: look this often
+HOLD_LOOK_S = 0.05  # a managed node held inactive looks for its transitions this often
 
 
 @dataclass
@@ -100,10 +113,12 @@ class RosPlant:
     (:class:`bridge.run_core.PlantPort`) on ROS 2 topics. ``plant``: a plant with the plant
     interface at its initial state; ``recorder``: a recorder-like sink (``message``,
     ``event``, ``maybe_flush``, ``close``) that gets every state sent and command applied as
-    the Zenoh plant's msgpack payloads, or None."""
+    the Zenoh plant's msgpack payloads, or None. ``managed``: an ``rclpy.lifecycle`` node
+    that starts unconfigured (see the module docstring); else a plain node, its topics
+    declared at once."""
 
     def __init__(self, plant, cfg: RosPlantConfig, ros_args: list[str], recorder=None,
-                 stop: threading.Event | None = None):
+                 stop: threading.Event | None = None, managed: bool = False):
         self.plant = plant
         self.vehicle = plant.vehicle
         self.nw = self.vehicle.n_wheels
@@ -116,14 +131,40 @@ class RosPlant:
         self._steer: tuple[int, np.ndarray] | None = None  # (state it answers, targets)
         self._wheel: tuple[int, np.ndarray] | None = None
         self.tf_published = True
-        self.ctx = Context(cfg.node_name, ros_args)
+        self.managed = managed
+        self.ctx = Context(cfg.node_name, ros_args, lifecycle=managed)
         # under use_sim_time a realtime plant's time is ROS time: someone else's /clock
         self.sim_time = (cfg.run_mode == "realtime"
                          and bool(self.ctx.node.get_parameter("use_sim_time").value))
+        clock = RosTime(self.ctx.node) if self.sim_time else WallClock()
+        if managed:  # the run's time stands while the node is not active
+            clock = PausableClock(clock, paused=True)
+        self.clock = clock
         self.core = PlantRun(plant, cfg, self, recorder=recorder, log=log, stop=stop,
-                             clock=RosTime(self.ctx.node) if self.sim_time else WallClock())
+                             clock=clock)
         self.rec, self.stop, self.stats = self.core.rec, self.core.stop, self.core.stats
-        self.pubs = {}
+        self.pubs: dict = {}
+        self._subs: list = []
+        self._services: list = []
+        # the publisher (GID) each command topic is bound to (None: the next one to send)
+        self.sources: dict[str, bytes | None] = {R.STEERING_COMMANDS: None,
+                                                 R.WHEEL_COMMANDS: None}
+        self.source_node: str | None = None  # the node both topics are taken from
+        self._gid_apart_told = False
+        self.rearms = 0
+        self.configured = self.active = self._ended = False
+        self.lifecycle = None
+        if managed:  # unconfigured until a lifecycle manager says otherwise
+            self.lifecycle = Lifecycle(self.ctx.node, {
+                "configure": self._configure, "activate": self._activate,
+                "deactivate": self._deactivate, "cleanup": self._cleanup,
+                "shutdown": self._shutdown, "error": self._cleanup}, log)
+        else:
+            self._declare()
+            self.active = True
+
+    def _declare(self) -> None:
+        """The node's topics and its ``~/rearm`` service."""
         for topic in (R.CLOCK, R.JOINT_STATES, R.WEAR, R.TF, R.ODOM, R.MARKERS):
             if topic == R.CLOCK and self.sim_time:
                 continue
@@ -134,12 +175,6 @@ class RosPlant:
                     raise
                 self.tf_published = False
                 log.warning("not publishing tf: %s; the pose is on odom", e)
-        # the publisher (GID) each command topic is bound to (None: the next one to send)
-        self.sources: dict[str, bytes | None] = {R.STEERING_COMMANDS: None,
-                                                 R.WHEEL_COMMANDS: None}
-        self.source_node: str | None = None  # the node both topics are taken from
-        self._gid_apart_told = False
-        self.rearms = 0
         self._subs = [self.ctx.subscription(R.STEERING_COMMANDS, self._on_steer),
                       self.ctx.subscription(R.WHEEL_COMMANDS, self._on_wheel)]
         self._services = []
@@ -151,6 +186,61 @@ class RosPlant:
         except ImportError as e:
             log.warning("no ~/rearm service: %s (pip install ros-std-srvs); a new controller "
                         "can then drive only a new run", e)
+        self.configured = True
+
+    # ---- the lifecycle (managed: docs/ROS2.md, "A managed plant") ---------------------
+    # The transitions run in the run's thread (its callbacks run only in the port's idle),
+    # between two steps: a deactivated node holds the run in idle, on a clock that stands.
+    def _configure(self) -> None:
+        """Declare the topics and ``~/rearm``; no state published until activated. A
+        failure takes down what was declared (the node stays unconfigured)."""
+        try:
+            self._declare()
+        except Exception:
+            self.configured = True
+            self._cleanup()
+            raise
+
+    def _activate(self) -> None:
+        """The run goes on: the clock from where it stood, the next state the one due."""
+        self.active = True
+        self.clock.resume()
+
+    def _deactivate(self) -> None:
+        """The run held between two steps, the clock with it: the vehicle stands, the pause
+        is no silence of the controller's (no period missed, nothing stale, no watchdog)."""
+        self.clock.pause()
+        self.active = False
+
+    def _cleanup(self) -> None:
+        """Back to unconfigured: the topics and ``~/rearm`` taken down, the command topics
+        unbound (the next configure's first publisher drives: the controller may be a new
+        one). The run stands where it was."""
+        if self.active:
+            self._deactivate()
+        if not self.configured:
+            return
+        node = self.ctx.node
+        for sub in self._subs:
+            node.destroy_subscription(sub)
+        for sv in self._services:
+            node.destroy_service(sv)
+        for pub in self.pubs.values():
+            node.destroy_publisher(pub)
+        self.pubs, self._subs, self._services = {}, [], []
+        self.sources = dict.fromkeys(self.sources)
+        self.source_node = None
+        self.configured = False
+
+    def _shutdown(self) -> None:
+        """The run ends (the process prints its summary and exits)."""
+        self._cleanup()
+        self._ended = True
+        self.stop.set()
+
+    def state_label(self) -> str:
+        """The lifecycle state: unconfigured, inactive, active or finalized."""
+        return Lifecycle.label(self.configured, self.active, self._ended)
 
     seq = property(lambda self: self.core.seq)
     error = property(lambda self: self.core.error)
@@ -314,6 +404,8 @@ class RosPlant:
 
     def idle(self, seconds: float, wake: bool = True) -> None:
         self.ctx.spin_once(seconds)  # the callbacks run only here: always spun
+        while not self.active and not self.stop.is_set():  # managed, not active: held
+            self.ctx.spin_once(HOLD_LOOK_S)
 
     def unanswered(self, k: int, first: bool) -> None:
         pass  # a state is sent once: a command names no state, it answers the newest
@@ -338,7 +430,7 @@ class RosPlant:
         and publishing both command topics (then state 0 goes out once: a command names no
         state, so a state is never sent twice and every command received after state k
         answers k)."""
-        return (self.pubs[R.ODOM].get_subscription_count() > 0
+        return (self.active and self.pubs[R.ODOM].get_subscription_count() > 0
                 and self.pubs[R.JOINT_STATES].get_subscription_count() > 0
                 and all(s.get_publisher_count() > 0 for s in self._subs))
 
@@ -362,8 +454,14 @@ class RosPlant:
         return self.summary()
 
     def close(self) -> None:
-        self.core.close()
-        self.ctx.close()
+        """A managed node not shut down yet is (a signal, the run's end), then its
+        context closed."""
+        try:
+            if self.managed and not self._ended:
+                self.ctx.node.trigger_shutdown()
+        finally:
+            self.core.close()
+            self.ctx.close()
 
     def summary(self) -> dict:
         st = self.stats
@@ -373,4 +471,6 @@ class RosPlant:
                 "sources": {t: (g.hex() if g is not None else None)
                             for t, g in self.sources.items()},
                 "source_node": self.source_node, "rearms": self.rearms,
-                "rejected": self.rej.summary(), "tf": self.tf_published}
+                "rejected": self.rej.summary(), "tf": self.tf_published,
+                **({"lifecycle": self.state_label(), "transitions": self.lifecycle.summary()}
+                   if self.managed else {})}

@@ -121,3 +121,67 @@ class Context:
                 self.rclpy.shutdown(context=self.context)
             except Exception:
                 pass
+
+
+class Lifecycle:
+    """The transitions of a managed node (``rclpy.lifecycle``), shared by the controller
+    and the plant: ``steps`` maps each transition rclpy calls (``configure``, ``activate``,
+    ``deactivate``, ``cleanup``, ``shutdown``, ``error``) to the node's function for it.
+    A function that raises fails its transition (the node stays where it was) and says why
+    once (logged where ``say``; :attr:`error` keeps the reason); every transition is
+    recorded in :attr:`done` as ``(name, "success" | "failure")``, in order."""
+
+    def __init__(self, node, steps: dict, log, say: bool = True):
+        from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
+
+        self.done: list[tuple[str, str]] = []
+        self.error: str | None = None
+        self.say = say
+        run = self._run
+        ok, fail = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+        self._log = log
+
+        class _Entity(ManagedEntity):  # (rclpy calls each entity's on_<transition>)
+            def on_configure(self, state):
+                return run("configure", steps["configure"], ok, fail)
+
+            def on_activate(self, state):
+                return run("activate", steps["activate"], ok, fail)
+
+            def on_deactivate(self, state):
+                return run("deactivate", steps["deactivate"], ok, fail)
+
+            def on_cleanup(self, state):
+                return run("cleanup", steps["cleanup"], ok, fail)
+
+            def on_shutdown(self, state):
+                return run("shutdown", steps["shutdown"], ok, fail)
+
+            def on_error(self, state):
+                return run("error", steps["error"], ok, fail)
+
+        node.add_managed_entity(_Entity())
+
+    def _run(self, name: str, fn, ok, fail):
+        try:
+            fn()
+        except Exception as e:  # noqa: BLE001 - a transition that fails says why, once
+            self.error = str(e)
+            if self.say:
+                self._log.error("%s failed: %s", name, e)
+            self.done.append((name, "failure"))
+            return fail
+        self.done.append((name, "success"))
+        self._log.info("lifecycle: %s", name)
+        return ok
+
+    def summary(self) -> list[dict]:
+        """The transitions, for a node's summary (``transitions``)."""
+        return [{"transition": n, "result": r} for n, r in self.done]
+
+    @staticmethod
+    def label(configured: bool, active: bool, ended: bool) -> str:
+        """The lifecycle state: unconfigured, inactive, active or finalized."""
+        if ended:
+            return "finalized"
+        return "active" if active else "inactive" if configured else "unconfigured"
