@@ -126,6 +126,7 @@ def test_a_run_reports_its_wear_floors_and_flags_a_broken_one(capsys):
     (controller.floors, as the study does) and names every floor the run wears less than
     0.995 x of, in the JSON and as a warning (never silently)."""
     from msagv.controller.floors import broken_floor, broken_floor_warning, wear_floors
+    from msagv.experiments.results import off_path_floor_note, split_below_floor
 
     path = SCEN / "lane-change-3axle.toml"
     rc, out, err = run(capsys, "run", path, "--duration", "1", "--json")
@@ -136,7 +137,8 @@ def test_a_run_reports_its_wear_floors_and_flags_a_broken_one(capsys):
     f = wear_floors(ref, sc.actual_vehicle(sc.resolve_vehicle()), 0.0, 1.0, dt=0.05).as_dict()
     assert doc["floors"] == pytest.approx(f, rel=1e-9)
     assert doc["floors"]["W_tw_floor"] < 1e-3  # the first second is straight: no floor
-    expected = broken_floor(doc["metrics"], doc["floors"])
-    assert doc["broken_floor"] == expected
-    flagged = [w for w in doc["warnings"] if w.startswith("broken floor")]
-    assert flagged == ([broken_floor_warning(expected)] if expected else [])
+    broken, off = split_below_floor(broken_floor(doc["metrics"], doc["floors"]), doc["metrics"])
+    assert doc["broken_floor"] == broken and doc["below_floor_off_path"] == off
+    flagged = [w for w in doc["warnings"] if w.startswith(("broken floor", "below the floor"))]
+    assert flagged == ([broken_floor_warning(broken)] if broken else []) + \
+        ([off_path_floor_note(off)] if off else [])

@@ -141,6 +141,22 @@ def test_broken_floor_by_hand():
     assert rows[1]["floor_broken"] == ["W_tw"]
     (w,) = broken_floor_warnings(rows)
     assert w.startswith("broken floor: lane: 1 of 2 runs") and "lowest W_tw 0.980" in w
+    # the floor holds only motions within 1 cm of the path: a run below it that strayed
+    # further (its largest lateral error 4 cm) is said, as no broken floor
+    from msagv.experiments.results import off_path_floor_note, split_below_floor
+
+    assert split_below_floor(b, dict(low, e_lat_max_cm=0.9)) == (b, [])
+    assert split_below_floor(b, low) == (b, [])  # (metrics that do not say: flagged)
+    within, off = split_below_floor(b, dict(low, e_lat_max_cm=4.0))
+    assert within == [] and off == [dict(b[0], off_path_cm=4.0)]
+    line = off_path_floor_note(off)
+    assert line.startswith("below the floor off the path:") and "up to 4 cm" in line
+    runs[1]["metrics"]["e_lat_max_cm"] = 4.0
+    rows = [_row(r, {"p": {"floors": fl}}) for r in runs]
+    assert rows[1]["floor_broken"] is None and rows[1]["below_floor_off_path"] == ["W_tw"]
+    (w,) = broken_floor_warnings(rows)
+    assert w.startswith("below the floor off the path: lane: 1 of 2 runs") and \
+        "straying 4.000 cm or more" in w and "do not break it" in w
 
 
 @pytest.mark.parametrize("make", [lane_change, tight_turn,

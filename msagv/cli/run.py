@@ -227,6 +227,7 @@ def _floors(scenario, vehicle, ref, ran: float, metrics: dict):
 def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) -> None:
     """The result: warnings, the JSON document, the log, the figures, the table."""
     from msagv.controller.floors import FloorError, broken_floor_warning
+    from msagv.experiments.results import off_path_floor_note, split_below_floor
     from msagv.controller.metrics import (format_per_km, format_table, format_wheel_wear,
                                           wear_per_km)
     from msagv.experiments.checks import solve_time_warnings
@@ -250,8 +251,12 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
         floors, broken = None, []
         warnings.append(f"no wear floor for this run: {e}")
         warn(prog, warnings[-1:])
+    broken, below_off = split_below_floor(broken, m)
     if broken:
         warnings.append(broken_floor_warning(broken))
+        warn(prog, warnings[-1:])
+    if below_off:
+        warnings.append(off_path_floor_note(below_off))
         warn(prog, warnings[-1:])
     wear = wear_per_km(log.wheel_wear(), log.distance(), vehicle.tire_wear,  # per wheel and
                        vehicle.wheel_radius, tire_price(a, vehicle))  # axle, per km
@@ -262,7 +267,10 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     tires = getattr(built.controller, "adapted_tires", None)
     doc["adapted_tires"] = tires() if tires is not None else None  # --adapt's factors
     doc["floors"] = floors  # the wear floor over the run (controller.floors)
-    doc["broken_floor"] = broken  # the floors the run wears less than 0.995 x of
+    # the floors the run wears less than 0.995 x of: within their 1 cm of the path (broken),
+    # and further off it (below them without breaking them)
+    doc["broken_floor"] = broken
+    doc["below_floor_off_path"] = below_off
     if a.log:
         log.to_csv(a.log)
     if a.plot:

@@ -150,3 +150,32 @@ def stamp(summary: dict, results: list[dict]) -> dict:
     head = {"version": package_version(), "command": "experiment",
             "warnings": list(dict.fromkeys(warnings))}
     return dict(head, **summary)
+
+
+def split_below_floor(below: list[dict], metrics: dict) -> tuple[list[dict], list[dict]]:
+    """:func:`controller.floors.broken_floor`'s entries of a run with ``metrics``, split by
+    where the run went: ``(broken, off_path)``. The floor is the least wear of any motion
+    within ``FLOOR_TOL_M`` of the path; a run whose largest lateral error
+    (``e_lat_max_cm``) stayed within it and wears less breaks the floor; one that strayed
+    further is below it without breaking it (its entries carry ``off_path_cm``, that
+    error). Metrics that do not say count as within (flagged, never excused)."""
+    from msagv.controller.floors import FLOOR_TOL_M
+
+    e = metrics.get("e_lat_max_cm")
+    if e is None or e <= 100.0 * FLOOR_TOL_M:
+        return list(below), []
+    return [], [dict(b, off_path_cm=e) for b in below]
+
+
+def off_path_floor_note(entries: list[dict], what: str = "the run") -> str:
+    """A one-line note for :func:`split_below_floor`'s (non-empty) ``off_path`` entries."""
+    from msagv.controller.floors import BROKEN_RATIO, FLOOR_TOL_M
+
+    parts = ", ".join(f"{p['part']} {p['W']:.4g} J = {p['ratio']:.3f} x its floor "
+                      f"{p['floor']:.4g} J" for p in entries)
+    tol = f"{100.0 * FLOOR_TOL_M:g} cm"
+    e = max(p["off_path_cm"] for p in entries)
+    return (f"below the floor off the path: {what} wears less than {BROKEN_RATIO} x the wear "
+            f"floor of any motion within {tol} of the path ({parts}) while straying up to "
+            f"{e:.3g} cm from it: the floor bounds only motions within {tol}, so this does "
+            f"not break it (docs/WEAR.md, Wear floors)")
