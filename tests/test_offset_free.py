@@ -258,3 +258,32 @@ def test_mismatch_bench_refuses_an_unknown_setting_and_applies_a_known_one(capsy
     assert r["disturbance"]["updates"] == r0["disturbance"]["updates"] > 0
     # the same prediction error moves d by 1/tau: a quarter as far at 0.2 s as at 0.05 s
     assert abs(r["disturbance"]["d_v"]) < abs(r0["disturbance"]["d_v"])
+
+
+def test_an_adaptation_update_moves_only_the_entries_the_generated_problems_take():
+    """IPOPT's NLP and acados' stage parameters take the adapted entries by their indices,
+    ``adaptation.TIRE_P`` of the model's P and ``TIRE_S`` of its S (every other entry is a
+    constant of the generated problem): an entry an update wrote beside them would be
+    ignored by both, silently. An update of the Magic Formula model from a measured
+    velocity off the prediction moves model entries, and only those."""
+    from msagv.controller import adaptation as ad
+
+    v = default_vehicle()
+    ref, _ = make_case("curve", 25.0)
+    m = make_model(v, MPCSettings(model="mf"))
+    a = ad.TireAdaptation(m, 0.01)
+    P0, S0 = m.P.copy(), m.S.copy()
+    x0 = _x0(v, ref)
+    x0[lay.X0_VX] = 25.0 / 3.6  # moving, wheels at rest and straight: every slip excited
+    nw = v.n_wheels
+    a.update(0.0, x0)
+    a.commanded(np.full(nw, 10.0), np.zeros(nw), None)
+    x1 = x0.copy()
+    x1[lay.X0_VY] += 0.05  # measured off the prediction: a velocity error to learn from
+    a.update(0.01, x1)
+    assert a.updates == 1 and not np.allclose(a.theta, 1.0)
+    moved_P = set(np.flatnonzero(m.P != P0).tolist())
+    moved_S = set(np.flatnonzero(m.S != S0).tolist())
+    assert moved_P and moved_P <= set(ad.TIRE_P), (moved_P, ad.TIRE_P)
+    assert moved_S <= set(ad.TIRE_S), (moved_S, ad.TIRE_S)
+    assert np.array_equal(ad.values(m), np.r_[m.P[list(ad.TIRE_P)], m.S[list(ad.TIRE_S)]])
