@@ -745,7 +745,35 @@ def test_a_signal_ends_the_run_with_its_summary_while_the_bus_holds_the_loop(veh
         s, rc = out["r"]
         assert rc == 0 and s["stopped_by"] == "SIGTERM" and s["run_abandoned"] is True
         assert seqs == list(range(held_seq))
+        # the state the plant stood in (it steps no further: its loop is held) is kept
+        assert s["final_state"]["t"] == pytest.approx(held_seq * T)
+        assert s["final_state"]["x"] > 0.0
     finally:
         tr.release.set()
         if token is not None:
             token.close()
+
+
+def test_an_interrupt_while_waiting_stops_the_loop_or_says_it_was_left_behind():
+    """A second signal (KeyboardInterrupt on the main thread) or Ctrl-C while serve() waits
+    on its loop: the interrupt goes on to serve(), but the loop is told to stop first, and
+    one held in the bus is counted as left behind, never left running unsaid."""
+    import _thread
+
+    from msagv.bridge.plant_node import _run_within
+
+    for held in (False, True):
+        stop, release, ran = threading.Event(), threading.Event(), []
+
+        def run():
+            ran.append(True)
+            while not stop.is_set() or held and not release.is_set():
+                time.sleep(0.005)
+
+        node = SimpleNamespace(stop=stop, run=run)
+        threading.Timer(0.3, _thread.interrupt_main).start()
+        left: list = []
+        with pytest.raises(KeyboardInterrupt):
+            _run_within(node, 0.2, left)
+        release.set()
+        assert ran and stop.is_set() and left == ([True] if held else [])

@@ -660,7 +660,7 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
         node.stop = signals.event
     rc = EXIT_OK
     t = None
-    loop = None
+    left: list = []  # the loop, left behind (_run_within)
     try:
         t = transport if transport is not None else ZenohTransport.open(opts, "plant")
         plant.warmup()  # the integrator compiled before the real-time clock starts
@@ -669,7 +669,7 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
         log.info("%s plant ready: %s, %d steps of %g s", cfg.run_mode, plant.vehicle.name,
                  cfg.steps, cfg.period)
         try:
-            loop = _run_within(node, RUN_STOP_S)
+            _run_within(node, RUN_STOP_S, left)
         except PlantRunError as e:
             log.error("%s", e)
             rc = EXIT_RUNTIME
@@ -680,12 +680,16 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
     except KeyboardInterrupt:
         node.error = "interrupted"
     finally:
+        if left:  # the state it stood in, as the loop's own end would have kept it
+            with node._plant_lock:
+                node.core.final_state = dict(plant.state_message(),
+                                             t=max(node.core.seq, 0) * cfg.period)
         closed = _close_within(node, t if transport is None else None,
                                CLOSE_S if node.stop.is_set() else None)
         summary = node.summary()
         if not closed:
             summary["close_abandoned"] = True
-        if loop is not None and loop.is_alive():
+        if left:
             summary["run_abandoned"] = True
         if signals is not None and signals.name is not None:
             summary["stopped_by"] = signals.name
@@ -696,19 +700,19 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
 
 
 CLOSE_S = 0.5  # a stopped plant waits this long for its declarations and session to close
-RUN_STOP_S = 0.15  # ... and, before that, this long for its loop (it looks every period) to see the stop
+RUN_STOP_S = 0.3  # ... and, before that, this long for its loop (it looks every period) to see the stop
 
 
-def _run_within(node: PlantNode, stop_s: float) -> threading.Thread:
-    """Run ``node`` on a thread of its own while this (the main) thread waits for it;
-    returns that thread (alive: left behind).
+def _run_within(node: PlantNode, stop_s: float, left: list) -> None:
+    """Run ``node`` on a thread of its own while this (the main) thread waits for it.
 
     Python runs a signal's handler on the main thread only, between two bytecodes: a loop
     on the main thread that the bus holds inside a call (a put waiting for Zenoh's tables
     while they take in the close of a peer that declared 10,000 tokens: 1.4 s, measured)
     would take SIGTERM only when the call returns. Waiting here in steps of 50 ms, the
-    handler runs at once; once ``node.stop`` is set the loop has ``stop_s`` to see it (it
-    looks every period). If it does not, it is left behind (a daemon thread; the process
+    handler runs at once; once ``node.stop`` is set (or this thread is interrupted: a
+    second signal, Ctrl-C) the loop has ``stop_s`` to see it (it looks every period). If
+    it does not, it is left behind (``left`` gets True; a daemon thread, the process
     leaves without it, msagv.cli.nodes) and the summary is written without it. A failure
     of the run (:class:`PlantRunError`) is raised here."""
     failed: list[BaseException] = []
@@ -724,16 +728,18 @@ def _run_within(node: PlantNode, stop_s: float) -> threading.Thread:
 
     th = threading.Thread(target=run, daemon=True, name="plant run")
     th.start()
-    while not done.wait(0.05):
-        if node.stop.is_set():
-            if not done.wait(stop_s):
-                log.warning("the loop did not see the stop within %g s (held in the bus): "
-                            "leaving without it", stop_s)
-                return th
-            break
+    try:
+        while not done.wait(0.05) and not node.stop.is_set():
+            pass
+    finally:  # (also on a KeyboardInterrupt here: the loop is stopped, never left running)
+        if not done.is_set():
+            node.stop.set()
+        if not done.wait(stop_s):
+            left.append(True)
+            log.warning("the loop did not see the stop within %g s (held in the bus, or "
+                        "by the machine): leaving without it", stop_s)
     if failed:
         raise failed[0]
-    return th
 
 
 def _close_within(node: PlantNode, transport, timeout: float | None) -> bool:

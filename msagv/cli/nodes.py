@@ -197,10 +197,14 @@ def plant_main(argv: list[str]) -> int:
         if plant is not None:
             plant.close()
         return EXIT_USAGE
+    summary = None
     try:
         summary, rc = serve(plant, cfg, opts, recorder=rec, signals=sig)
     finally:
-        plant.close()
+        # a loop left behind may still step the plant (an FMU): not freed under it, the
+        # process leaves with os._exit below
+        if summary is None or not summary.get("run_abandoned"):
+            plant.close()
     _plant_report(summary, a.json)
     if a.fmu or summary.get("close_abandoned") or summary.get("run_abandoned"):
         # Everything is flushed and closed: leave without the interpreter's and the shared

@@ -459,6 +459,8 @@ class RosPlant:
         try:
             if self.managed and not self._ended:
                 self.ctx.node.trigger_shutdown()
+        except Exception as e:  # (e.g. a second signal in mid-transition): the summary
+            log.warning("lifecycle shutdown failed: %s", e)  # and the recording still go out
         finally:
             self.core.close()
             self.ctx.close()
