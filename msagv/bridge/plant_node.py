@@ -684,8 +684,11 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
             with node._plant_lock:
                 node.core.final_state = dict(plant.state_message(),
                                              t=max(node.core.seq, 0) * cfg.period)
+        # (a loop the bus held past the stop: its close is likely held too, and the second
+        # goes on the same budget)
         closed = _close_within(node, t if transport is None else None,
-                               CLOSE_S if node.stop.is_set() else None)
+                               None if not node.stop.is_set() else
+                               CLOSE_LEFT_S if left else CLOSE_S)
         summary = node.summary()
         if not closed:
             summary["close_abandoned"] = True
@@ -701,6 +704,7 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
 
 CLOSE_S = 0.5  # a stopped plant waits this long for its declarations and session to close
 RUN_STOP_S = 0.3  # ... and, before that, this long for its loop (it looks every period) to see the stop
+CLOSE_LEFT_S = 0.2  # the close's time after a loop left behind (RUN_STOP_S spent already)
 
 
 def _run_within(node: PlantNode, stop_s: float, left: list) -> None:
