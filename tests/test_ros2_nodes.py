@@ -830,6 +830,48 @@ def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
     assert speed < max(0.5, 4.2 - 2.0 * (6.0 - t_safe) + 0.5), (t_safe, speed)
 
 
+def test_a_realtime_plant_publishes_state_0_again_until_it_is_answered(procs, ros_env):
+    """A realtime plant starts once nodes subscribe to odom and joint_states and publish
+    both command topics; those can be two nodes, and the controller's own subscriptions may
+    be matched only later (discovery on a loaded machine: a clean clone's make test saw
+    state 0 go to nobody and the run time out after 10 s). The controller here misses
+    state 0 (it answers only a copy that comes later): the plant publishes it again, no
+    command can be mistaken for another (none came), and the run goes."""
+    _ros()
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    procs.start("plant", msagv("ros2", "plant", "--run-mode", "realtime", "--case", "line",
+                               "--speed", "5", "--duration", "2", "--stale-ms", "300",
+                               "--json", "-q"))
+    peer = Peer("late_controller")
+    n = peer.node
+    zeros, stamps = [], []
+
+    def on_odom(m):
+        t = _stamp(m.header)
+        stamps.append(t)
+        if t == 0.0:
+            zeros.append(time.monotonic())
+        if len(zeros) >= 2:  # (the first state 0 missed)
+            steer.publish(Float64MultiArray(data=[0.0] * 4))
+            wheel.publish(Float64MultiArray(data=[5.0 / 3.6 / 0.5] * 4))
+
+    steer = n.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
+    wheel = n.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
+    n.create_subscription(Odometry, "odom", on_odom, 10)
+    n.create_subscription(JointState, "joint_states", lambda m: None, 10)
+    try:
+        assert peer.spin(120, until=lambda: stamps and stamps[-1] >= 1.0), \
+            procs.err("plant")[-2000:]
+    finally:
+        peer.close()
+    assert procs.wait("plant", 60) == 0, procs.err("plant")[-2000:]
+    s = procs.json("plant")
+    assert s["completed"] and s["state0_resent"] >= 1 and len(zeros) >= 2
+
+
 def test_a_second_publisher_never_drives_until_an_operator_rearms(procs, ros_env):
     """Issue 30: on ROS 2 any second publisher's commands were applied, and kept the plant
     out of its safe behaviour when the controller died. Now the realtime plant takes each

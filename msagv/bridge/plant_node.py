@@ -44,8 +44,8 @@ from .ownership import (BAD_ARM, BAD_CLAIM, CLAIM, LATCHED, Ownership, RearmPoli
 from .link_key import KeyPair, LinkKeyError, LinkKeys, derive
 from .presence import TokenSet
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, StopOnSignal, freeze_heap
-from .run_core import (Command, PlantRun, PlantRunError, PlantStats, RunConfig, WallClock,
-                       percentiles_ms)
+from .run_core import (RESEND_S, Command, PlantRun, PlantRunError, PlantStats, RunConfig,
+                       WallClock, percentiles_ms)
 from .session import Keys, SessionError, SessionOptions
 from .transport import Query, Sample, Transport, close_all
 from .zenoh_transport import ZenohTransport
@@ -54,7 +54,6 @@ log = logging.getLogger("msagv.plant")
 
 
 WHEEL_WEAR_MODES = ("auto", "on", "off")
-RESEND_S = 1.0  # lockstep: an unanswered state is published again after this long
 STALL_S = 0.5  # a gap this long in the plant's own heartbeat: the plant itself was stopped
 STALL_GRACE_S = 3.0  # after its own stall, the owner's token gets this long to come back
 QUIET_MIN_S = 0.5  # the owner is lost only with its token missing and nothing from it for

@@ -52,6 +52,10 @@ WAIT_CONTROLLER_S = 0.02  # how often the wait for a controller looks again (at 
 WAIT_ANSWER_S = 0.05  # how often the wait for an answer looks again (at most)
 
 
+RESEND_S = 1.0  # an unanswered state is published again after this long (lockstep; ROS 2
+#                realtime: state 0 while no command has come)
+
+
 class PlantRunError(RuntimeError):
     """The run cannot go on (no controller, a lockstep timeout, a failed step)."""
 

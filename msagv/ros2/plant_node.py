@@ -62,8 +62,8 @@ import numpy as np
 
 from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
-from msagv.bridge.run_core import (Command, PausableClock, PlantRun, PlantRunError, RunConfig,
-                                   WallClock)
+from msagv.bridge.run_core import (RESEND_S, Command, PausableClock, PlantRun, PlantRunError,
+                                   RunConfig, WallClock)
 
 from .runtime import Context, Lifecycle, Ros2Unavailable
 
@@ -128,6 +128,9 @@ class RosPlant:
         self.key_state = f"msagv/{cfg.vehicle_id}/state"
         self.key_cmd = f"msagv/{cfg.vehicle_id}/cmd"
         self._delta = None  # the published state's steering angles (targets -> rates)
+        self._st0: dict | None = None  # state 0 as sent, and when (published again: below)
+        self._sent0 = 0.0
+        self.resent0 = 0
         self._steer: tuple[int, np.ndarray] | None = None  # (state it answers, targets)
         self._wheel: tuple[int, np.ndarray] | None = None
         self.tf_published = True
@@ -408,11 +411,28 @@ class RosPlant:
             self.ctx.spin_once(HOLD_LOOK_S)
 
     def unanswered(self, k: int, first: bool) -> None:
-        pass  # a state is sent once: a command names no state, it answers the newest
+        """A state is sent once: a command names no state, it answers the newest. One
+        exception: realtime state 0, the only one a realtime run waits for, is published
+        again every ``RESEND_S`` while no command at all has come, which no command can
+        then mistake. A controller's publishers and another node's subscriptions can make
+        the plant ready before the controller's own subscriptions are matched (discovery
+        under load), and state 0 went to nobody: the run timed out after 10 s."""
+        if self.cfg.run_mode != "realtime" or k != 0 or self._st0 is None:
+            return
+        now = time.monotonic()
+        if first:
+            self._sent0 = now
+        elif now - self._sent0 >= RESEND_S:
+            self.send_state(0, dict(self._st0), False)
+            self._sent0 = now
+            self.resent0 += 1
+            if self.resent0 <= 3:
+                log.info("state 0 unanswered for %g s: published again", RESEND_S)
 
     def send_state(self, k: int, st: dict, end: bool) -> None:
         if k == 0:
             self.msgs.reset()
+            self._st0 = dict(st)
         msgs = dict(self.msgs.state_messages(st, markers=k % R.MARKER_EVERY == 0))
         for topic in (R.CLOCK, R.JOINT_STATES, R.WEAR, R.TF, R.ODOM, R.MARKERS):
             if topic in msgs and topic in self.pubs:
@@ -473,6 +493,7 @@ class RosPlant:
                 "sources": {t: (g.hex() if g is not None else None)
                             for t, g in self.sources.items()},
                 "source_node": self.source_node, "rearms": self.rearms,
+                "state0_resent": self.resent0,
                 "rejected": self.rej.summary(), "tf": self.tf_published,
                 **({"lifecycle": self.state_label(), "transitions": self.lifecycle.summary()}
                    if self.managed else {})}
