@@ -80,6 +80,31 @@ class Peer:
         self.rclpy.shutdown(context=self.ctx)
 
 
+def answer_each_state(node, period: float, answer) -> tuple[dict, dict]:
+    """Subscribe ``node`` to ``odom`` and ``joint_states`` and call ``answer(k)`` once for
+    each state k (stamp / ``period``) when both of its messages have come, in whichever
+    order DDS delivers the two topics (joint states are published first, but two topics'
+    callbacks are not ordered: answering on odometry only stalled a loaded run). Returns
+    the messages so far, ``(odoms, joints)``, by k."""
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import JointState
+
+    odoms, joints, answered = {}, {}, set()
+
+    def took(store):
+        def on(m):
+            k = round(_stamp(m.header) / period)
+            store[k] = m
+            if k not in answered and k in odoms and k in joints:
+                answered.add(k)
+                answer(k)
+        return on
+
+    node.create_subscription(JointState, "joint_states", took(joints), 10)
+    node.create_subscription(Odometry, "odom", took(odoms), 10)
+    return odoms, joints
+
+
 def _yaw(q) -> float:
     return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
 
@@ -91,8 +116,6 @@ def _stamp(h) -> float:
 # ---- the plant node ----------------------------------------------------------------------------
 def test_the_plant_node_publishes_the_plants_equations(procs, ros_env):
     _ros()
-    from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
     from msagv.experiments.scenario import Scenario
@@ -102,20 +125,11 @@ def test_the_plant_node_publishes_the_plants_equations(procs, ros_env):
                                "--initial", "vx=2.0,delta_11=0.05", "--duration", f"{n * T:g}",
                                "--json", "--wait", "60"))
     peer = Peer("docs_controller")
-    odoms, joints = {}, {}
     steer = peer.node.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
     wheel = peer.node.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
     r_w = 0.5  # the paper vehicle's wheel radius (plant/data/paper-2axle.toml)
 
-    answered = set()
-
     def answer(k):
-        # a state is its odometry and joint states of one stamp, in whichever order DDS
-        # delivers the two topics (joint states are published first, but two topics'
-        # callbacks are not ordered: answering on odometry only stalled a loaded run)
-        if k in answered or k not in odoms or k not in joints:
-            return
-        answered.add(k)
         delta = dict(zip(joints[k].name, joints[k].position))
         # fixed commands from docs/ROS2.md: steering angle targets 0.2 rad/s ahead of the
         # measured angles, every wheel at 2.2 m/s at the rim
@@ -123,18 +137,7 @@ def test_the_plant_node_publishes_the_plants_equations(procs, ros_env):
         steer.publish(Float64MultiArray(data=tgt))
         wheel.publish(Float64MultiArray(data=[2.2 / r_w] * 4))
 
-    def on_joints(m):
-        k = round(_stamp(m.header) / T)
-        joints[k] = m
-        answer(k)
-
-    def on_odom(m):
-        k = round(_stamp(m.header) / T)
-        odoms[k] = m
-        answer(k)
-
-    peer.node.create_subscription(JointState, "joint_states", on_joints, 10)
-    peer.node.create_subscription(Odometry, "odom", on_odom, 10)
+    odoms, joints = answer_each_state(peer.node, T, answer)
     try:
         assert peer.spin(120, until=lambda: n in odoms), procs.err("plant")[-2000:]
         peer.spin(0.5)

@@ -13,7 +13,7 @@ import time
 
 import test_ros2_nodes as ros_nodes
 from helpers import msagv
-from test_ros2_nodes import Peer, _ros, _stamp
+from test_ros2_nodes import Peer, _ros, answer_each_state
 
 T = 0.01
 ros_env = ros_nodes.ros_env  # the fixture: loopback discovery, a domain of this test alone
@@ -21,9 +21,7 @@ ros_env = ros_nodes.ros_env  # the fixture: loopback discovery, a domain of this
 
 def test_a_realtime_plant_under_sim_time_steps_on_the_simulators_clock(procs, ros_env):
     _ros()
-    from nav_msgs.msg import Odometry
     from rosgraph_msgs.msg import Clock
-    from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
     n, rate, tick = 30, 0.2, 0.001  # steps; the simulator's pace; its clock's resolution [s]
@@ -35,29 +33,16 @@ def test_a_realtime_plant_under_sim_time_steps_on_the_simulators_clock(procs, ro
     steer = peer.node.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
     wheel = peer.node.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
     sim = {"t": 0.0}
-    odoms, joints, seen_at = {}, {}, {}
+    seen_at = {}
 
     def answer(k):
-        if k in seen_at or k not in odoms or k not in joints:
-            return
         seen_at[k] = sim["t"]  # the simulator's time when state k came
         pos = dict(zip(joints[k].name, joints[k].position))
         delta = [pos[f"steer_{w}"] for w in ("11", "12", "21", "22")]
         steer.publish(Float64MultiArray(data=delta))  # hold the steering
         wheel.publish(Float64MultiArray(data=[5.0] * 4))
 
-    def on_odom(m):
-        k = round(_stamp(m.header) / T)
-        odoms[k] = m
-        answer(k)
-
-    def on_joints(m):
-        k = round(_stamp(m.header) / T)
-        joints[k] = m
-        answer(k)
-
-    peer.node.create_subscription(Odometry, "odom", on_odom, 10)
-    peer.node.create_subscription(JointState, "joint_states", on_joints, 10)
+    odoms, joints = answer_each_state(peer.node, T, answer)
     clock_publishers = None
     try:
         due, t_end = time.monotonic(), time.monotonic() + 180

@@ -18,7 +18,7 @@ import pytest
 
 import test_ros2_nodes as ros_nodes
 from helpers import msagv
-from test_ros2_nodes import Peer, _call, _ros, _stamp, _yaw
+from test_ros2_nodes import Peer, _call, _ros, _yaw, answer_each_state
 
 T = 0.2  # the period, and --stale-ms below: long enough that a loaded machine's stall of the
 # plant's own loop (seen: 380 ms and 1.14 s at a load of 4-10 on 2 cores) is no re-anchor
@@ -41,8 +41,6 @@ def test_the_managed_plant_goes_through_its_lifecycle(procs, ros_env, run_mode):
     _ros()
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
-    from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
     from msagv.experiments.scenario import Scenario
@@ -60,27 +58,11 @@ def test_the_managed_plant_goes_through_its_lifecycle(procs, ros_env, run_mode):
     get = n.create_client(GetState, f"{name}/get_state")
     steer = n.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
     wheel = n.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
-    odoms, joints, answered = {}, {}, set()
-
     def answer(k):
-        if k in answered or k not in odoms or k not in joints:
-            return
-        answered.add(k)
         steer.publish(Float64MultiArray(data=DELTA0))  # held: a rate of 0
         wheel.publish(Float64MultiArray(data=[2.2 / R_W] * 4))
 
-    def on_odom(m):
-        k = round(_stamp(m.header) / T)
-        odoms[k] = m
-        answer(k)
-
-    def on_joints(m):
-        k = round(_stamp(m.header) / T)
-        joints[k] = m
-        answer(k)
-
-    n.create_subscription(Odometry, "odom", on_odom, 10)
-    n.create_subscription(JointState, "joint_states", on_joints, 10)
+    odoms, joints = answer_each_state(n, T, answer)
 
     def state() -> str:
         return _call(peer, get, GetState.Request()).current_state.label

@@ -57,7 +57,7 @@ from msagv.bridge.recording import NullRecorder
 from msagv.controller.reference import Reference, from_samples
 
 from msagv.plant.signals import CONTROL_PERIOD
-from .runtime import Context, Lifecycle
+from .runtime import Context, Lifecycle, destroy
 
 log = logging.getLogger("msagv.ros2.controller")
 
@@ -624,17 +624,8 @@ class RosController:
             self._deactivate()
         if not self.configured:
             return
-        node = self.ctx.node
-        for t in self._timers:
-            node.destroy_timer(t)
-        for sub in self._subs:
-            node.destroy_subscription(sub)
-        for sv in self._services:
-            node.destroy_service(sv)
-        for pub in (self.pub_steer, self.pub_wheel, self.pub_pred, self.pub_wear,
-                    self.pub_diag):
-            if pub is not None:
-                node.destroy_publisher(pub)
+        destroy(self.ctx.node, self._timers, self._subs, self._services,
+                (self.pub_steer, self.pub_wheel, self.pub_pred, self.pub_wear, self.pub_diag))
         self._timers, self._subs, self._services = [], [], []
         self.mpc = self.low = None
         self.configured = False

@@ -65,7 +65,7 @@ from msagv.bridge import ros_msgs as R
 from msagv.bridge.run_core import (RESEND_S, Command, PausableClock, PlantRun, PlantRunError,
                                    RunConfig, WallClock)
 
-from .runtime import Context, Lifecycle, Ros2Unavailable
+from .runtime import Context, Lifecycle, Ros2Unavailable, destroy
 
 log = logging.getLogger("msagv.ros2.plant")
 
@@ -223,13 +223,7 @@ class RosPlant:
             self._deactivate()
         if not self.configured:
             return
-        node = self.ctx.node
-        for sub in self._subs:
-            node.destroy_subscription(sub)
-        for sv in self._services:
-            node.destroy_service(sv)
-        for pub in self.pubs.values():
-            node.destroy_publisher(pub)
+        destroy(self.ctx.node, (), self._subs, self._services, self.pubs.values())
         self.pubs, self._subs, self._services = {}, [], []
         self.sources = dict.fromkeys(self.sources)
         self.source_node = None

@@ -123,6 +123,20 @@ class Context:
                 pass
 
 
+def destroy(node, timers=(), subscriptions=(), services=(), publishers=()) -> None:
+    """Take down ``node``'s entities (a managed node's cleanup); a None publisher (one
+    never declared) is passed over."""
+    for t in timers:
+        node.destroy_timer(t)
+    for sub in subscriptions:
+        node.destroy_subscription(sub)
+    for sv in services:
+        node.destroy_service(sv)
+    for pub in publishers:
+        if pub is not None:
+            node.destroy_publisher(pub)
+
+
 class Lifecycle:
     """The transitions of a managed node (``rclpy.lifecycle``), shared by the controller
     and the plant: ``steps`` maps each transition rclpy calls (``configure``, ``activate``,
