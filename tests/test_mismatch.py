@@ -54,7 +54,8 @@ def test_inputs_are_files_every_column_shares(tmp_path):
     for sp in specs:
         st, fam_model = sp.settings, sp.settings.get("model", "mf")
         assert st["offset_free"] is True, sp.label  # the same action for every family
-        adapted = sp.tags["model"] == "adapted" and fam_model == "mf"
+        # every family whose model has tires adapts them (the kinematic model has none)
+        adapted = sp.tags["model"] == "adapted" and fam_model in ("mf", "dugoff", "tct")
         assert st.get("adapt", False) is adapted, (sp.label, sp.tags["model"])
         sc = sp.scenario()
         sc.mpc_settings()  # every column's settings are valid for every family

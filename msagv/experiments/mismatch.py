@@ -11,8 +11,8 @@ controller knows:
   plant (the excitation manoeuvre of ``msagv calibrate --maneuver``, driven by the default
   controller with the file's vehicle; :func:`identify_task`);
 * ``adapted``: the file's vehicle with the online tire adaptation (``--adapt``) in every
-  family that predicts with the ``mf`` model (DH's ``dugoff`` and TCT's ``tct`` models can
-  adapt now; this column leaves them as they were when RESULTS.md's figures were measured);
+  family whose model has tires (the ``mf``, ``dugoff`` and ``tct`` models; the kinematic
+  family, with none, runs as in the other columns);
 * ``true``: the plant's own vehicle file (the model right).
 
 Every family of the study in each column, each with the offset-free disturbance on (the

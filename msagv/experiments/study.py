@@ -341,13 +341,14 @@ def run_specs(scenarios: list[StudyScenario], quick: bool = False) -> list[RunSp
 
 def column_settings(column: dict, family: dict, solver: str) -> dict:
     """A column's settings (:mod:`experiments.mismatch`) as they apply to one family: the
-    online tire adaptation (``adapt``) only where the family predicts with the Magic Formula
-    model and solves with the annealer or the feed-forward; everything else as it is.
-    (``--adapt`` also scales DH's and TCT's tires now, and IPOPT and acados take the adapted
-    tires as solve parameters; this column keeps the rule under which RESULTS.md's mismatch
-    figures were measured, until the experiment is rerun.)"""
+    online tire adaptation (``adapt``) wherever the family's prediction model has tires to
+    adapt (:data:`msagv.controller.models.ADAPTABLE`: the Magic Formula, DH's Dugoff and
+    TCT's models, with any solver); the kinematic model has none, so its column is the
+    offset-free one. Everything else as it is."""
+    from msagv.controller.models import ADAPTABLE
+
     out = dict(column)
-    if out.get("adapt") and (family.get("model", "mf") != "mf" or solver in ("ipopt", "acados")):
+    if out.get("adapt") and family.get("model", "mf") not in ADAPTABLE:
         out.pop("adapt")
     return out
 
