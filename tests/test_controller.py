@@ -381,6 +381,11 @@ def test_metrics_by_hand():
     # lateral error: across the reference heading (0 here, so y): 0, -2, 0, 2 cm
     assert e["e_lat_rms_cm"] == pytest.approx(math.sqrt(2.0))
     assert e["e_lat_max_cm"] == pytest.approx(2.0)
+    # the largest distance from the reference's position: sqrt(1 + 4) cm at the last pose
+    # (the lateral error there is 2 cm, the along-track 1 cm); the largest heading error
+    # 2 deg (the wrapped reference heading is none)
+    assert e["e_pos_max_cm"] == pytest.approx(math.sqrt(5.0))
+    assert e["e_phi_max_deg"] == pytest.approx(2.0)
     # along a reference heading of 90 deg the lateral error is -x
     e90 = tracking_errors([[0.03, 0.5, math.pi / 2]], [[0.0, 0.0, math.pi / 2]])
     assert e90["e_lat_rms_cm"] == pytest.approx(3.0) and e90["e_lat_max_cm"] == pytest.approx(3.0)

@@ -43,8 +43,8 @@ needs_casadi = pytest.mark.skipif(not HAVE_CASADI, reason="casadi not installed 
 
 VEH = default_vehicle()
 METRIC_KEYS = {"W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar",
-               "Omega", "e_lat_rms_cm", "e_lat_max_cm", "solve_ms", "steps", "distance_m",
-               "W_tw_per_km"}
+               "Omega", "e_lat_rms_cm", "e_lat_max_cm", "e_pos_max_cm", "e_phi_max_deg",
+               "solve_ms", "steps", "distance_m", "W_tw_per_km"}
 
 
 @functools.lru_cache(maxsize=None)

@@ -148,15 +148,42 @@ def test_broken_floor_by_hand():
     assert split_below_floor(b, dict(low, e_lat_max_cm=0.9)) == (b, [])
     assert split_below_floor(b, low) == (b, [])  # (metrics that do not say: flagged)
     within, off = split_below_floor(b, dict(low, e_lat_max_cm=4.0))
-    assert within == [] and off == [dict(b[0], off_path_cm=4.0)]
+    assert within == [] and off == [dict(b[0], off_path_cm=4.0, off_heading_deg=None)]
     line = off_path_floor_note(off)
     assert line.startswith("below the floor off the path:") and "up to 4 cm" in line
+    # the floor holds the centre within 1 cm of the reference's *position* (a disc, not
+    # across the path only) and the heading within 2 deg: a run 0.9 cm across the path
+    # but 1.5 cm behind it, or 2.5 deg off the heading, is off what the floor bounds
+    near = dict(low, e_lat_max_cm=0.9, e_pos_max_cm=0.95, e_phi_max_deg=1.9)
+    assert split_below_floor(b, near) == (b, [])
+    for far in (dict(near, e_pos_max_cm=1.5), dict(near, e_phi_max_deg=2.5)):
+        within, off = split_below_floor(b, far)
+        assert within == [] and off == [dict(b[0], off_path_cm=far["e_pos_max_cm"],
+                                             off_heading_deg=far["e_phi_max_deg"])]
+    assert "up to 1.5 cm and up to 1.9 deg in heading" in off_path_floor_note(
+        split_below_floor(b, dict(near, e_pos_max_cm=1.5))[1])
     runs[1]["metrics"]["e_lat_max_cm"] = 4.0
     rows = [_row(r, {"p": {"floors": fl}}) for r in runs]
     assert rows[1]["floor_broken"] is None and rows[1]["below_floor_off_path"] == ["W_tw"]
     (w,) = broken_floor_warnings(rows)
     assert w.startswith("below the floor off the path: lane: 1 of 2 runs") and \
-        "straying 4.000 cm or more" in w and "do not break it" in w
+        "beyond 1 cm and 2 deg (4.000 cm)" in w and "do not break it" in w
+    runs[1]["metrics"].update(e_lat_max_cm=0.9, e_pos_max_cm=0.95, e_phi_max_deg=2.5)
+    rows = [_row(r, {"p": {"floors": fl}}) for r in runs]
+    assert rows[1]["floor_broken"] is None and rows[1]["below_floor_off_path"] == ["W_tw"]
+    (w,) = broken_floor_warnings(rows)
+    assert "beyond 1 cm and 2 deg (0.950 cm, 2.500 deg)" in w
+    # the study's count: of the 2 runs against a floor, only the first kept within what the
+    # floor bounds (the second left the heading's 2 deg); its ratio 996 / 1000
+    from msagv.experiments.study_analysis import floor_check, floor_check_line
+
+    fc = floor_check(rows + [dict(rows[0])])  # a run's second row (a shared run) counts once
+    assert (fc["runs"], fc["within"], fc["broken"], fc["below_off_path"]) == (2, 1, 0, 1)
+    assert fc["least_within"]["W_over_floor"] == pytest.approx(0.996)
+    assert fc["least_within"]["label"] == "TWO 0"
+    assert floor_check_line(fc).startswith("The wear floor against 2 runs: 1 kept within 1 cm "
+                                           "and 2 deg of the path; the least W_tw / floor "
+                                           "among them 0.996 (TWO 0, lane)")
 
 
 @pytest.mark.parametrize("make", [lane_change, tight_turn,

@@ -88,7 +88,8 @@ def broken_floor_warning(broken: list[dict], what: str = "the run") -> str:
     parts = ", ".join(f"{p['part']} {p['W']:.4g} J = {p['ratio']:.3f} x its floor "
                       f"{p['floor']:.4g} J" for p in broken)
     return (f"broken floor: {what} wears less than {BROKEN_RATIO} x the wear floor of any motion "
-            f"within 1 cm of the path ({parts}): the floor is not a lower bound here "
+            f"within {100.0 * FLOOR_TOL_M:g} cm and {FLOOR_TOL_PHI_DEG:g} deg of the path "
+            f"({parts}): the floor is not a lower bound here "
             f"(docs/WEAR.md, "
             f"Wear floors)")
 

@@ -14,8 +14,8 @@ import numpy as np
 from msagv.plant.signals import WEAR_FIELDS
 
 METRIC_KEYS = ["W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar",
-               "Omega", "e_lat_rms_cm", "e_lat_max_cm", "solve_ms", "steps", "distance_m",
-               "W_tw_per_km"]
+               "Omega", "e_lat_rms_cm", "e_lat_max_cm", "e_pos_max_cm", "e_phi_max_deg",
+               "solve_ms", "steps", "distance_m", "W_tw_per_km"]
 MIN_DISTANCE_M = 1.0  # m: a run that moved less gives no per-km figures (None)
 WEAR_ROUNDING_J = 1e-6  # J: wear work above minus this is the integrator's rounding of 0
 
@@ -35,8 +35,10 @@ def omega_index(W_tw: float, e_bar: float) -> float:
 
 
 def tracking_errors(pose: np.ndarray, ref_pose: np.ndarray) -> dict[str, float]:
-    """RMSE in x, y [cm] and heading [deg] (heading error wrapped), e_bar (eq. 32), and the
-    RMS and largest lateral (cross-track) error [cm]."""
+    """RMSE in x, y [cm] and heading [deg] (heading error wrapped), e_bar (eq. 32), the
+    RMS and largest lateral (cross-track) error [cm], and the largest distance from the
+    reference's position [cm] and heading error [deg] (what the wear floor holds a motion
+    to: controller.floors)."""
     pose = np.asarray(pose, dtype=float)
     ref_pose = np.asarray(ref_pose, dtype=float)
     ex = 100.0 * math.sqrt(np.mean((pose[:, 0] - ref_pose[:, 0]) ** 2))
@@ -47,9 +49,12 @@ def tracking_errors(pose: np.ndarray, ref_pose: np.ndarray) -> dict[str, float]:
     # cross-track error with the path's direction)
     c, s_ = np.cos(ref_pose[:, 2]), np.sin(ref_pose[:, 2])
     lat = -(pose[:, 0] - ref_pose[:, 0]) * s_ + (pose[:, 1] - ref_pose[:, 1]) * c
+    dist = np.hypot(pose[:, 0] - ref_pose[:, 0], pose[:, 1] - ref_pose[:, 1])
     return {"e_x_cm": ex, "e_y_cm": ey, "e_phi_deg": ep, "e_bar": (ex + ey + ep) / 3.0,
             "e_lat_rms_cm": 100.0 * math.sqrt(np.mean(lat ** 2)),
-            "e_lat_max_cm": 100.0 * float(np.abs(lat).max())}
+            "e_lat_max_cm": 100.0 * float(np.abs(lat).max()),
+            "e_pos_max_cm": 100.0 * float(dist.max()),
+            "e_phi_max_deg": math.degrees(float(np.abs(wrap_angle(pose[:, 2] - ref_pose[:, 2])).max()))}
 
 
 def percentiles(values, scale: float = 1.0, count: bool = False) -> dict:

@@ -155,27 +155,44 @@ def stamp(summary: dict, results: list[dict]) -> dict:
 def split_below_floor(below: list[dict], metrics: dict) -> tuple[list[dict], list[dict]]:
     """:func:`controller.floors.broken_floor`'s entries of a run with ``metrics``, split by
     where the run went: ``(broken, off_path)``. The floor is the least wear of any motion
-    within ``FLOOR_TOL_M`` of the path; a run whose largest lateral error
-    (``e_lat_max_cm``) stayed within it and wears less breaks the floor; one that strayed
-    further is below it without breaking it (its entries carry ``off_path_cm``, that
-    error). Metrics that do not say count as within (flagged, never excused)."""
-    from msagv.controller.floors import FLOOR_TOL_M
+    whose centre stays within ``FLOOR_TOL_M`` of the reference's position and whose heading
+    stays within ``FLOOR_TOL_PHI_DEG`` of the reference's; a run that kept to both
+    (``e_pos_max_cm``, ``e_phi_max_deg``) and wears less breaks the floor; one that left
+    either is below it without breaking it (its entries carry ``off_path_cm`` and
+    ``off_heading_deg``, its largest errors). A run whose metrics predate those two is
+    judged by its largest lateral error (``e_lat_max_cm``, never more than its distance):
+    off the path if that is beyond the tolerance, otherwise counted as within (flagged,
+    never excused)."""
+    from msagv.controller.floors import FLOOR_TOL_M, FLOOR_TOL_PHI_DEG
 
-    e = metrics.get("e_lat_max_cm")
-    if e is None or e <= 100.0 * FLOOR_TOL_M:
+    e_pos = metrics.get("e_pos_max_cm")
+    if e_pos is None:
+        e_pos = metrics.get("e_lat_max_cm")
+    e_phi = metrics.get("e_phi_max_deg")
+    off_pos = e_pos is not None and e_pos > 100.0 * FLOOR_TOL_M
+    off_phi = e_phi is not None and e_phi > FLOOR_TOL_PHI_DEG
+    if not (off_pos or off_phi):
         return list(below), []
-    return [], [dict(b, off_path_cm=e) for b in below]
+    return [], [dict(b, off_path_cm=e_pos, off_heading_deg=e_phi) for b in below]
 
 
 def off_path_floor_note(entries: list[dict], what: str = "the run") -> str:
     """A one-line note for :func:`split_below_floor`'s (non-empty) ``off_path`` entries."""
-    from msagv.controller.floors import BROKEN_RATIO, FLOOR_TOL_M
+    from msagv.controller.floors import BROKEN_RATIO, FLOOR_TOL_M, FLOOR_TOL_PHI_DEG
 
     parts = ", ".join(f"{p['part']} {p['W']:.4g} J = {p['ratio']:.3f} x its floor "
                       f"{p['floor']:.4g} J" for p in entries)
-    tol = f"{100.0 * FLOOR_TOL_M:g} cm"
-    e = max(p["off_path_cm"] for p in entries)
+    tol = f"{100.0 * FLOOR_TOL_M:g} cm and {FLOOR_TOL_PHI_DEG:g} deg"
     return (f"below the floor off the path: {what} wears less than {BROKEN_RATIO} x the wear "
-            f"floor of any motion within {tol} of the path ({parts}) while straying up to "
-            f"{e:.3g} cm from it: the floor bounds only motions within {tol}, so this does "
-            f"not break it (docs/WEAR.md, Wear floors)")
+            f"floor of any motion within {tol} of the path ({parts}) while straying "
+            f"{strayed(entries)} from it: the floor bounds only motions within {tol}, so "
+            f"this does not break it (docs/WEAR.md, Wear floors)")
+
+
+def strayed(entries: list[dict]) -> str:
+    """How far :func:`split_below_floor`'s off-path entries strayed: 'up to X cm' (the
+    largest distance from the reference's position) and 'Y deg in heading'."""
+    e = [p["off_path_cm"] for p in entries if p.get("off_path_cm") is not None]
+    h = [p["off_heading_deg"] for p in entries if p.get("off_heading_deg") is not None]
+    return " and ".join(([f"up to {max(e):.3g} cm"] if e else [])
+                        + ([f"up to {max(h):.3g} deg in heading"] if h else []))

@@ -52,15 +52,18 @@ from pathlib import Path
 
 import numpy as np
 
-from msagv.controller.floors import BROKEN_RATIO, NO_FLOOR_J, broken_floor
+from msagv.controller.floors import (BROKEN_RATIO, FLOOR_TOL_M, FLOOR_TOL_PHI_DEG, NO_FLOOR_J,
+                                     broken_floor)
 from msagv.experiments.results import split_below_floor
 
 from .families import FAMILIES
 from .recovery import BAND_M, front_ratio, matched_recovery, recovery_of_log
 from .tables import fmt, lower_front
 
-METRICS = ("W_tw", "W_s", "W_alpha", "W_t", "e_lat_rms_cm", "e_lat_max_cm", "e_phi_deg",
-           "e_bar", "Omega", "W_tw_per_km")  # W_tw_per_km: controller.metrics.work_per_km
+METRICS = ("W_tw", "W_s", "W_alpha", "W_t", "e_lat_rms_cm", "e_lat_max_cm", "e_pos_max_cm",
+           "e_phi_deg", "e_phi_max_deg", "e_bar", "Omega",
+           "W_tw_per_km")  # W_tw_per_km: controller.metrics.work_per_km
+WITHIN = f"{100.0 * FLOOR_TOL_M:g} cm and {FLOOR_TOL_PHI_DEG:g} deg"  # what a floor holds to
 BOOTSTRAP = 2000
 LEVELS_CM = (0.25, 0.5, 1.0, 2.0)  # equal-error levels [cm of lateral RMS]
 TOLERANCES_CM = (0.5, 1.0, 5.0)  # the tolerance forms: NTWO's error + these [cm]
@@ -152,6 +155,55 @@ def _row(r: dict, floors: dict, described: dict | None = None) -> dict:
     return row
 
 
+def floor_check(rows: list[dict]) -> dict:
+    """The floor held against every run that had one: how many runs kept within what it
+    bounds (:func:`experiments.results.split_below_floor`: 1 cm of the reference's position
+    and 2 deg of its heading), the least ``W_tw / floor`` among them (its run), and how many
+    runs went below ``BROKEN_RATIO`` of it within (broken) and off the path. Each run
+    once (the feed-forward's, shared by a scenario's seeds, has a row per seed)."""
+    runs = list({r["key"]: r for r in rows
+                 if r.get("W_tw") is not None and r.get("W_tw_floor") is not None
+                 and r["W_tw_floor"] >= NO_WEAR_J}.values())
+    probe = [{"part": "W_tw"}]
+    within = [r for r in runs if split_below_floor(probe, r)[0]]
+    least = min(within, key=lambda r: r["W_tw"] / r["W_tw_floor"], default=None)
+    return {"runs": len(runs), "within": len(within),
+            "least_within": None if least is None else {
+                "W_over_floor": least["W_tw"] / least["W_tw_floor"], "label": least["label"],
+                "scenario": least["scenario"], "e_pos_max_cm": least.get("e_pos_max_cm"),
+                "e_phi_max_deg": least.get("e_phi_max_deg")},
+            "broken": sum(1 for r in runs if r.get("floor_broken")),
+            "below_off_path": sum(1 for r in runs if r.get("below_floor_off_path"))}
+
+
+def floor_check_line(fc: dict) -> str | None:
+    """:func:`floor_check` in one sentence (None without runs against a floor)."""
+    if not fc["runs"]:
+        return None
+    lw = fc["least_within"]
+    least = ("" if lw is None else
+             f"; the least W_tw / floor among them {lw['W_over_floor']:.3f} ({lw['label']}, "
+             f"{lw['scenario']})")
+    return (f"The wear floor against {fc['runs']} runs: {fc['within']} kept within "
+            f"{WITHIN} of the path{least}; {fc['broken']} below {BROKEN_RATIO} x it within "
+            f"(broken), {fc['below_off_path']} below it off the path.")
+
+
+def _stray_range(rs: list[dict]) -> str:
+    """The off-path runs' largest distances from the path [cm] and heading errors [deg], as
+    ranges ("4.0-7.1 cm, 0.84-1.4 deg"; rows that predate them: their lateral error)."""
+    def rng(vals, unit):
+        v = [x for x in vals if x is not None]
+        if not v:
+            return []
+        lo, hi = min(v), max(v)
+        return [f"{_f(lo, 3)} {unit}" if lo == hi else f"{_f(lo, 3)}-{_f(hi, 3)} {unit}"]
+
+    e = [r["e_pos_max_cm"] if r.get("e_pos_max_cm") is not None else r.get("e_lat_max_cm")
+         for r in rs]
+    return ", ".join(rng(e, "cm") + rng([r.get("e_phi_max_deg") for r in rs], "deg"))
+
+
 def broken_floor_warnings(rows: list[dict]) -> list[str]:
     """One warning per scenario instance with runs below 0.995 of their floor within its
     1 cm of the path (:func:`controller.floors.broken_floor`): how many, which parts, the
@@ -175,14 +227,13 @@ def broken_floor_warnings(rows: list[dict]) -> list[str]:
                     ratios.append((w / f, p, r))
             q, p, worst = min(ratios, key=lambda x: x[0])
             head = (f"{len(rs)} of {n} runs wear less than {BROKEN_RATIO} x the wear floor of "
-                    f"any motion within 1 cm of the path ({', '.join(parts)}; lowest {p} "
+                    f"any motion within {WITHIN} of the path ({', '.join(parts)}; lowest {p} "
                     f"{q:.3f} x its floor, {worst['label']}, lateral RMS "
                     f"{_f(worst.get('e_lat_rms_cm'), 3)} cm")
             if off:
-                e = min(r.get("e_lat_max_cm") for r in rs)
                 out.append(f"below the floor off the path: {sc}: {head}), each straying "
-                           f"{_f(e, 3)} cm or more from the path: the floor bounds only "
-                           f"motions within 1 cm, so these runs do not break it")
+                           f"beyond {WITHIN} ({_stray_range(rs)}): the floor bounds only "
+                           f"motions within {WITHIN}, so these runs do not break it")
             else:
                 out.append(f"broken floor: {sc}: {head}): the floor is not a lower bound "
                            f"on this path, and its W_tw / floor figures are not wear above "
@@ -751,10 +802,11 @@ def user_label(described: dict) -> str | None:
 
 
 def markdown(summary: dict, fam: list[dict], comparisons: list[dict], runs: dict,
-             described: dict, broken: list[str] = ()) -> str:
+             described: dict, broken: list[str] = (), floor_line: str | None = None) -> str:
     user = user_label(described)
     warn = ([f"**{'Note' if w.startswith('below the floor off') else 'Warning'}: {w}.**\n"
              for w in broken] if broken else [])
+    warn += [floor_line + "\n"] if floor_line else []
     L = (_md_head(runs, described) + warn + _md_headline(summary, user) + _md_forms(summary)
          + _md_families(summary) + _md_case2(summary) + _md_unmatched(comparisons)
          + _md_family_table(fam)
@@ -999,7 +1051,9 @@ def report_study(results: list[dict], floors: dict, scenarios, described: dict, 
     fam = family_table(rows)
     runs = dict(runs, scenarios=len(scenarios))
     broken = broken_floor_warnings(rows)
-    (out / "study.md").write_text(markdown(summary, fam, comparisons, runs, described, broken))
+    fc = floor_check(rows)
+    (out / "study.md").write_text(markdown(summary, fam, comparisons, runs, described, broken,
+                                           floor_check_line(fc)))
     with (out / "study.csv").open("w", newline="") as f:
         cols = list(rows[0]) if rows else []
         cols += sorted({k for r in rows for k in r} - set(cols))
@@ -1033,7 +1087,7 @@ def report_study(results: list[dict], floors: dict, scenarios, described: dict, 
                               "parts": r["floor_broken"], "W_over_floor": r.get("W_over_floor"),
                               "e_lat_rms_cm": r.get("e_lat_rms_cm")}
                              for r in rows if r.get("floor_broken")],
-           "runs": runs, "figures": figures, "out": str(out)}
+           "floor_check": fc, "runs": runs, "figures": figures, "out": str(out)}
     doc = stamp(doc, results)
     no_floor = []  # a path whose floor IPOPT did not find: its runs stand without one
     for k, v in floors.items():
