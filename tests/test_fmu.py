@@ -184,6 +184,10 @@ def test_model_description_is_the_variable_table(fmu2):
     assert got["omega_w_act_11"].causality == "output"
     assert got["omega_w_11"].causality == "input"
     assert float(got["F_N_11"].start) == 12000.0 * 9.81 / 4
+    # the default experiment steps at the control period (one fact: plant.signals)
+    from msagv.plant.signals import CONTROL_PERIOD
+
+    assert float(md.defaultExperiment.stepSize) == CONTROL_PERIOD
 
 
 def test_integrator_defaults_are_the_plants():

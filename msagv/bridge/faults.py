@@ -22,17 +22,20 @@ from typing import Iterator
 
 import msgpack
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 from . import messages as M
 
 
 def _valid_state(nw: int, seq: int = 3) -> dict:
-    return {"v": M.VERSION, "seq": seq, "t": seq * 0.01, "x": 1.0, "y": 2.0, "phi": 0.1,
-            "vx": 4.0, "vy": 0.2, "r": 0.01, "delta": [0.01] * nw, "omega_w": [8.0] * nw}
+    return {"v": M.VERSION, "seq": seq, "t": seq * CONTROL_PERIOD, "x": 1.0, "y": 2.0,
+            "phi": 0.1, "vx": 4.0, "vy": 0.2, "r": 0.01, "delta": [0.01] * nw,
+            "omega_w": [8.0] * nw}
 
 
 def _valid_cmd(nw: int, state_seq: int = 10 ** 9) -> dict:
     # answers a state no plant has published, so no variant can ever be applied
-    return {"v": M.VERSION, "seq": 7, "t": state_seq * 0.01, "state_seq": state_seq,
+    return {"v": M.VERSION, "seq": 7, "t": state_seq * CONTROL_PERIOD, "state_seq": state_seq,
             "omega_w": [8.0] * nw, "omega_s": [0.0] * nw, "solve_ms": 1.0}
 
 

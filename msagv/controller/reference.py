@@ -20,7 +20,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from msagv.plant.signals import BODY_FIELDS, foreign_separator
+from msagv.plant.signals import BODY_FIELDS, CONTROL_PERIOD, foreign_separator
 
 KMH = 1.0 / 3.6
 AFTER_END = ("hold", "continue")
@@ -240,7 +240,7 @@ def rolling_wheels(vehicle, phi: float, vx: float, vy: float, r: float
     return delta, omega
 
 
-def wheel_velocities(reference: Reference, vehicle, t0: float, t1: float, dt: float = 0.01
+def wheel_velocities(reference: Reference, vehicle, t0: float, t1: float, dt: float = CONTROL_PERIOD
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(times, wx, wy)``: the velocity [m/s] every wheel needs to roll along the reference
     between ``t0`` and ``t1``, in the body frame B (the body's velocity plus the yaw rate's
@@ -256,7 +256,7 @@ def wheel_velocities(reference: Reference, vehicle, t0: float, t1: float, dt: fl
     return times, wx, wy
 
 
-def wheel_speeds(reference: Reference, vehicle, t0: float, t1: float, dt: float = 0.01
+def wheel_speeds(reference: Reference, vehicle, t0: float, t1: float, dt: float = CONTROL_PERIOD
                  ) -> tuple[np.ndarray, np.ndarray]:
     """``(times, speeds)``: the rim speed [m/s] every wheel needs to roll along the
     reference between ``t0`` and ``t1``, shape (K, 2n) (:func:`wheel_velocities`)."""
@@ -398,7 +398,7 @@ def from_csv(path: str | Path) -> Reference:
 
 
 def path_reference(path_xy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], length: float,
-                   speed: SpeedProfile, dt: float = 0.01, ds: float = 0.02,
+                   speed: SpeedProfile, dt: float = CONTROL_PERIOD, ds: float = 0.02,
                    name: str = "path", duration: float | None = None,
                    tail: float = 0.0) -> Reference:
     """Drive a parametric path ``u -> (x(u), y(u))``, u in [0, length] (roughly arc length),
@@ -418,7 +418,7 @@ def path_reference(path_xy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]
     kappa = np.gradient(heading, s)
     total = s[-1]
     nominal = s[np.searchsorted(u, length)]  # arc length at u = length
-    tt = np.arange(0.0, 1e5, 0.01)
+    tt = np.arange(0.0, 1e5, CONTROL_PERIOD)
     dist = speed.distance(tt)
     if duration is None:
         # time to reach the end of the nominal path
@@ -469,7 +469,8 @@ def case2_line(speed_kmh: float | str | SpeedProfile = 10.0, duration: float = 2
     vehicle starts at the origin with its heading 60 degrees off the line (see
     :func:`case2_initial_state`)."""
     sp = speed_kmh if isinstance(speed_kmh, SpeedProfile) else SpeedProfile.parse(speed_kmh)
-    t = np.arange(0.0, duration + 5.0 + 0.005, 0.01)  # 5 s beyond the run: see case1_curve
+    # 5 s beyond the run: see case1_curve
+    t = np.arange(0.0, duration + 5.0 + 0.5 * CONTROL_PERIOD, CONTROL_PERIOD)
     v = sp.speed(t)
     return Reference(t, sp.distance(t), np.zeros_like(t), np.zeros_like(t), v,
                      np.zeros_like(t), np.zeros_like(t), name="case2-line",

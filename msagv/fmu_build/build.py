@@ -35,6 +35,7 @@ import tempfile
 from pathlib import Path
 
 from msagv import plant as plant_pkg
+from msagv.plant.signals import CONTROL_PERIOD
 from msagv.plant.vehicle import Vehicle, default_vehicle
 
 from . import slave as slave_mod
@@ -133,6 +134,7 @@ def _stage(src: Path, vehicle: Vehicle, prefix: str, initial: dict | None, h: st
         "n_axles": vehicle.n_axles,
         "vehicle": vehicle.to_dict(),
         "units": UNITS,
+        "step_size": CONTROL_PERIOD,  # the default experiment's communication step
         "variables": [v.to_json() for v in table],
     }
     cfg_path = src / CONFIG_FILE

@@ -245,7 +245,7 @@ class MsagvPlant(Fmi2Slave):
         self.version = cfg.get("version")
         self.description = cfg["description"]
         self.default_experiment = DefaultExperiment(start_time=0.0, stop_time=10.0,
-                                                    step_size=0.01)
+                                                    step_size=cfg["step_size"])
         self._table = cfg["variables"]
         self._par: dict[str, float] = {}
         self._par_role: dict[str, dict] = {}
