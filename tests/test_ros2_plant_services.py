@@ -78,8 +78,8 @@ def test_parameters_diagnostics_and_reset_of_the_managed_plant(procs, ros_env):
 
     * Parameters at run time: ``stale_ms`` as an integer is taken (the diagnostics show
       the new bound in periods, as the run's command watch holds it); ``run_mode`` is
-      refused with its reason; a change of ``safe_decel`` together with ``period`` is
-      refused whole: neither changes.
+      refused with its reason, and so is ``use_sim_time``; a change of ``safe_decel``
+      together with ``period`` is refused whole: neither changes.
     * ``~/reset`` while active is refused (lockstep: the state's answer is outstanding) and
       changes nothing: the states go on, each the equations stepped once more.
     * Deactivated (the answer in), ``~/reset`` is honoured; activated, the plant publishes
@@ -186,6 +186,8 @@ def test_parameters_diagnostics_and_reset_of_the_managed_plant(procs, ros_env):
         # refused with the reason, nothing changed (all of a change or none of it)
         (ok, why), = set_params(Parameter("run_mode", value="realtime"))
         assert not ok and why.startswith("run_mode: the run's mode is its contract"), why
+        (ok, why), = set_params(Parameter("use_sim_time", value=True))
+        assert not ok and why.startswith("use_sim_time: chooses the run's clock"), why
         r = _call(peer, seta, SetParametersAtomically.Request(parameters=[
             Parameter("safe_decel", value=3.0).to_parameter_msg(),
             Parameter("period", value=0.1).to_parameter_msg()])).result
@@ -220,9 +222,10 @@ def test_parameters_diagnostics_and_reset_of_the_managed_plant(procs, ros_env):
     s = procs.json("plant")
     assert s["resets"] == 1 and s["steps"] == second and s["error"] is None
     assert s["parameters"]["stale_ms"] == 400.0 and s["parameter_changes"] == 1
-    assert s["parameters_refused"] == 2 and s["parameters"]["safe_decel"] == 2.0
+    assert s["parameters_refused"] == 3 and s["parameters"]["safe_decel"] == 2.0
     # the diagnostics said what the summary says
     assert final["_level"] == b"\x01" and final["_message"] == "inactive"
+    assert final["clock"] == "wall" and s["clock"] == "wall"  # use_sim_time refused
     assert final["commands_accepted"] == str(s["commands"]["accepted"])
     assert final["commands_rejected"] == str(s["rejected"]["total"]) == "1"
     assert {k.removeprefix("rejected_"): int(v) for k, v in final.items()

@@ -456,7 +456,9 @@ class RosPlant:
         any lifecycle state (the run is made when the node is: a managed node's cleanup
         does not end it)."""
         try:
-            new, changed = parameter_changes(PARAMETERS, self.params, params, True)
+            new, changed = parameter_changes(
+                PARAMETERS, self.params, params, True,
+                "chooses the run's clock when the node starts; set it at start")
             fixed = [k for k in changed if k not in RUNTIME]
             if fixed:
                 raise ValueError(f"{fixed[0]}: {FIXED[fixed[0]]}; set it at start "

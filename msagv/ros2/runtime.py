@@ -266,17 +266,20 @@ def declare_parameters(node, table: dict, defaults: dict) -> dict:
     return out
 
 
-def parameter_changes(table: dict, current: dict, params, configured: bool) -> tuple[dict, list]:
+CLOCK_AT_CONFIGURE = "chooses the node's clock at configure; set it while unconfigured"
+
+
+def parameter_changes(table: dict, current: dict, params, configured: bool,
+                      clock_why: str = CLOCK_AT_CONFIGURE) -> tuple[dict, list]:
     """A change of parameters (``ros2 param set``, the SetParameters service) read against
     ``table``: ``(the values it asks for, the names it changes)``, or ValueError with the
     reason (an unknown name, a wrong kind, ``use_sim_time`` while ``configured``: it chose
-    the node's clock at configure)."""
+    the node's clock, ``clock_why``)."""
     new = dict(current)
     for prm in params:
         if prm.name in ROS_OWN:
             if prm.name == "use_sim_time" and configured:
-                raise ValueError("use_sim_time: chooses the node's clock at configure; set it "
-                                 "while unconfigured")
+                raise ValueError(f"use_sim_time: {clock_why}")
             continue
         if prm.name not in table:
             raise ValueError(f"{prm.name}: unknown")
