@@ -268,18 +268,24 @@ def test_parameters_diagnostics_and_reset_of_the_managed_plant(procs, ros_env):
         plant.do_step(plant.t, T)
 
 
-def test_a_realtime_plant_resets_while_running(procs, ros_env):
-    """A realtime plant (not managed) is reset while it runs: the next state it publishes
-    is state 0 stamped 0, the initial state, and the states after it the equations' from
-    the start again (the newest commands, the same every period); no safe behaviour, no
-    watchdog (the reset's new run is no silence of the controller's); a SIGTERM then ends
-    it with its summary (``resets`` 1, the steps since the reset)."""
+def test_a_realtime_plant_resets_while_running_and_takes_a_new_staleness_bound(procs,
+                                                                            ros_env):
+    """A realtime plant (not managed, ``--stale-ms`` of ten minutes) is reset while it
+    runs: the next state it publishes is state 0 stamped 0, the initial state, and the
+    states after it the equations' from the start again (the newest commands, the same
+    every period), no safe behaviour (the reset's new run is no silence of the
+    controller's). Then the peer stops answering and sets ``stale_ms`` to 400 (an integer)
+    at run time: the plant goes safe (STALE on /diagnostics), which the old bound would
+    have kept it from for ten minutes. A SIGTERM ends it with its summary."""
     _ros()
     try:
+        from diagnostic_msgs.msg import DiagnosticArray
         from std_srvs.srv import Trigger
     except ImportError as e:
-        pytest.skip(f"std_srvs not installed: {e}")
+        pytest.skip(f"diagnostic_msgs or std_srvs not installed: {e}")
     import signal
+
+    from rclpy.parameter import Parameter
 
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import JointState
@@ -288,7 +294,7 @@ def test_a_realtime_plant_resets_while_running(procs, ros_env):
     from msagv.experiments.scenario import Scenario
 
     procs.start("plant", msagv("ros2", "plant", "--run-mode", "realtime", "--period", f"{T:g}",
-                               "--stale-ms", "3000", "--case", "line", "--speed", "10",
+                               "--stale-ms", "600000", "--case", "line", "--speed", "10",
                                "--from-rest", "--initial", "vx=2.0,delta_11=0.05",
                                "--duration", "600", "--json"))
     peer = Peer("controller")
@@ -298,6 +304,10 @@ def test_a_realtime_plant_resets_while_running(procs, ros_env):
     wheel = n.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
     runs = [({}, {})]  # per run: (odometry, joint states) by k; None: reset, no state 0 yet
     answered = set()
+    quiet = []  # the peer stops answering once this holds anything
+    _, _, set_params = node_calls(peer, "/msagv_plant")
+    diags = []
+    n.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
 
     def took(i):
         def on(m):
@@ -308,7 +318,7 @@ def test_a_realtime_plant_resets_while_running(procs, ros_env):
                 runs[-1] = ({}, {})
             run = runs[-1]
             run[i][k] = m
-            if (len(runs), k) not in answered and k in run[0] and k in run[1]:
+            if (len(runs), k) not in answered and k in run[0] and k in run[1] and not quiet:
                 answered.add((len(runs), k))
                 steer.publish(Float64MultiArray(data=DELTA0))
                 wheel.publish(Float64MultiArray(data=[2.2 / R_W] * 4))
@@ -327,14 +337,23 @@ def test_a_realtime_plant_resets_while_running(procs, ros_env):
         assert res.success, res.message
         runs.append(None)
         runs_to(N)
+        quiet.append(True)
+        assert set_params(Parameter("stale_ms", value=400)) == [(True, "")]
+
+        def stale() -> bool:
+            hit = any(m.status[0].level == b"\x03" and
+                      {kv.key: kv.value for kv in m.status[0].values}["safe"] == "true"
+                      for m in diags if m.status[0].name == "msagv_plant: plant")
+            diags.clear()
+            return hit
+        assert peer.spin(60, until=stale), procs.err("plant")[-2000:]
         procs.p["plant"].send_signal(signal.SIGTERM)
         assert procs.wait("plant", 60) == 0, procs.err("plant")[-2000:]
     finally:
         peer.close()
     s = procs.json("plant")
-    assert s["resets"] == 1 and s["error"] is None
-    assert s["safe"] == {"events": 0, "periods": 0, "resumes": 0, "watchdog_trips": 0,
-                         "watchdog_periods": 0}, s["safe"]
+    assert s["resets"] == 1 and s["error"] is None and s["parameters"]["stale_ms"] == 400.0
+    assert s["safe"]["events"] >= 1 and s["periods"]["max_missed"] == 2, s  # 0.4 s / T
     plant, _, _, _ = Scenario(case="line", speed=10, from_rest=True,
                               initial={"vx": 2.0, "delta_11": 0.05}).make_plant()
     second = runs[-1][0]
