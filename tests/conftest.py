@@ -55,7 +55,7 @@ def paper_fmu(tmp_path_factory):
 PROCESS_MODULES = frozenset({
     "test_cli_ux", "test_foxglove", "test_handover", "test_no_nonsense", "test_ownership",
     "test_processes", "test_protocol_doc", "test_recording", "test_ros2_nodes",
-    "test_ros2_plant_lifecycle", "test_ros2_sim", "test_ros2_three_ways", "test_ros_recording",
+    "test_ros2_plant_lifecycle", "test_ros2_plant_services", "test_ros2_sim", "test_ros2_three_ways", "test_ros_recording",
     "test_security", "test_viewer",
 })
 

@@ -1002,6 +1002,33 @@ def _call(peer, client, request):
     return fut.result()
 
 
+def node_calls(peer, name: str):
+    """The lifecycle manager's and an operator's calls to the node ``name`` by real rclpy
+    (lifecycle_msgs, rcl_interfaces): ``(state(), transition(id) -> success,
+    set_params(*rclpy Parameters) -> [(successful, reason)] one by one)``."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+    from rcl_interfaces.srv import SetParameters
+
+    n = peer.node
+    change = n.create_client(ChangeState, f"{name}/change_state")
+    get = n.create_client(GetState, f"{name}/get_state")
+    setp = n.create_client(SetParameters, f"{name}/set_parameters")
+
+    def state() -> str:
+        return _call(peer, get, GetState.Request()).current_state.label
+
+    def transition(tid: int) -> bool:
+        return _call(peer, change, ChangeState.Request(transition=Transition(id=tid))).success
+
+    def set_params(*params) -> list:
+        r = _call(peer, setp, SetParameters.Request(
+            parameters=[p.to_parameter_msg() for p in params]))
+        return [(x.successful, x.reason) for x in r.results]
+
+    return state, transition, set_params
+
+
 def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three_axle_file):
     """Issue 32 item 5: ``msagv ros2 controller --managed`` as Nav2's lifecycle_manager
     drives a managed node, by rclpy's lifecycle services (lifecycle_msgs): unconfigured, it
@@ -1018,8 +1045,6 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
     except ImportError as e:
         pytest.skip(f"diagnostic_msgs or std_srvs not installed: {e}")
     from lifecycle_msgs.msg import Transition
-    from lifecycle_msgs.srv import ChangeState, GetState
-    from rcl_interfaces.srv import SetParameters
     from rclpy.parameter import Parameter
 
     from msagv.plant import Plant
@@ -1035,23 +1060,10 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
     peer = Peer("lifecycle_manager")
     n = peer.node
     name = "/msagv_controller"
-    change = n.create_client(ChangeState, f"{name}/change_state")
-    get = n.create_client(GetState, f"{name}/get_state")
-    setp = n.create_client(SetParameters, f"{name}/set_parameters")
+    state, transition, set_params = node_calls(peer, name)
     diags = []
     n.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     car = SimVehicle(peer, vehicle, Plant(vehicle, initial={"vx": 2.0}))
-
-    def state() -> str:
-        return _call(peer, get, GetState.Request()).current_state.label
-
-    def transition(tid: int) -> bool:
-        return _call(peer, change, ChangeState.Request(transition=Transition(id=tid))).success
-
-    def set_params(*params) -> list:
-        r = _call(peer, setp, SetParameters.Request(
-            parameters=[p.to_parameter_msg() for p in params]))
-        return [(x.successful, x.reason) for x in r.results]
 
     def silent(seconds: float = 1.0) -> bool:
         peer.spin(seconds)

@@ -35,7 +35,7 @@ import logging
 import math
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -58,6 +58,10 @@ RESEND_S = 1.0  # an unanswered state is published again after this long (lockst
 
 class PlantRunError(RuntimeError):
     """The run cannot go on (no controller, a lockstep timeout, a failed step)."""
+
+
+class _Restart(Exception):
+    """Raised out of a wait after :meth:`PlantRun.reset`: the run starts again at state 0."""
 
 
 @dataclass
@@ -305,6 +309,13 @@ class PlantRun:
         self._wd_trip: str | None = None  # set by the watchdog, taken by the loop
         self._trip_lock = threading.Lock()
         self._wd_active = False
+        self.safe_why = ""  # why the safe behaviour was entered (while :attr:`safe`)
+        # realtime: each step's lateness [s] (as ``stats.lateness_s``), until a reader takes
+        # them (a node's diagnostics, once a second: :meth:`take_lateness`)
+        self._recent = deque(maxlen=4096)
+        self.resets = 0
+        self._restart = False  # reset: the waits raise _Restart, the run starts again
+        self._gen = 0  # the run's generation (a reset's watchdog is a new one)
 
     # ---- states and steps ----------------------------------------------------------------
     def publish_state(self, k: int, end: bool = False) -> None:
@@ -339,13 +350,19 @@ class PlantRun:
                 np.zeros(self.nw))
 
     # ---- waits ---------------------------------------------------------------------------
+    def _idle(self, seconds: float, wake: bool = True) -> None:
+        """The port's idle (its callbacks run there); a reset in it starts the run again."""
+        self.port.idle(seconds, wake)
+        if self._restart:
+            raise _Restart()
+
     def _idle_until(self, t: float) -> None:
         """Wait until the clock reaches ``t``, or the run is stopped."""
         while not self.stop.is_set():
             left = t - self.clock.now()
             if left <= 0:
                 return
-            self.port.idle(self.clock.wall(left), wake=False)
+            self._idle(self.clock.wall(left), wake=False)
 
     def wait_controller(self) -> None:
         """Until the port is ready (a controller there); PlantRunError after ``wait_s``."""
@@ -359,7 +376,7 @@ class PlantRun:
                 told = True
             if self.cfg.wait_s and waited > self.cfg.wait_s:
                 raise PlantRunError(self.port.no_controller())
-            self.port.idle(c.wall(WAIT_CONTROLLER_S))
+            self._idle(c.wall(WAIT_CONTROLLER_S))
 
     def wait_answer(self, k: int, timeout_s: float) -> Command | None:
         """The command answering state ``k`` (lockstep: every k; realtime: k = 0); None if
@@ -367,34 +384,39 @@ class PlantRun:
         c, t0 = self.clock, self.clock.now()
         self.port.unanswered(k, True)
         while True:
+            if self.stop.is_set():  # (before the answer: a managed plant shut down while
+                return None  # inactive, its answer in, stepped once more, unpublished)
             a = self.port.answer(k)
             if a is not None:
                 return a
-            if self.stop.is_set():
-                return None
             if c.now() - t0 > timeout_s:
                 raise PlantRunError(self.port.no_answer(k, timeout_s))
             self.port.unanswered(k, False)
-            self.port.idle(c.wall(WAIT_ANSWER_S))
+            self._idle(c.wall(WAIT_ANSWER_S))
 
     def linger(self) -> None:
         """After the end state: take messages for ``linger_s`` more, of the wall clock (the
         run's clock may stop with the run: a simulator's ``/clock``)."""
         end = time.monotonic() + self.cfg.linger_s
         while not self.stop.is_set() and (left := end - time.monotonic()) > 0:
-            self.port.idle(left)
+            self._idle(left)
 
     # ---- runs ----------------------------------------------------------------------------
     def run(self) -> None:
         """Wait for a controller, run to the end (or until :attr:`stop`). Raises
         PlantRunError on a timeout or a failed step (also kept in :attr:`error`)."""
         try:
-            self.wait_controller()
-            if not self.stop.is_set():
-                if self.cfg.run_mode == "lockstep":
-                    self._run_lockstep()
-                else:
-                    self._run_realtime()
+            while True:
+                try:
+                    self.wait_controller()
+                    if not self.stop.is_set():
+                        if self.cfg.run_mode == "lockstep":
+                            self._run_lockstep()
+                        else:
+                            self._run_realtime()
+                    break
+                except _Restart:  # reset (in a wait): from state 0 again
+                    self._restart = False
         except PlantRunError as e:
             self.error = str(e)
             raise
@@ -425,7 +447,8 @@ class PlantRun:
         w0 = clock.now()
         last_pub = w0
         self._due = w0 + 2 * T
-        threading.Thread(target=self._watchdog, daemon=True, name="plant watchdog").start()
+        threading.Thread(target=self._watchdog, args=(self._gen,), daemon=True,
+                         name="plant watchdog").start()
         for k in range(cfg.steps):
             target = w0 + (k + 1) * T
             self._idle_until(target)
@@ -458,6 +481,7 @@ class PlantRun:
             else:
                 if d.entered_safe is not None:
                     self.safe = True
+                    self.safe_why = d.entered_safe
                     st.safe_events += 1
                     log.warning("SAFE at t = %.2f s: %s; holding steering, ramping the wheels "
                                 "down at %g m/s^2", k * T, d.entered_safe, cfg.safe_decel)
@@ -468,6 +492,7 @@ class PlantRun:
             self.publish_state(k + 1, end=k + 1 == cfg.steps)
             done = clock.now()
             st.lateness_s.add(done - target)
+            self._recent.append(done - target)
             st.jitter_s.add(abs(done - last_pub - T))
             last_pub = done
             if done - target > T:
@@ -480,13 +505,17 @@ class PlantRun:
         self._due = None
         self.linger()
 
-    def _watchdog(self) -> None:
+    def _watchdog(self, gen: int) -> None:
         """Realtime: while the loop is more than ``stale_ms`` past a period's deadline, run
         the safe behaviour here (steering held, wheels ramped down at ``safe_decel``), one
         period at a time. It touches the plant (under the plant's own lock) and the log,
-        nothing of the transport: a loop stuck in the bus does not stop it."""
-        T, bound, st = self.cfg.period, self.cfg.stale_ms / 1000.0, self.stats
+        nothing of the transport: a loop stuck in the bus does not stop it. It ends with
+        its run (``gen``: a reset starts another)."""
+        T, st = self.cfg.period, self.stats
         while not (self.stop.wait(self.clock.wall(T)) or self.closed.is_set()):
+            if gen != self._gen:
+                return
+            bound = self.cfg.stale_ms / 1000.0  # (changed at run time: reconfigure)
             due = self._due
             if due is None:
                 if self.final_state is not None:
@@ -519,6 +548,64 @@ class PlantRun:
     def close(self) -> None:
         """The run's threads (the watchdog) end."""
         self.closed.set()
+
+    # ---- changes from outside (a node's services and parameters, in the run's thread) ----
+    def reconfigure(self, cfg: RunConfig) -> None:
+        """Take the safe behaviour's settings of ``cfg`` (``stale_ms``, ``resume_periods``,
+        ``safe_decel``, ``timeout_s``) from the next period on; the others must not differ
+        (ValueError, nothing changed): they fix the run's time axis and contract."""
+        fixed = [k for k in ("run_mode", "period", "steps", "wait_s", "linger_s")
+                 if getattr(cfg, k) != getattr(self.cfg, k)]
+        if fixed:
+            raise ValueError(f"{fixed[0]} is fixed for the run")
+        self.cfg = cfg
+        self.watch.max_missed = cfg.max_missed
+        self.watch.resume_periods = cfg.resume_periods
+        self.ramp = cfg.safe_decel / self.plant.vehicle.wheel_radius
+
+    def resettable(self) -> str | None:
+        """Why :meth:`reset` cannot be honoured now, or None."""
+        if self.error is not None:
+            return f"the run failed ({self.error})"
+        if self.final_state is not None:
+            return "the run has ended (its end state is out)"
+        return None
+
+    def reset(self) -> None:
+        """Back to the start: the plant at its initial state (``plant.reset()``: pose,
+        velocities, steering, wheel speeds, its wear integrals zero, t = 0), no state sent,
+        the safe behaviour and its counts of periods (``periods``) afresh; the run then
+        starts again as a new one would (waits for a controller, sends state 0). Call it
+        from the run's thread (a port's callback in ``idle``): the wait it is called in
+        starts the run again. The command counters and the round-trip statistics go on
+        over the process (:attr:`resets` counts the resets)."""
+        why = self.resettable()
+        if why is not None:
+            raise PlantRunError(why)
+        with self.plant_lock:
+            self.plant.reset()
+        with self.lock:
+            self.seq = self.stepped = -1
+            self.pub_perf.clear()
+        with self._trip_lock:
+            self._wd_trip = None
+        self._gen += 1  # the watchdog of the run before ends
+        self._due = None
+        self._wd_active = False
+        self.safe, self.safe_why = False, ""
+        self.watch = CommandWatch(self.cfg.max_missed, self.cfg.resume_periods, self.cfg.period)
+        self._recent.clear()
+        self.resets += 1
+        self._restart = True
+        self.rec.event("reset")
+        self.log.warning("reset: the plant is back at its initial state, the run starts again "
+                         "at state 0 (t = 0)")
+
+    def take_lateness(self) -> list[float]:
+        """The realtime steps' lateness [s] since the last call."""
+        out = list(self._recent)
+        self._recent.clear()
+        return out
 
     # ---- results -------------------------------------------------------------------------
     def answered(self, j: int, rx_perf: float, solve_ms: float | None = None) -> None:

@@ -242,9 +242,15 @@ def plant_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="msagv ros2 plant",
         description="The plant as a ROS 2 node (a stand-in for Gazebo): clock, odom, "
-                    "joint_states, tf, wear and markers out; steering_controller/commands and "
-                    "wheel_controller/commands in (docs/ROS2.md). Options after --ros-args go "
-                    "to ROS (remapping).")
+                    "joint_states, tf, wear, markers and /diagnostics out; "
+                    "steering_controller/commands and wheel_controller/commands in; "
+                    "~/rearm and ~/reset (std_srvs/Trigger: reset puts the vehicle back at its "
+                    "initial state and starts the run again at state 0, t = 0) "
+                    "(docs/ROS2.md). Options after --ros-args go to ROS: remapping, and the "
+                    "run's options as parameters (-p NAME:=VALUE, --params-file F: run_mode, "
+                    "period, duration, timeout, wait, stale_ms, resume_periods, safe_decel; "
+                    "stale_ms, resume_periods, safe_decel and timeout may change at run time), "
+                    "example: scenarios/ros2/plant.params.yaml.")
     ap.add_argument("--run-mode", choices=list(M.RUN_MODES), default=RunConfig.run_mode,
                     help="lockstep: step when both command topics answer the current state "
                          "(as fast as the controller); realtime: step at 1/T on the wall "

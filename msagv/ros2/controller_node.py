@@ -57,7 +57,8 @@ from msagv.bridge.recording import NullRecorder
 from msagv.controller.reference import Reference, from_samples
 
 from msagv.plant.signals import CONTROL_PERIOD
-from .runtime import Context, Lifecycle, destroy
+from .runtime import (OK, STALE, WARN, Context, Diagnostics, Lifecycle, declare_parameters,
+                      destroy, parameter_changes, set_parameters_result, trigger_services)
 
 log = logging.getLogger("msagv.ros2.controller")
 
@@ -282,70 +283,6 @@ PARAMETERS = {
 }
 
 
-ROS_OWN = ("use_sim_time", "start_type_description_service")  # rclpy's own parameters
-
-
-def _parameter_value(name: str, kind, v):
-    """A parameter's value as its kind, or ValueError naming it: an integer is a double
-    (``-p plan_speed_kmh:=8``), a number list a list of doubles; nothing else converts."""
-    num = (int, float)
-    if kind is float and isinstance(v, num) and not isinstance(v, bool):
-        return float(v)
-    if kind is int and isinstance(v, int) and not isinstance(v, bool):
-        return int(v)
-    if kind is str and isinstance(v, str):
-        return v
-    if kind is list and not isinstance(v, (str, bytes)):
-        try:
-            vals = list(v)
-        except TypeError:
-            vals = None
-        if vals is not None and all(isinstance(x, num) and not isinstance(x, bool) for x in vals):
-            return [float(x) for x in vals]
-    what = {float: "a number", int: "an integer", str: "a string",
-            list: "a list of numbers"}[kind]
-    raise ValueError(f"ROS parameter {name}: expected {what}, got {v!r}")
-
-
-def declare_parameters(node, defaults: dict) -> dict:
-    """Declare every parameter with the command line's value as its default; returns the
-    values in force (a ``-p`` override or a params file wins; an integer is taken for a
-    double). 0 for ``deadline_ms``/``max_age_ms``: none. A parameter the node does not have
-    (a misspelt name) is refused, naming it, before anything runs (the node is created with
-    ``automatically_declare_parameters_from_overrides``, so every override is visible).
-    Each is declared with dynamic typing, its kind checked by the node itself
-    (:meth:`RosController._on_set_parameters`): ``ros2 param set ... plan_speed_kmh 8``
-    sends an integer, which rclpy's static typing would refuse for a double."""
-    from rcl_interfaces.msg import ParameterDescriptor
-
-    given = node.list_parameters([], 10).names
-    unknown = sorted(n for n in given if n not in PARAMETERS and n not in ROS_OWN
-                     and not n.startswith("qos_overrides."))
-    if unknown:
-        raise ValueError(f"ROS parameter {unknown[0]}: unknown (known: "
-                         f"{', '.join(PARAMETERS)})")
-    out = {}
-    for name, kind in PARAMETERS.items():
-        d = defaults[name]
-        if kind is list:
-            d = [float(v) for v in d]
-        elif kind is float:
-            d = float(0.0 if d is None else d)
-        elif kind is int:
-            d = int(d)
-        else:
-            d = str(d)
-        if node.has_parameter(name):  # given: -p NAME:=VALUE or --params-file
-            d = _parameter_value(name, kind, node.get_parameter(name).value)
-            node.undeclare_parameter(name)  # declared again below, dynamically typed
-        try:
-            v = node.declare_parameter(name, d, ParameterDescriptor(dynamic_typing=True)).value
-        except Exception as e:  # noqa: BLE001 - rclpy's type errors, named
-            raise ValueError(f"ROS parameter {name}: {e}") from None
-        out[name] = _parameter_value(name, kind, v)
-    return out
-
-
 # What may change while the node is configured (inactive or active); the others change the
 # optimiser's structure and are taken while it is unconfigured (lifecycle cleanup, set,
 # configure). Weights: the MPC is built again from them at once (for the annealer
@@ -398,9 +335,6 @@ class WearEstimate:
 
 # ---- the node ---------------------------------------------------------------------------------
 LOW_SPEED_KMH = 5.0  # below this (measured and asked) the policy's plain feed-forward commands
-DIAGNOSTICS = "/diagnostics"  # where diagnostic_updater publishes, absolute
-DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
-DIAGNOSTICS_PERIOD = 1.0  # s, on a steady clock (diagnostic_updater's default period)
 STOP_ACK_S = 1.0  # s: the longest wait for the subscribers to acknowledge the last stop
 
 
@@ -441,7 +375,7 @@ class RosController:
                  cfg: RosControllerConfig, ros_args: list[str], reference: Reference | None,
                  recorder=None, stop: threading.Event | None = None, managed: bool = False):
         self.ctx = Context(cfg.node_name, ros_args, lifecycle=True)
-        self.params = declare_parameters(self.ctx.node, defaults)
+        self.params = declare_parameters(self.ctx.node, PARAMETERS, defaults)
         self.make_mpc = make_mpc
         self.cfg0 = cfg
         self.cfg = cfg
@@ -577,23 +511,10 @@ class RosController:
         self._timers = [node.create_timer(cfg.period, self._on_tick,
                                           clock=self._clock if self.sim_time else steady)]
         self._services = []
-        self.pub_diag = None
-        from .runtime import Ros2Unavailable, msg_class
-
-        try:  # diagnostics once a second on a steady clock (also when /clock stalls)
-            self.pub_diag = node.create_publisher(msg_class(DIAGNOSTICS_TYPE), DIAGNOSTICS,
-                                                  10)
-            self._timers.append(node.create_timer(DIAGNOSTICS_PERIOD, self._on_diagnostics,
-                                                  clock=steady))
-        except Ros2Unavailable as e:
-            log.warning("no %s: %s (pip install ros-diagnostic-msgs)", DIAGNOSTICS, e)
-        try:
-            import std_srvs.srv as srv
-
-            self._services = [node.create_service(srv.Trigger, "~/rearm", self._on_rearm),
-                              node.create_service(srv.Trigger, "~/reset", self._on_reset)]
-        except ImportError as e:
-            log.warning("no ~/rearm and ~/reset services: %s (pip install ros-std-srvs)", e)
+        # diagnostics once a second on a steady clock (also when /clock stalls)
+        self.diag = Diagnostics(node, "controller", self.vehicle.name, self.diagnostics, log)
+        self._services = trigger_services(node, {"rearm": self._on_rearm,
+                                                 "reset": self._on_reset}, log)
         self.configured = True
 
     def _activate(self) -> None:
@@ -625,7 +546,8 @@ class RosController:
         if not self.configured:
             return
         destroy(self.ctx.node, self._timers, self._subs, self._services,
-                (self.pub_steer, self.pub_wheel, self.pub_pred, self.pub_wear, self.pub_diag))
+                (self.pub_steer, self.pub_wheel, self.pub_pred, self.pub_wear))
+        self.diag.destroy()
         self._timers, self._subs, self._services = [], [], []
         self.mpc = self.low = None
         self.configured = False
@@ -648,20 +570,8 @@ class RosController:
         feed-forward's; the disturbance estimate starts again), the plan's limits time the
         next plan afresh (also a replan of the same route), the other limits apply from the
         next period."""
-        from rcl_interfaces.msg import SetParametersResult
-
         try:
-            new = dict(self.params)
-            for prm in params:
-                if prm.name in ROS_OWN:
-                    if prm.name == "use_sim_time" and self.configured:
-                        raise ValueError("use_sim_time: chooses the node's clock at "
-                                         "configure; set it while unconfigured")
-                    continue
-                if prm.name not in PARAMETERS:
-                    raise ValueError(f"{prm.name}: unknown")
-                new[prm.name] = _parameter_value(prm.name, PARAMETERS[prm.name], prm.value)
-            changed = [k for k in PARAMETERS if new[k] != self.params[k]]
+            new, changed = parameter_changes(PARAMETERS, self.params, params, self.configured)
             if self.configured and changed:
                 self._apply(new, changed)
             elif changed:
@@ -670,12 +580,12 @@ class RosController:
             reason = str(e).removeprefix("ROS parameter ")
             self.stats["parameters_refused"] += 1
             log.warning("parameter change refused: %s", reason)
-            return SetParametersResult(successful=False, reason=reason)
+            return set_parameters_result(False, reason)
         if changed:
             self.stats["parameter_changes"] += 1
             log.info("parameters changed: %s", ", ".join(f"{k}={new[k]}" for k in changed))
         self.params = new
-        return SetParametersResult(successful=True)
+        return set_parameters_result(True)
 
     def _apply(self, new: dict, changed: list) -> None:
         """Apply a change while configured (see :meth:`_on_set_parameters`), or raise
@@ -1125,32 +1035,16 @@ class RosController:
         for k, x in (tires or {}).items():
             v[f"tires_{k}"] = f"{x:.6g}" if isinstance(x, float) else str(x)
         if not self.active:
-            return 1, self.state_label(), v
+            return WARN, self.state_label(), v
         if self._safe:
             stale = self._fresh_tick is None or \
                 self._tick - self._fresh_tick > self.watch.max_missed
-            return (3 if stale else 1), f"safe: {self._safe_why}", v
+            return (STALE if stale else WARN), f"safe: {self._safe_why}", v
         if self.reference is None:
-            return 1, "waiting for a plan", v
+            return WARN, "waiting for a plan", v
         if new.size and new.max() > cfg.period * 1000:
-            return 1, f"a solve took {new.max():.1f} ms, over the period", v
-        return 0, "goal reached" if self._goal_held is not None else "commanding", v
-
-    def _on_diagnostics(self) -> None:
-        from .runtime import msg_class
-
-        level, message, values = self.diagnostics()
-        st = msg_class("diagnostic_msgs/msg/DiagnosticStatus")()
-        st.level = bytes([level])
-        st.name = f"{self.ctx.node.get_name()}: controller"
-        st.message = message
-        st.hardware_id = self.vehicle.name
-        kv = msg_class("diagnostic_msgs/msg/KeyValue")
-        st.values = [kv(key=k, value=x) for k, x in values.items()]
-        m = msg_class(DIAGNOSTICS_TYPE)()
-        m.header.stamp = self.ctx.node.get_clock().now().to_msg()
-        m.status = [st]
-        self.pub_diag.publish(m)
+            return WARN, f"a solve took {new.max():.1f} ms, over the period", v
+        return OK, "goal reached" if self._goal_held is not None else "commanding", v
 
     def summary(self) -> dict:
         return {"role": "ros2 controller", **self.stats,

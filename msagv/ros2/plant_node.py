@@ -40,7 +40,8 @@ nobody (a process may publish under any node name): SROS2's access control decid
 publish on the command topics at all (docs/ROS2.md).
 
 With ``managed`` (``--managed``) it is an ``rclpy.lifecycle`` managed node, as the
-controller: unconfigured it has no topics; ``configure`` declares them and ``~/rearm``;
+controller: unconfigured it has no topics; ``configure`` declares them, ``/diagnostics``,
+``~/rearm`` and ``~/reset``;
 only while active does the run go (its first state once active and a controller is
 there); ``deactivate`` holds the run between two steps on a clock that stands
 (:class:`bridge.run_core.PausableClock`): the vehicle stands, the pause is no time of the
@@ -49,10 +50,18 @@ run's (no period missed, no command aged, no wait's bound used, no watchdog), an
 and unbinds the command topics; ``shutdown`` (or a signal) ends the run and the process.
 The transitions run in the run's thread (the node's callbacks run only in its idle), so
 never in the middle of a step. docs/ROS2.md, "A managed plant".
+
+Its run's options are ROS parameters (:data:`PARAMETERS`; those of :data:`RUNTIME` change
+at run time, the others are refused with the reason of :data:`FIXED`); its status goes
+on ``/diagnostics`` once a second (:meth:`RosPlant.diagnostics`); ``~/reset`` puts the
+vehicle back at its initial state and starts the run again at state 0, t = 0
+(:meth:`RosPlant._on_reset`). docs/ROS2.md, "The plant's parameters, diagnostics and
+reset".
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -65,7 +74,9 @@ from msagv.bridge import ros_msgs as R
 from msagv.bridge.run_core import (RESEND_S, Command, PausableClock, PlantRun, PlantRunError,
                                    RunConfig, WallClock)
 
-from .runtime import Context, Lifecycle, Ros2Unavailable, destroy
+from .runtime import (ERROR, OK, STALE, WARN, Context, Diagnostics, Lifecycle, Ros2Unavailable,
+                      declare_parameters, destroy, parameter_changes, set_parameters_result,
+                      trigger_services)
 
 log = logging.getLogger("msagv.ros2.plant")
 
@@ -84,6 +95,36 @@ UNKNOWN_NODE = ("_NODE_NAME_UNKNOWN_", "_NODE_NAMESPACE_UNKNOWN_")  # rmw_dds_co
 RosPlantError = PlantRunError  # the run cannot go on (no controller, a timeout, a failed step)
 SIM_LOOK_S = 0.002  # under use_sim_time the clock's pace is the simulator's: look this often
 HOLD_LOOK_S = 0.05  # a managed node held inactive looks for its transitions this often
+
+
+# ROS parameters (``--ros-args -p NAME:=VALUE`` or a params file), each also an option
+# (``--run-mode``, ``--period``, ``--duration``, ``--timeout``, ``--wait``, ``--stale-ms``,
+# ``--resume-periods``, ``--safe-decel``); the vehicle and the path are options alone (the
+# plant is built from them before the node is)
+PARAMETERS = {"run_mode": str, "period": float, "duration": float, "timeout": float,
+              "wait": float, "stale_ms": float, "resume_periods": int, "safe_decel": float}
+# what may change while configured: the safe behaviour's settings and the wait for an
+# answer, from the next period on (:meth:`bridge.run_core.PlantRun.reconfigure`)
+RUNTIME = ("stale_ms", "resume_periods", "safe_decel", "timeout")
+FIXED = {  # the others, and why they are set at start only
+    "run_mode": "the run's mode is its contract with the controller (lockstep answers every "
+                "state, realtime steps at 1/T with the newest command)",
+    "period": "state k is stamped k T: another period would bend the run's time axis",
+    "duration": "the run's end state (seq = duration / period) is fixed when it starts",
+    "wait": "the wait for a controller is the run's start",
+}
+
+
+def _run_config(cfg, p: dict):
+    """The run's settings ``cfg`` with the parameters ``p``, or ValueError naming the bad
+    value (:class:`bridge.run_core.RunConfig`'s checks)."""
+    if not (p["duration"] > 0 and p["period"] > 0):
+        raise ValueError(f"duration and period must be > 0, got {p['duration']:g} and "
+                         f"{p['period']:g}")
+    return dataclasses.replace(
+        cfg, run_mode=p["run_mode"], period=p["period"],
+        steps=int(round(p["duration"] / p["period"])), timeout_s=p["timeout"], wait_s=p["wait"],
+        stale_ms=p["stale_ms"], resume_periods=p["resume_periods"], safe_decel=p["safe_decel"])
 
 
 @dataclass
@@ -122,6 +163,18 @@ class RosPlant:
         self.plant = plant
         self.vehicle = plant.vehicle
         self.nw = self.vehicle.n_wheels
+        self.managed = managed
+        self.ctx = Context(cfg.node_name, ros_args, lifecycle=managed)
+        try:  # the parameters in force: -p and --params-file over the options
+            self.params = declare_parameters(self.ctx.node, PARAMETERS, {
+                "run_mode": cfg.run_mode, "period": cfg.period,
+                "duration": cfg.steps * cfg.period, "timeout": cfg.timeout_s,
+                "wait": cfg.wait_s, "stale_ms": cfg.stale_ms,
+                "resume_periods": cfg.resume_periods, "safe_decel": cfg.safe_decel})
+            cfg = _run_config(cfg, self.params)
+        except Exception:
+            self.ctx.close()
+            raise
         self.cfg = cfg
         self.msgs = R.RunMessages(self.vehicle, cfg.period)
         self.rej = M.Rejections("ros2 plant", log)
@@ -134,8 +187,8 @@ class RosPlant:
         self._steer: tuple[int, np.ndarray] | None = None  # (state it answers, targets)
         self._wheel: tuple[int, np.ndarray] | None = None
         self.tf_published = True
-        self.managed = managed
-        self.ctx = Context(cfg.node_name, ros_args, lifecycle=managed)
+        self.diag = None
+        self.parameter_changes = self.parameters_refused = 0
         # under use_sim_time a realtime plant's time is ROS time: someone else's /clock
         self.sim_time = (cfg.run_mode == "realtime"
                          and bool(self.ctx.node.get_parameter("use_sim_time").value))
@@ -165,9 +218,11 @@ class RosPlant:
         else:
             self._declare()
             self.active = True
+        self.ctx.node.add_on_set_parameters_callback(self._on_set_parameters)
 
     def _declare(self) -> None:
-        """The node's topics and its ``~/rearm`` service."""
+        """The node's topics, ``/diagnostics`` and its services ``~/rearm`` and
+        ``~/reset``."""
         for topic in (R.CLOCK, R.JOINT_STATES, R.WEAR, R.TF, R.ODOM, R.MARKERS):
             if topic == R.CLOCK and self.sim_time:
                 continue
@@ -180,15 +235,10 @@ class RosPlant:
                 log.warning("not publishing tf: %s; the pose is on odom", e)
         self._subs = [self.ctx.subscription(R.STEERING_COMMANDS, self._on_steer),
                       self.ctx.subscription(R.WHEEL_COMMANDS, self._on_wheel)]
-        self._services = []
-        try:
-            import std_srvs.srv as srv
-
-            self._services.append(self.ctx.node.create_service(srv.Trigger, "~/rearm",
-                                                               self._on_rearm))
-        except ImportError as e:
-            log.warning("no ~/rearm service: %s (pip install ros-std-srvs); a new controller "
-                        "can then drive only a new run", e)
+        self.diag = Diagnostics(self.ctx.node, "plant", self.vehicle.name, self.diagnostics,
+                                log)
+        self._services = trigger_services(self.ctx.node, {"rearm": self._on_rearm,
+                                                          "reset": self._on_reset}, log)
         self.configured = True
 
     # ---- the lifecycle (managed: docs/ROS2.md, "A managed plant") ---------------------
@@ -224,6 +274,8 @@ class RosPlant:
         if not self.configured:
             return
         destroy(self.ctx.node, (), self._subs, self._services, self.pubs.values())
+        if self.diag is not None:
+            self.diag.destroy()
         self.pubs, self._subs, self._services = {}, [], []
         self.sources = dict.fromkeys(self.sources)
         self.source_node = None
@@ -368,6 +420,64 @@ class RosPlant:
         response.success, response.message = True, "re-armed: the next publisher drives"
         return response
 
+    def _on_reset(self, request, response):
+        """``~/reset`` (std_srvs/Trigger): the vehicle back at its initial state (pose,
+        velocities, steering, wheel speeds, wear integrals zero) and the run started again
+        at state 0, stamped t = 0, as a new run (:meth:`bridge.run_core.PlantRun.reset`).
+        Refused with the reason, nothing changed: unconfigured; after the run's end or its
+        failure; in lockstep while the current state's answer is outstanding (a command
+        names no state: an answer in flight would be taken as the new state 0's; deactivate
+        the managed plant, let the answer in, then reset). The command topics stay bound
+        (a reset is no re-arm)."""
+        k = self.seq
+        why = ("not configured" if not self.configured else self.core.resettable())
+        if why is None and self.cfg.run_mode == "lockstep" and k >= 0 and \
+                self.answer(k) is None:
+            why = (f"lockstep: state {k}'s answer is outstanding (an answer in flight would "
+                   f"be taken as the new state 0's); deactivate the plant, then reset")
+        if why is not None:
+            log.warning("reset refused: %s", why)
+            response.success, response.message = False, f"reset refused: {why}"
+            return response
+        self.core.reset()
+        self._steer = self._wheel = None
+        self._st0 = None
+        self._delta = None
+        response.success = True
+        response.message = (f"reset: the vehicle is at its initial state; the run starts "
+                            f"again at state 0 (t = 0), was at state {k}")
+        return response
+
+    # ---- parameters at run time ------------------------------------------------------------
+    def _on_set_parameters(self, params):
+        """A change of the parameters (``ros2 param set``, the SetParameters service),
+        checked and applied all together or refused with the reason, nothing changed:
+        :data:`RUNTIME` from the next period on; the others (:data:`FIXED`) refused, at
+        any lifecycle state (the run is made when the node is: a managed node's cleanup
+        does not end it)."""
+        try:
+            new, changed = parameter_changes(
+                PARAMETERS, self.params, params, True,
+                "chooses the run's clock when the node starts; set it at start")
+            fixed = [k for k in changed if k not in RUNTIME]
+            if fixed:
+                raise ValueError(f"{fixed[0]}: {FIXED[fixed[0]]}; set it at start "
+                                 f"(--ros-args -p {fixed[0]}:=... or a params file)")
+            cfg = _run_config(self.cfg, new)
+            if changed:
+                self.core.reconfigure(cfg)
+        except Exception as e:  # noqa: BLE001 - refused with its reason, nothing changed
+            reason = str(e).removeprefix("ROS parameter ")
+            self.parameters_refused += 1
+            log.warning("parameter change refused: %s", reason)
+            return set_parameters_result(False, reason)
+        if changed:
+            self.cfg = cfg
+            self.parameter_changes += 1
+            log.info("parameters changed: %s", ", ".join(f"{k}={new[k]}" for k in changed))
+        self.params = new
+        return set_parameters_result(True)
+
     def _answered(self) -> None:
         s, w, k = self._steer, self._wheel, self.seq
         if s is None or w is None or s[0] != w[0] or s[0] != k:
@@ -479,9 +589,51 @@ class RosPlant:
             self.core.close()
             self.ctx.close()
 
+    # ---- diagnostics ---------------------------------------------------------------------
+    def diagnostics(self) -> tuple[int, str, dict]:
+        """``(level, message, values)`` of the plant's status now (docs/ROS2.md,
+        "Diagnostics"); values as strings. The lateness is that of the realtime steps since
+        the last call (once a second: the last second's)."""
+        core, cfg, T = self.core, self.cfg, self.cfg.period
+        late = np.asarray(core.take_lateness(), dtype=float)
+        k = self.seq
+        rej = self.rej.summary()
+        over = int(np.sum(late > T))
+        v = {"lifecycle": self.state_label(), "run_mode": cfg.run_mode,
+             "clock": "ros" if self.sim_time else "wall", "k": str(k),
+             "t": f"{max(k, 0) * T:.6g}", "steps": str(cfg.steps),
+             "period_ms": f"{T * 1000:g}",
+             "safe": str(core.safe).lower(), "safe_reason": core.safe_why if core.safe else "",
+             "commands_accepted": str(self.stats.accepted),
+             "commands_rejected": str(rej["total"]),
+             **{f"rejected_{r}": str(n) for r, n in sorted(rej["by_reason"].items())},
+             "source_node": self.source_node or "", "rearms": str(self.rearms),
+             "resets": str(core.resets), "missed_periods": str(self.stats.missed_periods),
+             "steps_last_s": str(late.size),
+             "lateness_ms_p99": f"{np.percentile(late, 99) * 1000:.3f}" if late.size else "none",
+             "stale_ms": f"{cfg.stale_ms:g}", "max_missed": str(core.watch.max_missed),
+             "resume_periods": str(core.watch.resume_periods),
+             "safe_decel": f"{cfg.safe_decel:g}"}
+        if core.error is not None:
+            return ERROR, f"failed: {core.error}", v
+        if not self.active:
+            return WARN, self.state_label(), v
+        if core.final_state is not None:
+            return OK, "run ended", v
+        if k < 0:
+            return WARN, "waiting for a controller", v
+        if core.safe:
+            return STALE, f"safe: {core.safe_why}", v
+        if over:
+            return WARN, f"{over} of {late.size} steps over a period late in the last second", v
+        return OK, "running", v
+
     def summary(self) -> dict:
         st = self.stats
         return {"role": "ros2 plant", **self.core.summary(),
+                "parameters": self.params, "resets": self.core.resets,
+                "parameter_changes": self.parameter_changes,
+                "parameters_refused": self.parameters_refused,
                 "clock": "ros" if self.sim_time else "wall",
                 "commands": {"accepted": st.accepted, "after_end": st.after_end},
                 "sources": {t: (g.hex() if g is not None else None)

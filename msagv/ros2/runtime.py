@@ -87,7 +87,7 @@ class Context:
             signal.signal(signal.SIGINT, handlers[0])
             signal.signal(signal.SIGTERM, handlers[1])
         # every -p / params-file value becomes a parameter, so that a node can refuse the
-        # names it does not have (controller_node.declare_parameters) instead of ignoring them
+        # names it does not have (declare_parameters) instead of ignoring them
         if lifecycle:  # a managed node (rclpy.lifecycle): its state machine and services
             from rclpy.lifecycle import LifecycleNode
 
@@ -199,3 +199,153 @@ class Lifecycle:
         if ended:
             return "finalized"
         return "active" if active else "inactive" if configured else "unconfigured"
+
+
+# ---- parameters (both nodes) ------------------------------------------------------------------
+ROS_OWN = ("use_sim_time", "start_type_description_service")  # rclpy's own parameters
+
+
+def parameter_value(name: str, kind, v):
+    """A parameter's value as its kind, or ValueError naming it: an integer is a double
+    (``-p plan_speed_kmh:=8``), a number list a list of doubles; nothing else converts."""
+    num = (int, float)
+    if kind is float and isinstance(v, num) and not isinstance(v, bool):
+        return float(v)
+    if kind is int and isinstance(v, int) and not isinstance(v, bool):
+        return int(v)
+    if kind is str and isinstance(v, str):
+        return v
+    if kind is list and not isinstance(v, (str, bytes)):
+        try:
+            vals = list(v)
+        except TypeError:
+            vals = None
+        if vals is not None and all(isinstance(x, num) and not isinstance(x, bool) for x in vals):
+            return [float(x) for x in vals]
+    what = {float: "a number", int: "an integer", str: "a string",
+            list: "a list of numbers"}[kind]
+    raise ValueError(f"ROS parameter {name}: expected {what}, got {v!r}")
+
+
+def declare_parameters(node, table: dict, defaults: dict) -> dict:
+    """Declare every parameter of ``table`` (name -> float, int, str or list) with the
+    command line's value as its default; returns the values in force (a ``-p`` override or
+    a params file wins; an integer is taken for a double). None for a float: 0. A parameter
+    the node does not have (a misspelt name) is refused, naming it, before anything runs
+    (the node is created with ``automatically_declare_parameters_from_overrides``, so every
+    override is visible). Each is declared with dynamic typing, its kind checked by the node
+    itself (:func:`parameter_changes`): ``ros2 param set ... plan_speed_kmh 8`` sends an
+    integer, which rclpy's static typing would refuse for a double."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    given = node.list_parameters([], 10).names
+    unknown = sorted(n for n in given if n not in table and n not in ROS_OWN
+                     and not n.startswith("qos_overrides."))
+    if unknown:
+        raise ValueError(f"ROS parameter {unknown[0]}: unknown (known: "
+                         f"{', '.join(table)})")
+    out = {}
+    for name, kind in table.items():
+        d = defaults[name]
+        if kind is list:
+            d = [float(v) for v in d]
+        elif kind is float:
+            d = float(0.0 if d is None else d)
+        elif kind is int:
+            d = int(d)
+        else:
+            d = str(d)
+        if node.has_parameter(name):  # given: -p NAME:=VALUE or --params-file
+            d = parameter_value(name, kind, node.get_parameter(name).value)
+            node.undeclare_parameter(name)  # declared again below, dynamically typed
+        try:
+            v = node.declare_parameter(name, d, ParameterDescriptor(dynamic_typing=True)).value
+        except Exception as e:  # noqa: BLE001 - rclpy's type errors, named
+            raise ValueError(f"ROS parameter {name}: {e}") from None
+        out[name] = parameter_value(name, kind, v)
+    return out
+
+
+CLOCK_AT_CONFIGURE = "chooses the node's clock at configure; set it while unconfigured"
+
+
+def parameter_changes(table: dict, current: dict, params, configured: bool,
+                      clock_why: str = CLOCK_AT_CONFIGURE) -> tuple[dict, list]:
+    """A change of parameters (``ros2 param set``, the SetParameters service) read against
+    ``table``: ``(the values it asks for, the names it changes)``, or ValueError with the
+    reason (an unknown name, a wrong kind, ``use_sim_time`` while ``configured``: it chose
+    the node's clock, ``clock_why``)."""
+    new = dict(current)
+    for prm in params:
+        if prm.name in ROS_OWN:
+            if prm.name == "use_sim_time" and configured:
+                raise ValueError(f"use_sim_time: {clock_why}")
+            continue
+        if prm.name not in table:
+            raise ValueError(f"{prm.name}: unknown")
+        new[prm.name] = parameter_value(prm.name, table[prm.name], prm.value)
+    return new, [k for k in table if new[k] != current[k]]
+
+
+def set_parameters_result(ok: bool, reason: str = ""):
+    """rcl_interfaces' answer to a parameter change."""
+    from rcl_interfaces.msg import SetParametersResult
+
+    return SetParametersResult(successful=ok, reason=reason.removeprefix("ROS parameter "))
+
+
+# ---- diagnostics and services (both nodes) ----------------------------------------------------
+DIAGNOSTICS = "/diagnostics"  # where diagnostic_updater publishes, absolute
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+DIAGNOSTICS_PERIOD = 1.0  # s, on a steady clock (diagnostic_updater's default period)
+OK, WARN, ERROR, STALE = 0, 1, 2, 3  # diagnostic_msgs/DiagnosticStatus levels
+
+
+class Diagnostics:
+    """A node's status on ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, one
+    DiagnosticStatus named ``"<node>: <what>"``) every :data:`DIAGNOSTICS_PERIOD` on a
+    steady clock (also when /clock stalls): ``status()`` gives ``(level, message, values)``,
+    the values as strings. Without diagnostic_msgs installed it says so once and publishes
+    nothing (:attr:`pub` None)."""
+
+    def __init__(self, node, what: str, hardware_id: str, status, log):
+        from rclpy.clock import Clock, ClockType
+
+        self.node, self.what, self.hardware_id, self.status = node, what, hardware_id, status
+        self.pub = self.timer = None
+        try:
+            self.pub = node.create_publisher(msg_class(DIAGNOSTICS_TYPE), DIAGNOSTICS, 10)
+            self.timer = node.create_timer(DIAGNOSTICS_PERIOD, self.publish,
+                                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+        except Ros2Unavailable as e:
+            log.warning("no %s: %s (pip install ros-diagnostic-msgs)", DIAGNOSTICS, e)
+
+    def publish(self) -> None:
+        level, message, values = self.status()
+        st = msg_class("diagnostic_msgs/msg/DiagnosticStatus")()
+        st.level = bytes([level])
+        st.name = f"{self.node.get_name()}: {self.what}"
+        st.message = message
+        st.hardware_id = self.hardware_id
+        kv = msg_class("diagnostic_msgs/msg/KeyValue")
+        st.values = [kv(key=k, value=x) for k, x in values.items()]
+        m = msg_class(DIAGNOSTICS_TYPE)()
+        m.header.stamp = self.node.get_clock().now().to_msg()
+        m.status = [st]
+        self.pub.publish(m)
+
+    def destroy(self) -> None:
+        destroy(self.node, [t for t in (self.timer,) if t is not None], (), (), (self.pub,))
+        self.pub = self.timer = None
+
+
+def trigger_services(node, callbacks: dict, log) -> list:
+    """``~/<name>`` std_srvs/Trigger services, one per ``callbacks`` entry; none (said once)
+    without std_srvs installed."""
+    try:
+        import std_srvs.srv as srv
+    except ImportError as e:
+        log.warning("no %s services: %s (pip install ros-std-srvs)",
+                    " and ".join(f"~/{n}" for n in callbacks), e)
+        return []
+    return [node.create_service(srv.Trigger, f"~/{n}", cb) for n, cb in callbacks.items()]
