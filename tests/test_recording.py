@@ -108,6 +108,18 @@ def test_msagv_reads_its_mcap_recording_as_records_and_runs(tmp_path):
     assert runs[0].cmds[7]["omega_w"] == [6.0] * 4
 
 
+def test_state_0_sent_again_before_any_step_is_one_run_and_a_new_state_0_another():
+    """A realtime plant sends an unanswered state 0 again (every 1 s): still the run it
+    began; a state 0 after later states (a plant reset, a new process) begins a new run."""
+    states = _states(5)
+    recs = [{"key": KEY_STATE, "p": s, "ts": float(i)}
+            for i, s in enumerate([states[0], states[0], states[0]] + states[1:]
+                                  + states[:3])]
+    runs = split_runs(_header(), recs)
+    assert [sorted(r.states) for r in runs] == [[0, 1, 2, 3, 4], [0, 1, 2]]
+    assert runs[0].state_ts[0] == 0.0  # the first copy's time
+
+
 def test_a_rejected_payload_is_recorded_as_size_and_hash_not_raw(tmp_path):
     path = tmp_path / "r.mcap"
     big = os.urandom(1 << 20) * 50  # 50 MiB

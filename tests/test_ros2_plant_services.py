@@ -31,13 +31,20 @@ EXAMPLE = ROOT / "scenarios" / "ros2" / "plant.params.yaml"
 
 
 # ---- parameters at start ------------------------------------------------------------------
-def test_the_params_file_example_is_read_and_an_integer_is_a_double(procs, ros_env):
+def test_the_params_file_example_is_read_and_an_integer_is_a_double(procs, ros_env,
+                                                                     tmp_path):
     """scenarios/ros2/plant.params.yaml read as a params file: every value of it is in
     force (the summary's parameters are the file's, as PyYAML reads it), ``-p wait:=1`` (an
     integer for a double) overrides the file's 60 s: with no controller the plant gives up
-    after 1 s (exit 3, EXIT_RUNTIME) with its summary."""
+    after 1 s (exit 3, EXIT_RUNTIME) with its summary. The recording's header (what
+    ``msagv report``, the bag and Foxglove time the run by) has the parameters' period and
+    mode, not the options'."""
+    from msagv.bridge.recording import read_recording
+
     _ros()
+    rec = tmp_path / "plant.rec"
     procs.start("plant", msagv("ros2", "plant", "--case", "line", "--speed", "10", "--json",
+                               "--record", rec,
                                "--ros-args", "--params-file", EXAMPLE, "-p", "wait:=1"))
     assert procs.wait("plant", 120) == EXIT_RUNTIME, procs.err("plant")[-2000:]
     s = procs.json("plant")
@@ -47,6 +54,9 @@ def test_the_params_file_example_is_read_and_an_integer_is_a_double(procs, ros_e
     assert isinstance(s["parameters"]["duration"], float)  # 20 in the file: an integer
     assert s["run_mode"] == want["run_mode"] and s["period"] == want["period"]
     assert s["periods"]["max_missed"] == int(want["stale_ms"] / 1000 / want["period"])
+    h, _, _ = read_recording(rec)
+    assert (h["period"], h["run_mode"]) == (want["period"], want["run_mode"])
+    assert h["steps"] == round(want["duration"] / want["period"])
 
 
 @pytest.mark.parametrize("args,says", [
@@ -57,15 +67,21 @@ def test_the_params_file_example_is_read_and_an_integer_is_a_double(procs, ros_e
 ])
 def test_a_bad_parameter_is_refused_at_start_in_one_line(procs, ros_env, tmp_path, args,
                                                          says):
-    """Exit 2 and one line naming it, no traceback, before anything runs."""
+    """Exit 2 and one line naming it, no traceback, before anything runs: a recording
+    asked for is not opened (a file already there left as it was, no bag beside it)."""
     _ros()
     if args == "misspelt file":
         bad = tmp_path / "bad.yaml"
         bad.write_text(EXAMPLE.read_text().replace("safe_decel:", "safe_decell:"))
         args = ["--params-file", bad]
-    procs.start("plant", msagv("ros2", "plant", "--case", "line", "--json", "--ros-args",
-                               *args))
+    (tmp_path / "rec").mkdir()
+    old = tmp_path / "rec" / "old.rec"
+    old.write_bytes(b"a recording of another run")
+    procs.start("plant", msagv("ros2", "plant", "--case", "line", "--json", "--record", old,
+                               "--ros-args", *args))
     assert procs.wait("plant", 120) == 2
+    assert old.read_bytes() == b"a recording of another run"
+    assert [p.name for p in old.parent.iterdir()] == ["old.rec"]
     err = procs.err("plant")
     assert "Traceback" not in err
     last = err.strip().splitlines()[-1]
@@ -273,8 +289,9 @@ def test_a_realtime_plant_resets_while_running_and_takes_a_new_staleness_bound(p
     """A realtime plant (not managed, ``--stale-ms`` of ten minutes) is reset while it
     runs: the next state it publishes is state 0 stamped 0, the initial state, and the
     states after it the equations' from the start again (the newest commands, the same
-    every period), no safe behaviour (the reset's new run is no silence of the
-    controller's). Then the peer stops answering and sets ``stale_ms`` to 400 (an integer)
+    every period; the ten-minute bound keeps a loaded machine's stall from making the
+    safe behaviour part of them, so this test does not say whether a reset counts as
+    silence: test_run_core's reset test does). Then the peer stops answering and sets ``stale_ms`` to 400 (an integer)
     at run time: the plant goes safe (STALE on /diagnostics), which the old bound would
     have kept it from for ten minutes. A SIGTERM ends it with its summary."""
     _ros()

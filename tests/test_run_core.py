@@ -294,3 +294,76 @@ def test_a_paused_run_takes_up_where_it_stood(mode):
             assert s["periods"]["on_time"] == n
             assert s["lateness_ms"]["max"] == pytest.approx(0.0, abs=1e-6)
             assert s["period_jitter_ms"]["max"] == pytest.approx(0.0, abs=1e-6)
+
+
+class _ResettingPort(FakePort):
+    """A FakePort that, in its idle, once the run has sent ``at`` states, calls ``action``
+    (a reset, a reconfigure) as a node's service or parameter callback would."""
+
+    def __init__(self, *a, at: int, action, **kw):
+        super().__init__(*a, **kw)
+        self.at, self.action, self.done = at, action, False
+        self.log: list[tuple[int, dict]] = []  # every state sent, in order
+
+    def send_state(self, k, st, end):
+        super().send_state(k, st, end)
+        self.log.append((k, st))
+
+    def idle(self, seconds: float, wake: bool = True) -> None:
+        super().idle(seconds, wake)
+        if not self.done and len(self.log) >= self.at:
+            self.done = True
+            self.action(self)
+
+
+def test_a_reset_starts_the_run_again_from_the_initial_state():
+    """A reset in the middle of a realtime run (in the port's idle, as ``~/reset`` comes):
+    the next state sent is state 0 again, the plant's initial state, the run then steps to
+    its end as a new one would; a reset is no silence of the controller's (no safe event:
+    the commands come 3 ms after each state, the bound is 50 ms) and the run before it
+    leaves no watchdog behind."""
+    vehicle = default_vehicle()
+    clock = SimClock(1.0)
+    cfg = RunConfig(run_mode="realtime", period=T, steps=30, stale_ms=50.0,
+                    resume_periods=3, linger_s=0.0)
+    holder = {}
+
+    def reset(port):
+        port.sent.clear()  # (a node forgets the commands that answered the run before)
+        holder["run"].reset()
+
+    port = _ResettingPort(clock, 0.003, at=12, action=reset)
+    run = holder["run"] = PlantRun(Plant(vehicle, initial={"vx": 4.0}), cfg, port,
+                                   clock=clock)
+    try:
+        run.run()
+    finally:
+        run.close()
+    ks = [k for k, _ in port.log]
+    assert ks == list(range(12)) + list(range(31)), ks
+    first, again = port.log[0][1], port.log[12][1]
+    for f in ("x", "y", "phi", "vx", "vy", "r", "W_s", "W_alpha", "W_t"):
+        assert again[f] == first[f], f
+    assert port.log[11][1]["x"] > first["x"]  # it had moved before the reset
+    s = run.summary()
+    assert s["completed"] and s["steps"] == 30 and run.resets == 1
+    assert s["safe"]["events"] == 0 and s["safe"]["watchdog_trips"] == 0
+    assert not run.safe
+
+
+def test_a_timeout_changed_during_the_wait_counts_in_it():
+    """``reconfigure`` from the port's idle (a ROS parameter set at run time) while a
+    lockstep run waits for an answer that never comes: the new ``timeout_s`` (2 s) ends
+    the wait, not the one it began with (0.5 s)."""
+    from dataclasses import replace
+
+    clock = SimClock(1.0)
+    cfg = RunConfig(run_mode="lockstep", steps=5, timeout_s=0.5)
+    holder = {}
+    port = _ResettingPort(clock, 0.0, answers=False, at=1,
+                          action=lambda p: holder["run"].reconfigure(
+                              replace(holder["run"].cfg, timeout_s=2.0)))
+    run = holder["run"] = PlantRun(Plant(default_vehicle()), cfg, port, clock=clock)
+    with pytest.raises(PlantRunError, match="no answer to state 0"):
+        run.run()
+    assert 2.0 < clock.now() <= 2.0 + 0.05 + 1e-9

@@ -744,8 +744,10 @@ class RecordedRun:
 
 
 def split_runs(header: dict, records: list[dict]) -> list[RecordedRun]:
-    """Valid states and commands of each run (a run starts at seq 0 or when seq decreases).
-    Records carrying a rejection reason (``why``) are skipped, as the process skipped them."""
+    """Valid states and commands of each run (a run starts at seq 0 after later states, or
+    when seq decreases; state 0 sent again before any step, as a realtime plant does while
+    no command has come, is the run it began). Records carrying a rejection reason
+    (``why``) are skipped, as the process skipped them."""
     nw = len(header["vehicle"]["axle_x"]) * 2
     runs: list[RecordedRun] = []
     cur: RecordedRun | None = None
@@ -761,7 +763,8 @@ def split_runs(header: dict, records: list[dict]) -> list[RecordedRun]:
             except M.MessageError:
                 continue
             seq = st["seq"]
-            if cur is None or seq == 0 and cur.states or (last is not None and seq < last):
+            if cur is None or (seq == 0 and any(cur.states)) or (last is not None
+                                                                   and seq < last):
                 cur = RecordedRun()
                 runs.append(cur)
             last = seq

@@ -378,9 +378,10 @@ class PlantRun:
                 raise PlantRunError(self.port.no_controller())
             self._idle(c.wall(WAIT_CONTROLLER_S))
 
-    def wait_answer(self, k: int, timeout_s: float) -> Command | None:
+    def wait_answer(self, k: int) -> Command | None:
         """The command answering state ``k`` (lockstep: every k; realtime: k = 0); None if
-        stopped; PlantRunError after ``timeout_s``."""
+        stopped; PlantRunError after ``cfg.timeout_s`` (read as the wait goes: a
+        :meth:`reconfigure` during it counts)."""
         c, t0 = self.clock, self.clock.now()
         self.port.unanswered(k, True)
         while True:
@@ -389,6 +390,7 @@ class PlantRun:
             a = self.port.answer(k)
             if a is not None:
                 return a
+            timeout_s = self.cfg.timeout_s
             if c.now() - t0 > timeout_s:
                 raise PlantRunError(self.port.no_answer(k, timeout_s))
             self.port.unanswered(k, False)
@@ -430,7 +432,7 @@ class PlantRun:
         cfg = self.cfg
         self.publish_state(0)
         for k in range(cfg.steps):
-            c = self.wait_answer(k, cfg.timeout_s)
+            c = self.wait_answer(k)
             if c is None:
                 return
             self.apply(k, c.omega_w, c.omega_s)
@@ -442,7 +444,7 @@ class PlantRun:
         cfg, T, st, clock, log = self.cfg, self.cfg.period, self.stats, self.clock, self.log
         self.publish_state(0)
         # the clock starts with the first command (the controller is warm by then)
-        if self.wait_answer(0, cfg.timeout_s) is None:
+        if self.wait_answer(0) is None:
             return
         w0 = clock.now()
         last_pub = w0
@@ -474,7 +476,7 @@ class PlantRun:
                 st.resumes += 1
                 log.warning("resumed normal operation at t = %.2f s (the controller kept up "
                             "for %d periods; newest command answers state %d)", k * T,
-                            cfg.resume_periods, n.state_seq)
+                            self.cfg.resume_periods, n.state_seq)
                 self.rec.event("safe", on=False, t=k * T)
             if d.use_command:
                 u_w, u_s = n.omega_w, n.omega_s
@@ -484,7 +486,8 @@ class PlantRun:
                     self.safe_why = d.entered_safe
                     st.safe_events += 1
                     log.warning("SAFE at t = %.2f s: %s; holding steering, ramping the wheels "
-                                "down at %g m/s^2", k * T, d.entered_safe, cfg.safe_decel)
+                                "down at %g m/s^2", k * T, d.entered_safe,
+                                self.cfg.safe_decel)
                     self.rec.event("safe", on=True, t=k * T, why=d.entered_safe)
                 st.safe_periods += 1
                 u_w, u_s = self._safe_inputs()
@@ -525,7 +528,6 @@ class PlantRun:
             if late <= bound:
                 continue
             if not self._wd_active:
-                self._wd_active = True
                 why = (f"the plant's own loop is {late * 1000:.0f} ms past its deadline "
                        f"(bound {self.cfg.stale_ms:g} ms): the watchdog runs the safe "
                        f"behaviour")
@@ -533,11 +535,16 @@ class PlantRun:
                 # itself: the flag of a state says what the step that made it applied (set
                 # here, a state stepped with the held command could go out flagged safe)
                 with self._trip_lock:  # (its own lock: never one the transport holds)
+                    if gen != self._gen:  # a reset came since the look above: not its run
+                        return
+                    self._wd_active = True
                     self._wd_trip = why
                 st.watchdog_trips += 1
                 self.log.warning("SAFE (watchdog) at t = %.2f s: %s", max(self.seq, 0) * T, why)
             if self.plant_lock.acquire(timeout=self.clock.wall(T)):
                 try:
+                    if gen != self._gen:  # (reset under this lock: its plant is not ours)
+                        return
                     self.plant.set_inputs(*self._safe_inputs())
                     st.watchdog_periods += 1
                 except Exception as e:  # the plant refused: said once per trip, loop decides
@@ -582,16 +589,16 @@ class PlantRun:
         why = self.resettable()
         if why is not None:
             raise PlantRunError(why)
+        with self._trip_lock:  # first: the watchdog of the run before ends (it looks at
+            self._gen += 1  # the generation under this lock and under the plant's)
+            self._wd_trip = None
+            self._due = None
+            self._wd_active = False
         with self.plant_lock:
             self.plant.reset()
         with self.lock:
             self.seq = self.stepped = -1
             self.pub_perf.clear()
-        with self._trip_lock:
-            self._wd_trip = None
-        self._gen += 1  # the watchdog of the run before ends
-        self._due = None
-        self._wd_active = False
         self.safe, self.safe_why = False, ""
         self.watch = CommandWatch(self.cfg.max_missed, self.cfg.resume_periods, self.cfg.period)
         self._recent.clear()

@@ -296,10 +296,6 @@ def plant_main(argv: list[str]) -> int:
         if plant is not None:
             plant.close()
         return _ros_error(prog, e)
-    header = {"role": "plant", "id": "ros2", "vehicle": vehicle.to_dict(), "period": cfg.period,
-              "run_mode": cfg.run_mode, "steps": cfg.steps, "initial": initial,
-              "reference": dict(ref.to_message(), name=ref.name), "transport": "ros2",
-              "argv": list(argv)}
     from msagv.ros2.plant_node import RosPlant, RosPlantError
     from msagv.ros2.runtime import Ros2Unavailable
 
@@ -307,12 +303,24 @@ def plant_main(argv: list[str]) -> int:
     sig.install()
     rec = node = None
     try:
+        # the node first: its parameters (-p, --params-file) are the run's settings, and a
+        # bad one is refused before a recording is opened (an existing file left as it was)
+        node = RosPlant(plant, cfg, ros_args, stop=sig.event, managed=a.managed)
+        cfg = node.cfg
+        header = {"role": "plant", "id": "ros2", "vehicle": vehicle.to_dict(),
+                  "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,
+                  "initial": initial, "reference": dict(ref.to_message(), name=ref.name),
+                  "transport": "ros2", "argv": list(argv)}
         rec = open_recording(a, header)
         rec = open_foxglove(a, prog, header, rec)
-        node = RosPlant(plant, cfg, ros_args, recorder=rec, stop=sig.event, managed=a.managed)
+        if rec is not None:
+            node.attach_recorder(rec)
     except (Ros2Unavailable, *USAGE_ERRORS) as e:
         if rec is not None:
             rec.close({})
+        if node is not None:
+            node.close()
+        plant.close()
         return _ros_error(prog, e)
     rc = EXIT_OK
     try:

@@ -210,9 +210,8 @@ def _run(a, scenario, built, view, fox=None):
 
 
 def _floors(scenario, vehicle, ref, ran: float, metrics: dict):
-    """The wear floor (the least wear within 1 cm of the path) over the ``ran`` seconds of
-    the run
-    (:func:`controller.floors.wear_floors`, as the study's, with the plant's vehicle) and
+    """The wear floor (the least wear within 1 cm and 2 deg of the path) over the ``ran``
+    seconds of the run (:func:`controller.floors.wear_floors`, as the study's, with the plant's vehicle) and
     the floor the run's ``metrics`` lie below 0.995 x of: ``(floors, broken)``;
     ``(None, [])`` for a run too short to have any (under 0.3 s)."""
     from msagv.controller.floors import broken_floor, wear_floors

@@ -64,6 +64,7 @@ METRICS = ("W_tw", "W_s", "W_alpha", "W_t", "e_lat_rms_cm", "e_lat_max_cm", "e_p
            "e_phi_deg", "e_phi_max_deg", "e_bar", "Omega",
            "W_tw_per_km")  # W_tw_per_km: controller.metrics.work_per_km
 WITHIN = f"{100.0 * FLOOR_TOL_M:g} cm and {FLOOR_TOL_PHI_DEG:g} deg"  # what a floor holds to
+BEYOND = f"{100.0 * FLOOR_TOL_M:g} cm or {FLOOR_TOL_PHI_DEG:g} deg"  # and what leaves it
 BOOTSTRAP = 2000
 LEVELS_CM = (0.25, 0.5, 1.0, 2.0)  # equal-error levels [cm of lateral RMS]
 TOLERANCES_CM = (0.5, 1.0, 5.0)  # the tolerance forms: NTWO's error + these [cm]
@@ -205,10 +206,11 @@ def _stray_range(rs: list[dict]) -> str:
 
 
 def broken_floor_warnings(rows: list[dict]) -> list[str]:
-    """One warning per scenario instance with runs below 0.995 of their floor within its
-    1 cm of the path (:func:`controller.floors.broken_floor`): how many, which parts, the
-    lowest ratio and that run's lateral error; and one line per instance whose runs went
-    below it only further off the path (they do not break it: said, never silent)."""
+    """One warning per scenario instance with runs below 0.995 of their floor within what it
+    bounds (1 cm and 2 deg of the path: :func:`experiments.results.split_below_floor`):
+    how many, which parts, the lowest ratio and that run's lateral error; and one line per
+    instance whose runs went below it only off the path (they do not break it: said, never
+    silent)."""
     out = []
     for field, off in (("floor_broken", False), ("below_floor_off_path", True)):
         by: dict[str, list[dict]] = {}
@@ -232,7 +234,7 @@ def broken_floor_warnings(rows: list[dict]) -> list[str]:
                     f"{_f(worst.get('e_lat_rms_cm'), 3)} cm")
             if off:
                 out.append(f"below the floor off the path: {sc}: {head}), each straying "
-                           f"beyond {WITHIN} ({_stray_range(rs)}): the floor bounds only "
+                           f"beyond {BEYOND} ({_stray_range(rs)}): the floor bounds only "
                            f"motions within {WITHIN}, so these runs do not break it")
             else:
                 out.append(f"broken floor: {sc}: {head}): the floor is not a lower bound "
@@ -819,8 +821,8 @@ def plot_fronts(fam: list[dict], rows: list[dict], path: Path,
                 titles: dict | None = None) -> None:
     """Per scenario class: each family's mean wear over the floor against its mean lateral
     error, one point per lever level (a line along the lever), with 95 % bootstrap bars
-    over the class's scenarios; the floor (the least wear within 1 cm of the path) as the
-    line W / floor = 1.
+    over the class's scenarios; the floor (the least wear within 1 cm and 2 deg of the path)
+    as the line W / floor = 1.
     ``titles``: a panel's title other than its class's name (the user's scenario)."""
     from .plots import WIDTH, pyplot, style
 

@@ -220,6 +220,12 @@ class RosPlant:
             self.active = True
         self.ctx.node.add_on_set_parameters_callback(self._on_set_parameters)
 
+
+    def attach_recorder(self, recorder) -> None:
+        """Record the run into ``recorder`` from now on (before :meth:`run`): the command
+        line opens the recording once the parameters in force are known, so that its header
+        says the run's period and mode as ``-p`` and ``--params-file`` set them."""
+        self.core.rec = self.rec = recorder
     def _declare(self) -> None:
         """The node's topics, ``/diagnostics`` and its services ``~/rearm`` and
         ``~/reset``."""
@@ -431,7 +437,14 @@ class RosPlant:
         (a reset is no re-arm)."""
         k = self.seq
         why = ("not configured" if not self.configured else self.core.resettable())
-        if why is None and self.cfg.run_mode == "lockstep" and k >= 0 and \
+        if why is None and k <= 0:  # nothing stepped: the vehicle is where it started (a
+            # reset would send state 0 again with the same stamp, which a controller takes
+            # for a repeat, not for a new run)
+            response.success = True
+            response.message = ("reset: nothing to do, the run is at state 0 (the vehicle "
+                                "at its initial state)")
+            return response
+        if why is None and self.cfg.run_mode == "lockstep" and \
                 self.answer(k) is None:
             why = (f"lockstep: state {k}'s answer is outstanding (an answer in flight would "
                    f"be taken as the new state 0's); deactivate the plant, then reset")
@@ -578,9 +591,12 @@ class RosPlant:
         return self.summary()
 
     def close(self) -> None:
-        """A managed node not shut down yet is (a signal, the run's end), then its
-        context closed."""
+        """The last status on ``/diagnostics`` (the run ended, or ERROR: it failed; the
+        timer publishes only while the run waits), then a managed node not shut down yet
+        is (a signal, the run's end), then its context closed."""
         try:
+            if self.diag is not None and self.configured:
+                self.diag.publish()
             if self.managed and not self._ended:
                 self.ctx.node.trigger_shutdown()
         except Exception as e:  # (e.g. a second signal in mid-transition): the summary
