@@ -142,3 +142,17 @@ def test_a_run_reports_its_wear_floors_and_flags_a_broken_one(capsys):
     flagged = [w for w in doc["warnings"] if w.startswith(("broken floor", "below the floor"))]
     assert flagged == ([broken_floor_warning(broken)] if broken else []) + \
         ([off_path_floor_note(off)] if off else [])
+    # a run that does not start on the reference (--initial, --from-rest) is held to the
+    # floor of any start (the floor's own starts with the reference's velocities): lower
+    # or equal, a relaxation
+    rc, out, err = run(capsys, "run", "--case", "curve", "--speed", "15", "--duration", "1",
+                       "--initial", "u=3.0", "--json")
+    assert rc == 0, err
+    doc = json.loads(out)
+    sc = Scenario(case="curve", speed=15.0)
+    ref, _ = sc.reference()
+    veh = sc.actual_vehicle(sc.resolve_vehicle())
+    free = wear_floors(ref, veh, 0.0, 1.0, dt=0.05, fixed_start=False).as_dict()
+    fixed = wear_floors(ref, veh, 0.0, 1.0, dt=0.05).as_dict()
+    assert doc["floors"] == pytest.approx(free, rel=1e-9)
+    assert free["W_tw_floor"] <= fixed["W_tw_floor"] * (1 + 1e-6)

@@ -213,13 +213,17 @@ def _floors(scenario, vehicle, ref, ran: float, metrics: dict):
     """The wear floor (the least wear within 1 cm and 2 deg of the path) over the ``ran``
     seconds of the run (:func:`controller.floors.wear_floors`, as the study's, with the plant's vehicle) and
     the floor the run's ``metrics`` lie below 0.995 x of: ``(floors, broken)``;
-    ``(None, [])`` for a run too short to have any (under 0.3 s)."""
+    ``(None, [])`` for a run too short to have any (under 0.3 s). A run that does not start
+    on the reference (``--from-rest``, ``--initial``) gets the floor of any start: the
+    floor's own starts with the reference's heading and velocities."""
     from msagv.controller.floors import broken_floor, wear_floors
 
     if ran < 0.3:
         return None, []
     t0 = float(ref.t[0])
-    f = wear_floors(ref, scenario.actual_vehicle(vehicle), t0, t0 + ran, dt=0.05).as_dict()
+    on_ref = not (scenario.from_rest or scenario.initial)
+    f = wear_floors(ref, scenario.actual_vehicle(vehicle), t0, t0 + ran, dt=0.05,
+                    fixed_start=on_ref).as_dict()
     return f, broken_floor(metrics, f)
 
 

@@ -242,10 +242,13 @@ def _solve_window(reference, vehicle: Vehicle, t0: float, t1: float, tol: float,
 
 def wear_floors(reference, vehicle: Vehicle, t0: float, t1: float, dt: float = 0.05,
                 tol: float = FLOOR_TOL_M, tol_phi_deg: float | None = FLOOR_TOL_PHI_DEG,
-                window: float = FLOOR_WINDOW_S, max_iter: int = 3000) -> Floors:
+                window: float = FLOOR_WINDOW_S, max_iter: int = 3000,
+                fixed_start: bool = True) -> Floors:
     """The wear floor of keeping within ``tol`` [m] of ``reference``'s position and within
     ``tol_phi_deg`` of its heading (None: any heading) with ``vehicle`` over [t0, t1],
-    starting with the reference's heading and velocities (module docstring): ``dt`` the
+    starting with the reference's heading and velocities (module docstring; with
+    ``fixed_start`` false from any, within the tolerances: the floor of a run that starts
+    elsewhere, e.g. at rest, a lower bound for any start): ``dt`` the
     collocation step [s], ``window`` the longest part solved at once [s]. Raises
     ValueError on an empty window or a bad step or tolerance, RuntimeError if IPOPT does
     not solve a part."""
@@ -262,7 +265,7 @@ def wear_floors(reference, vehicle: Vehicle, t0: float, t1: float, dt: float = 0
     for j in range(parts):
         t, P, d, Wj, c, _, _ = _solve_window(reference, vehicle, float(edges[j]),
                                              float(edges[j + 1]), tol, dt, max_iter, tol_phi,
-                                             fixed_start=j == 0)
+                                             fixed_start=fixed_start and j == 0)
         keep = slice(0 if j == 0 else 1, None)  # a joint's node once (the later part's)
         ts.append(t[keep])
         Ps.append(P[keep])
