@@ -598,36 +598,33 @@ def _stock_session(port: int):
     return zenoh.open(conf)
 
 
-def _token_flood(procs, bus, n_tokens: int, hold_periods: int):
-    """A realtime plant and its controller; a stock session declares ``n_tokens`` liveliness
-    tokens under the vehicle's controller prefix (as any process on the plain bus may). The
-    plant's states keep coming while they are held and after they are gone, the plant
-    counts what it did not track, and SIGTERM ends it with its summary."""
+def _realtime_flood(procs, bus, what: str, flood, hold_periods: int):
+    """A realtime plant and its controller; ``flood(port)`` declares liveliness tokens under
+    the vehicle's controller prefix (as any process on the plain bus may) on the plant's
+    port and returns the callable that takes them away. The plant's states keep coming
+    while they are held and after they are gone, the live owner is never taken for lost,
+    and SIGTERM ends the plant with its summary. Returns the summary and the seconds from
+    SIGTERM to the process's exit."""
     P = free_port()
     procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 600,
                                "--listen", ep(P), "--connect", ep(bus.port), "--json"))
     procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
                              "-q"))
     bus.wait_for(lambda st: st and st[-1][1]["seq"] >= 100, 180, "1 s of realtime steps")
-    z = _stock_session(P)
-    tokens = []
+    undo = None
     try:
-        lv = z.liveliness()
-        for i in range(n_tokens):
-            tokens.append(lv.declare_token(f"msagv/agv0/alive/controller/flood{i:05d}"))
+        undo = flood(P)
         k0 = bus.states[-1][1]["seq"]
         # the plant keeps stepping (event-driven: no bound on how fast, only that it does)
         bus.wait_for(lambda st: st[-1][1]["seq"] >= k0 + hold_periods, 120,
-                     f"{hold_periods} more states during the flood of {n_tokens} tokens")
-        for tok in tokens:
-            tok.undeclare()
-        tokens = []
+                     f"{hold_periods} more states during the flood of {what}")
+        undo, u = None, undo
+        u()
         k1 = bus.states[-1][1]["seq"]
         bus.wait_for(lambda st: st[-1][1]["seq"] >= k1 + 100, 120, "states after the flood")
     finally:
-        for tok in tokens:
-            tok.undeclare()
-        z.close()
+        if undo is not None:
+            undo()
     assert procs.p["plant"].poll() is None, procs.err("plant")[-3000:]
     t0 = time.monotonic()
     procs.p["plant"].send_signal(signal.SIGTERM)
@@ -639,6 +636,24 @@ def _token_flood(procs, bus, n_tokens: int, hold_periods: int):
     assert s["ownership"]["latches"] == 0 and s["controller_losses"] == 0, \
         (s["ownership"], procs.err("plant")[-3000:])
     return s, stop_s
+
+
+def _token_flood(procs, bus, n_tokens: int, hold_periods: int):
+    """One stock session declares ``n_tokens`` tokens (:func:`_realtime_flood`)."""
+
+    def flood(port: int):
+        z = _stock_session(port)
+        lv = z.liveliness()
+        tokens = [lv.declare_token(f"msagv/agv0/alive/controller/flood{i:05d}")
+                  for i in range(n_tokens)]
+
+        def undo():
+            for tok in tokens:
+                tok.undeclare()
+            z.close()
+        return undo
+
+    return _realtime_flood(procs, bus, f"{n_tokens} tokens", flood, hold_periods)
 
 
 @pytest.mark.timeout(400)
@@ -663,6 +678,105 @@ def test_liveliness_token_flood_10000(procs, bus):
     print(f"\n10000 tokens: presence {pr}, safe {s['safe']}; the plant stopped {stop_s:.2f} s "
           f"after SIGTERM (including the process's exit; loop left behind: "
           f"{s.get('run_abandoned', False)}, close left behind: {s.get('close_abandoned', False)})")
+
+# Stock zenoh-python only (none of this project's code): N peer sessions connected to a port,
+# one token each under the controller prefix; prints one JSON line when they are open, and
+# at SIGTERM undeclares them, closes them and prints another
+_SESSIONS_SCRIPT = r"""
+import json, os, signal, sys, threading, time
+import zenoh
+
+port, n, tag = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *a: stop.set())
+sessions, tokens = [], []
+t0 = time.monotonic()
+for i in range(n):
+    if stop.is_set():
+        break
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    c.insert_json5("listen/endpoints", "[]")
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("scouting/gossip/enabled", "false")
+    z = zenoh.open(c)
+    sessions.append(z)
+    tokens.append(z.liveliness().declare_token(f"msagv/agv0/alive/controller/{tag}{i:04d}"))
+open_s = time.monotonic() - t0
+with open("/proc/self/status") as f:
+    rss = next(int(ln.split()[1]) for ln in f if ln.startswith("VmRSS:")) / 1024
+print(json.dumps({"opened": len(sessions), "open_s": open_s, "rss_mb": rss,
+                  "linked": sum(1 for z in sessions if list(z.info.peers_zid()))}), flush=True)
+stop.wait()
+t0 = time.monotonic()
+for tok in tokens:
+    tok.undeclare()
+for z in sessions:
+    z.close()
+print(json.dumps({"closed": len(sessions), "close_s": time.monotonic() - t0}), flush=True)
+"""
+# sessions per helper process: one process of stock zenoh-python here linked 351 sessions
+# to one listener and no more (the rest open after ~0.5 s each with no link, no error)
+SESSIONS_PER_PROCESS = 250
+
+
+def _session_flood(procs, bus, n_sessions: int, hold_periods: int):
+    """``n_sessions`` stock sessions, from helper processes of at most
+    SESSIONS_PER_PROCESS each, declare one token each (:func:`_realtime_flood`). Returns
+    the summary, the seconds from SIGTERM to the plant's exit and what the helpers said."""
+    helpers = [f"sessions{j}" for j in range(-(-n_sessions // SESSIONS_PER_PROCESS))]
+    opened: list[dict] = []
+
+    def flood(port: int):
+        for j, name in enumerate(helpers):
+            n = min(SESSIONS_PER_PROCESS, n_sessions - j * SESSIONS_PER_PROCESS)
+            procs.start(name, [PY, "-c", _SESSIONS_SCRIPT, str(port), str(n), f"s{j}_"])
+        t0 = time.monotonic()
+        for name in helpers:  # each prints a line once its sessions are open
+            while not procs.out(name).strip():
+                assert procs.p[name].poll() is None, procs.err(name)[-3000:]
+                assert time.monotonic() - t0 < 600, f"{name}: sessions not open in 600 s"
+                time.sleep(0.2)
+            opened.append(json.loads(procs.out(name).splitlines()[0]))
+
+        def undo():
+            for name in helpers:
+                procs.p[name].send_signal(signal.SIGTERM)
+            for name in helpers:
+                assert procs.wait(name, 120) == 0, procs.err(name)[-3000:]
+        return undo
+
+    s, stop_s = _realtime_flood(procs, bus, f"{n_sessions} sessions", flood, hold_periods)
+    assert sum(o["opened"] for o in opened) == n_sessions
+    linked = sum(o["linked"] for o in opened)
+    pr = s["presence"]
+    # every linked session's token reached the plant: at most its bound tracked, the rest
+    # counted (the owner's own token is among the tracked)
+    assert pr["tracked_max"] <= pr["bound"] < linked
+    assert pr["untracked"] >= linked - pr["bound"]
+    took = ", ".join(f"{o['open_s']:.1f}" for o in opened)
+    rss = ", ".join(f"{o['rss_mb']:.0f}" for o in opened)
+    print(f"\n{n_sessions} sessions from {len(helpers)} processes ({linked} linked; opening "
+          f"took {took} s, helper RSS {rss} MB): presence {pr}, safe "
+          f"{s['safe']}; the plant stopped {stop_s:.2f} s after SIGTERM (including the "
+          f"process's exit; loop left behind: {s.get('run_abandoned', False)}, close left "
+          f"behind: {s.get('close_abandoned', False)}); load {os.getloadavg()[0]:.1f}")
+    return s, stop_s, opened
+
+
+@pytest.mark.timeout(400)
+def test_liveliness_session_flood_does_not_freeze_a_realtime_plant(procs, bus):
+    """Issue 30, goal 1's other form, short: 150 stock sessions with one token each."""
+    _session_flood(procs, bus, n_sessions=150, hold_periods=300)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1500)
+def test_liveliness_session_flood_1000(procs, bus):
+    """Issue 30's goal at full size: 1,000 stock sessions, one token each."""
+    _session_flood(procs, bus, n_sessions=1000, hold_periods=1000)
+
 
 # ---- the router setup holds its live owner (issue 30, item 4) -----------------------------
 def _router_runs(procs, runs: int, duration: float):
