@@ -719,8 +719,7 @@ for z in sessions:
     z.close()
 print(json.dumps({"closed": len(sessions), "close_s": time.monotonic() - t0}), flush=True)
 """
-# sessions per helper process: one process of stock zenoh-python here linked 351 sessions
-# to one listener and no more (the rest open after ~0.5 s each with no link, no error)
+# sessions per helper process (the helpers open theirs side by side)
 SESSIONS_PER_PROCESS = 250
 
 
@@ -751,16 +750,8 @@ def _session_flood(procs, bus, n_sessions: int, hold_periods: int):
         return undo
 
     s, stop_s = _realtime_flood(procs, bus, f"{n_sessions} sessions", flood, hold_periods)
-    assert sum(o["opened"] for o in opened) == n_sessions
-    # every session got its link to the plant (Zenoh's shared memory, on by default, let a
-    # listener link 351 peers here and no more: a flood of them kept any later peer out)
     linked = sum(o["linked"] for o in opened)
-    assert linked == n_sessions, (opened, s["presence"])
     pr = s["presence"]
-    # every linked session's token reached the plant: at most its bound tracked, the rest
-    # counted (the owner's own token is among the tracked)
-    assert pr["tracked_max"] <= pr["bound"] < linked
-    assert pr["untracked"] >= linked - pr["bound"]
     took = ", ".join(f"{o['open_s']:.1f}" for o in opened)
     rss = ", ".join(f"{o['rss_mb']:.0f}" for o in opened)
     print(f"\n{n_sessions} sessions from {len(helpers)} processes ({linked} linked; opening "
@@ -768,6 +759,18 @@ def _session_flood(procs, bus, n_sessions: int, hold_periods: int):
           f"{s['safe']}; the plant stopped {stop_s:.2f} s after SIGTERM (including the "
           f"process's exit; loop left behind: {s.get('run_abandoned', False)}, close left "
           f"behind: {s.get('close_abandoned', False)}); load {os.getloadavg()[0]:.1f}")
+    assert sum(o["opened"] for o in opened) == n_sessions
+    # every session got its link to the plant, up to Zenoh's bound of a listener's sessions
+    # (the controller and the test's bus hold two of them). Zenoh's shared memory, on by
+    # default, let a listener link 351 peers here and no more: a flood kept any later out
+    import zenoh
+
+    limit = json.loads(zenoh.Config().get_json("transport/unicast/max_sessions"))
+    assert linked == min(n_sessions, limit - 2), (opened, s["presence"])
+    # every linked session's token reached the plant: at most its bound tracked, the rest
+    # counted (the owner's own token is among the tracked)
+    assert pr["tracked_max"] <= pr["bound"] < linked
+    assert pr["untracked"] >= linked - pr["bound"]
     return s, stop_s, opened
 
 
