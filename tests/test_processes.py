@@ -686,7 +686,7 @@ _SESSIONS_SCRIPT = r"""
 import json, os, signal, sys, threading, time
 import zenoh
 
-port, n, tag = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+port, n = int(sys.argv[1]), int(sys.argv[2])
 stop = threading.Event()
 signal.signal(signal.SIGTERM, lambda *a: stop.set())
 sessions, tokens = [], []
@@ -702,7 +702,7 @@ for i in range(n):
     c.insert_json5("scouting/gossip/enabled", "false")
     z = zenoh.open(c)
     sessions.append(z)
-    tokens.append(z.liveliness().declare_token(f"msagv/agv0/alive/controller/{tag}{i:04d}"))
+    tokens.append(z.liveliness().declare_token(f"msagv/agv0/alive/controller/s{i:04d}"))
 open_s = time.monotonic() - t0
 linked = lambda: sum(1 for z in sessions if list(z.info.peers_zid()))
 while linked() < len(sessions) and time.monotonic() - t0 < open_s + 60 and not stop.is_set():
@@ -719,54 +719,41 @@ for z in sessions:
     z.close()
 print(json.dumps({"closed": len(sessions), "close_s": time.monotonic() - t0}), flush=True)
 """
-# sessions per helper process (the helpers open theirs side by side)
-SESSIONS_PER_PROCESS = 250
-
-
 def _session_flood(procs, bus, n_sessions: int, hold_periods: int):
-    """``n_sessions`` stock sessions, from helper processes of at most
-    SESSIONS_PER_PROCESS each, declare one token each (:func:`_realtime_flood`). Returns
-    the summary, the seconds from SIGTERM to the plant's exit and what the helpers said."""
-    helpers = [f"sessions{j}" for j in range(-(-n_sessions // SESSIONS_PER_PROCESS))]
-    opened: list[dict] = []
+    """``n_sessions`` stock sessions, opened by one helper process, declare one token each
+    (:func:`_realtime_flood`). Returns the summary, the seconds from SIGTERM to the plant's
+    exit and what the helper said of its sessions."""
+    opened: dict = {}
 
     def flood(port: int):
-        for j, name in enumerate(helpers):
-            n = min(SESSIONS_PER_PROCESS, n_sessions - j * SESSIONS_PER_PROCESS)
-            procs.start(name, [PY, "-c", _SESSIONS_SCRIPT, str(port), str(n), f"s{j}_"])
+        procs.start("sessions", [PY, "-c", _SESSIONS_SCRIPT, str(port), str(n_sessions)])
         t0 = time.monotonic()
-        for name in helpers:  # each prints a line once its sessions are open
-            while not procs.out(name).strip():
-                assert procs.p[name].poll() is None, procs.err(name)[-3000:]
-                assert time.monotonic() - t0 < 600, f"{name}: sessions not open in 600 s"
-                time.sleep(0.2)
-            opened.append(json.loads(procs.out(name).splitlines()[0]))
+        while not procs.out("sessions").strip():  # a line once its sessions are open
+            assert procs.p["sessions"].poll() is None, procs.err("sessions")[-3000:]
+            assert time.monotonic() - t0 < 600, "the sessions were not open in 600 s"
+            time.sleep(0.2)
+        opened.update(json.loads(procs.out("sessions").splitlines()[0]))
 
         def undo():
-            for name in helpers:
-                procs.p[name].send_signal(signal.SIGTERM)
-            for name in helpers:
-                assert procs.wait(name, 120) == 0, procs.err(name)[-3000:]
+            procs.p["sessions"].send_signal(signal.SIGTERM)
+            assert procs.wait("sessions", 120) == 0, procs.err("sessions")[-3000:]
         return undo
 
     s, stop_s = _realtime_flood(procs, bus, f"{n_sessions} sessions", flood, hold_periods)
-    linked = sum(o["linked"] for o in opened)
-    pr = s["presence"]
-    took = ", ".join(f"{o['open_s']:.1f}" for o in opened)
-    rss = ", ".join(f"{o['rss_mb']:.0f}" for o in opened)
-    print(f"\n{n_sessions} sessions from {len(helpers)} processes ({linked} linked; opening "
-          f"took {took} s, helper RSS {rss} MB): presence {pr}, safe "
-          f"{s['safe']}; the plant stopped {stop_s:.2f} s after SIGTERM (including the "
-          f"process's exit; loop left behind: {s.get('run_abandoned', False)}, close left "
-          f"behind: {s.get('close_abandoned', False)}); load {os.getloadavg()[0]:.1f}")
-    assert sum(o["opened"] for o in opened) == n_sessions
+    linked, pr = opened["linked"], s["presence"]
+    print(f"\n{n_sessions} sessions ({linked} linked; opened in {opened['open_s']:.1f} s, "
+          f"helper RSS {opened['rss_mb']:.0f} MB): presence {pr}, safe {s['safe']}; the plant "
+          f"stopped {stop_s:.2f} s after SIGTERM (including the process's exit; loop left "
+          f"behind: {s.get('run_abandoned', False)}, close left behind: "
+          f"{s.get('close_abandoned', False)}); load {os.getloadavg()[0]:.1f}")
+    assert opened["opened"] == n_sessions
     # every session got its link to the plant, up to Zenoh's bound of a listener's sessions
     # (the controller and the test's bus hold two of them). Zenoh's shared memory, on by
     # default, let a listener link 351 peers here and no more: a flood kept any later out
     import zenoh
 
     limit = json.loads(zenoh.Config().get_json("transport/unicast/max_sessions"))
-    assert linked == min(n_sessions, limit - 2), (opened, s["presence"])
+    assert linked == min(n_sessions, limit - 2), (opened, pr)
     # every linked session's token reached the plant: at most its bound tracked, the rest
     # counted (the owner's own token is among the tracked)
     assert pr["tracked_max"] <= pr["bound"] < linked
