@@ -501,6 +501,8 @@ def test_session_defaults_loopback_and_no_scouting():
     assert json.loads(c.get_json("scouting/multicast/enabled")) is False
     assert json.loads(c.get_json("scouting/gossip/enabled")) is False
     assert json.loads(c.get_json("transport/link/tx/lease")) == 1000
+    # Zenoh's shared memory capped a listener's links (tests/test_processes.py -k session_flood)
+    assert json.loads(c.get_json("transport/shared_memory/enabled")) is False
     c = make_config(SessionOptions(), "controller")
     assert json.loads(c.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7448"]
     assert json.loads(c.get_json("listen/endpoints")) == []

@@ -383,6 +383,68 @@ def test_a_plant_that_was_itself_stalled_gives_its_owners_token_time_to_come_bac
         n.close()
 
 
+@pytest.mark.parametrize("stopping", [False, True])
+def test_a_stopping_plant_judges_its_owner_by_no_liveliness_event(bus, caplog, stopping):
+    """Once the plant is stopping (a signal set ``stop``), ``_on_token`` and
+    ``_recheck_owner`` ignore every liveliness event: a flood run once latched its live
+    owner at the stop (issue 30; the bus's DELETEs, or the node's own close of its token
+    watch, arrive while a loop held by the bus runs on beside the close). Before the stop
+    the same DELETE of the owner's token, confirmed by the token query, is the owner lost:
+    the vehicle latches (docs/PROTOCOL.md, "Ownership")."""
+    import logging
+
+    from msagv.bridge.ownership import claim
+    from msagv.bridge.plant_node import PlantConfig, PlantNode
+    from msagv.bridge.session import Keys
+    from msagv.plant import Plant, default_vehicle
+
+    caplog.set_level(logging.DEBUG)
+    k = Keys("t0")
+    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
+                  PlantConfig(run_mode="realtime", steps=10))
+    n.open(bus.endpoint("p1"))
+    try:
+        c1 = bus.endpoint("c1")
+        token = c1.declare_token(k.controller_token("c1"))
+        assert claim(c1, k, 0)[0][1]["granted"]
+        n.publish_state(0)  # the run has started: a lost owner now latches the vehicle
+        assert n.controller_present and n.ownership.owner == "c1"
+        judged = threading.Event()  # the node's _on_token has had the token's loss
+        on_change = n._tokens.on_change
+
+        def seen(zid, present):
+            on_change(zid, present)
+            if zid == "c1" and not present:
+                judged.set()
+
+        n._tokens.on_change = seen
+        if stopping:
+            n.stop.set()
+        caplog.clear()
+        assert bus.vanish(k.controller_token("c1")) == 1  # its DELETE, the query confirms it
+        assert judged.wait(10.0), "the token watch never passed the owner's loss on"
+        o = n.ownership
+        lost = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        if not stopping:
+            assert (o.state, o.owner, o.losses, o.latches) == ("latched", None, 1, 1)
+            assert not n.controller_present and n.stats.controller_losses == 1
+            assert any("latched" in m for m in lost), lost
+            return
+        n._recheck_owner("c1")  # a stall's second look, after the stop: ignored too
+        assert (o.state, o.owner, o.losses, o.latches) == ("owned", "c1", 0, 0)
+        assert n.controller_present and n.stats.controller_losses == 0
+        assert lost == [] and n.summary()["ownership"]["latches"] == 0
+        assert any("while stopping: ignored" in r.getMessage() for r in caplog.records)
+        # the rule is the stop: without it the same second look finds the token gone
+        n.stop.clear()
+        n._recheck_owner("c1")
+        assert (o.state, o.owner, o.losses, o.latches) == ("latched", None, 1, 1)
+        assert not n.controller_present and n.stats.controller_losses == 1
+        del token
+    finally:
+        n.close()
+
+
 def test_params_are_read_only_and_only_the_owners_claim_asks_for_the_wheel_wear(bus):
     """Issue 22, item 3: an observer's params query changes nothing the controller receives;
     the per-wheel wear goes out when the owner's claim asks for it."""

@@ -469,10 +469,13 @@ def test_protocol_md_tables_match_the_code():
     assert limits["reference"] == (f"{kib(Msg.MAX_REFERENCE_BYTES)} (at most "
                                    f"{Msg.MAX_REFERENCE_SAMPLES:,} samples)")
     assert limits["claim, grant, arm, armed"] == kib(O.MAX_CLAIM_BYTES)
-    # section 1: Zenoh's limit, and the client's connect timeout
+    # section 1: Zenoh's limit, the client's connect timeout, shared memory
     cfg = {r[0]: r[1] for r in _table(doc, "| config key | value | why |")}
     assert cfg["transport/link/rx/max_message_size"].startswith(f"{session.MAX_MESSAGE_BYTES} ")
     assert cfg["connect/timeout_ms"].startswith(f"{session.CLIENT_CONNECT_TIMEOUT_MS} ")
+    shm = session.make_config(session.SessionOptions(), "plant").get_json(
+        "transport/shared_memory/enabled")
+    assert cfg["transport/shared_memory/enabled"].startswith(f"{shm} ")
     # the timing the page states
     assert f"every {plant_node.RESEND_S:g} s" in doc  # lockstep re-send (4.1)
     assert f"claims every {O.CLAIM_RETRY_S:g} s until granted, then every {O.CLAIM_REFRESH_S:g} s" \

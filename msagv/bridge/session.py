@@ -15,6 +15,10 @@ One helper turns ``--id/--connect/--listen/--mode/--zenoh-config/--lease-ms`` in
   its router);
 * a shortened transport lease (default 1 s instead of 10 s), so the loss of a process and
   of its liveliness token is noticed within about a second;
+* no shared memory (``transport/shared_memory/enabled = false``): with Zenoh's default the
+  plant linked 351 sessions and no more (issue 30: a flood of sessions kept any later peer
+  out; docs/PROTOCOL.md section 1); the protocol's messages are small and none is a
+  shared-memory buffer;
 * a maximum message size on the transport (:data:`MAX_MESSAGE_BYTES`, just above the
   largest message of the protocol, 1 MiB): Zenoh buffers at most that much of a larger
   message and drops it, so it never reaches, nor stalls, a process (Zenoh tells the
@@ -245,6 +249,10 @@ def make_config(opts: SessionOptions, role: str):
     default("scouting/gossip/enabled", "false")
     default("scouting/delay", "0")
     default("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
+    # no shared memory (the protocol's messages are small; none is a shared-memory buffer):
+    # with Zenoh's default (on) the plant linked 351 sessions and no more, so a flood of
+    # stock sessions kept every later peer, a restarted controller too, off it
+    default("transport/shared_memory/enabled", "false")
     # DESIGN.md: the retry keys are accepted only as one object
     ins("connect/retry", RETRY)
     if opts.mode != "client":
