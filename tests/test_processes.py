@@ -462,7 +462,14 @@ def test_plant_killed_controller_stops_commanding_exits_or_waits(procs, bus, tmp
     assert procs.json("plant2")["commands"]["accepted"] == 30
     procs.p["ctl_wait"].send_signal(signal.SIGINT)
     assert procs.wait("ctl_wait", 30) == 0
-    assert procs.json("ctl_wait")["new_runs"] == 2
+    # plant2's run is a new one for it: its second, after the first plant's (solved and
+    # sent as its owner, or solved and held as the other claimer: not_granted). Its first
+    # if no state of the first plant reached it: Zenoh's half-connected session above,
+    # seen once at load 5-6 with the plant's token delivered and its states not (then it
+    # solved nothing before plant2's 30 states)
+    s = procs.json("ctl_wait")
+    saw_first = s["answered"] > 30 or s["not_granted"] > 0 or s["duplicates"] > 0
+    assert s["new_runs"] == (2 if saw_first else 1), s
 
 
 # ---- several vehicles through a router ----------------------------------------------------
