@@ -584,7 +584,9 @@ class PlantRun:
         the safe behaviour and its counts of periods (``periods``) afresh; the run then
         starts again as a new one would (waits for a controller, sends state 0). Call it
         from the run's thread (a port's callback in ``idle``): the wait it is called in
-        starts the run again. The command counters and the round-trip statistics go on
+        starts the run again. The port forgets the answers it holds itself (a command
+        names the state it answers by its index: the run before's answer to state 0
+        would answer the new state 0; the ROS 2 plant clears them in its ``~/reset``). The command counters and the round-trip statistics go on
         over the process (:attr:`resets` counts the resets)."""
         why = self.resettable()
         if why is not None:
