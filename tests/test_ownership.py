@@ -205,16 +205,24 @@ def bus():
     assert not b.errors, b.errors
 
 
+def _open_plant(bus, k, run_mode: str = "realtime", **kw):
+    """A plant node of 10 steps (the paper's vehicle at 4 m/s) open on the bus as ``p1``,
+    no state published yet; ``kw``: PlantNode's (``recorder``)."""
+    from msagv.bridge.plant_node import PlantConfig, PlantNode
+    from msagv.plant import Plant, default_vehicle
+
+    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
+                  PlantConfig(run_mode=run_mode, steps=10), **kw)
+    n.open(bus.endpoint("p1"))
+    return n
+
+
 @pytest.fixture
 def plant_node(bus):
     """A realtime plant on the bus as ``p1``, state 0 published."""
-    from msagv.bridge.plant_node import PlantConfig, PlantNode
     from msagv.bridge.session import Keys
-    from msagv.plant import Plant, default_vehicle
 
-    node = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), Keys("t0"),
-                     PlantConfig(run_mode="realtime", steps=10))
-    node.open(bus.endpoint("p1"))
+    node = _open_plant(bus, Keys("t0"))
     node.publish_state(0)
     try:
         yield node
@@ -301,14 +309,10 @@ def test_a_latched_plant_grants_nothing_until_an_operator_arms_it_for_a_named_co
     nor the lost owner gets it back; an operator's arm naming c2 lets only c2 drive; the
     latch, the arm and the new owner are recorded and in the summary."""
     from msagv.bridge.ownership import arm, claim
-    from msagv.bridge.plant_node import PlantConfig, PlantNode
     from msagv.bridge.session import Keys
-    from msagv.plant import Plant, default_vehicle
 
     k, rec = Keys("t0"), Events()
-    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
-                  PlantConfig(run_mode="realtime", steps=10), recorder=rec)
-    n.open(bus.endpoint("p1"))
+    n = _open_plant(bus, k, recorder=rec)
     try:
         c1 = bus.endpoint("c1")
         token = c1.declare_token(k.controller_token("c1"))
@@ -352,15 +356,11 @@ def test_a_plant_that_was_itself_stalled_gives_its_owners_token_time_to_come_bac
     vehicle is latched; without a stall of the plant a loss latches at once."""
     from msagv.bridge import plant_node
     from msagv.bridge.ownership import claim
-    from msagv.bridge.plant_node import PlantConfig, PlantNode
     from msagv.bridge.session import Keys
-    from msagv.plant import Plant, default_vehicle
 
     monkeypatch.setattr(plant_node, "STALL_GRACE_S", 0.5)
     k = Keys("t0")
-    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
-                  PlantConfig(run_mode="realtime", steps=10))
-    n.open(bus.endpoint("p1"))
+    n = _open_plant(bus, k)
     try:
         c1 = bus.endpoint("c1")
         first = c1.declare_token(k.controller_token("c1"))
@@ -394,15 +394,11 @@ def test_a_stopping_plant_judges_its_owner_by_no_liveliness_event(bus, caplog, s
     import logging
 
     from msagv.bridge.ownership import claim
-    from msagv.bridge.plant_node import PlantConfig, PlantNode
     from msagv.bridge.session import Keys
-    from msagv.plant import Plant, default_vehicle
 
     caplog.set_level(logging.DEBUG)
     k = Keys("t0")
-    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
-                  PlantConfig(run_mode="realtime", steps=10))
-    n.open(bus.endpoint("p1"))
+    n = _open_plant(bus, k)
     try:
         c1 = bus.endpoint("c1")
         token = c1.declare_token(k.controller_token("c1"))
@@ -450,14 +446,10 @@ def test_params_are_read_only_and_only_the_owners_claim_asks_for_the_wheel_wear(
     the per-wheel wear goes out when the owner's claim asks for it."""
     from msagv.bridge.controller_node import fetch_params
     from msagv.bridge.ownership import claim
-    from msagv.bridge.plant_node import PlantConfig, PlantNode
     from msagv.bridge.session import Keys
-    from msagv.plant import Plant, default_vehicle
 
     k = Keys("t0")
-    n = PlantNode(Plant(default_vehicle(), initial={"vx": 4.0}), k,
-                  PlantConfig(run_mode="lockstep", steps=10))
-    n.open(bus.endpoint("p1"))
+    n = _open_plant(bus, k, "lockstep")
     try:
         states = []
         c1 = bus.endpoint("c1")
