@@ -152,6 +152,28 @@ def stamp(summary: dict, results: list[dict]) -> dict:
     return dict(head, **summary)
 
 
+def floor_errors(metrics: dict) -> tuple[float | None, float | None]:
+    """A run's largest distance from the reference's position [cm] and heading error [deg]
+    (``e_pos_max_cm``, ``e_phi_max_deg``): what the wear floor holds a motion to. Metrics
+    that predate the distance give the largest lateral error (``e_lat_max_cm``, never more
+    than the distance); None where they say nothing."""
+    e_pos = metrics.get("e_pos_max_cm")
+    if e_pos is None:
+        e_pos = metrics.get("e_lat_max_cm")
+    return e_pos, metrics.get("e_phi_max_deg")
+
+
+def within_floor_bounds(metrics: dict) -> bool:
+    """Whether a run kept within what its wear floor bounds (``FLOOR_TOL_M`` of the
+    reference's position, ``FLOOR_TOL_PHI_DEG`` of its heading) by :func:`floor_errors`;
+    a figure the metrics lack counts as within (flagged, never excused)."""
+    from msagv.controller.floors import FLOOR_TOL_M, FLOOR_TOL_PHI_DEG
+
+    e_pos, e_phi = floor_errors(metrics)
+    return not ((e_pos is not None and e_pos > 100.0 * FLOOR_TOL_M)
+                or (e_phi is not None and e_phi > FLOOR_TOL_PHI_DEG))
+
+
 def split_below_floor(below: list[dict], metrics: dict) -> tuple[list[dict], list[dict]]:
     """:func:`controller.floors.broken_floor`'s entries of a run with ``metrics``, split by
     where the run went: ``(broken, off_path)``. The floor is the least wear of any motion
@@ -162,17 +184,10 @@ def split_below_floor(below: list[dict], metrics: dict) -> tuple[list[dict], lis
     ``off_heading_deg``, its largest errors). A run whose metrics predate those two is
     judged by its largest lateral error (``e_lat_max_cm``, never more than its distance):
     off the path if that is beyond the tolerance, otherwise counted as within (flagged,
-    never excused)."""
-    from msagv.controller.floors import FLOOR_TOL_M, FLOOR_TOL_PHI_DEG
-
-    e_pos = metrics.get("e_pos_max_cm")
-    if e_pos is None:
-        e_pos = metrics.get("e_lat_max_cm")
-    e_phi = metrics.get("e_phi_max_deg")
-    off_pos = e_pos is not None and e_pos > 100.0 * FLOOR_TOL_M
-    off_phi = e_phi is not None and e_phi > FLOOR_TOL_PHI_DEG
-    if not (off_pos or off_phi):
+    never excused): :func:`within_floor_bounds`."""
+    if within_floor_bounds(metrics):
         return list(below), []
+    e_pos, e_phi = floor_errors(metrics)
     return [], [dict(b, off_path_cm=e_pos, off_heading_deg=e_phi) for b in below]
 
 

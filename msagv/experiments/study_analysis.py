@@ -54,7 +54,7 @@ import numpy as np
 
 from msagv.controller.floors import (BROKEN_RATIO, FLOOR_TOL_M, FLOOR_TOL_PHI_DEG, NO_FLOOR_J,
                                      broken_floor)
-from msagv.experiments.results import split_below_floor
+from msagv.experiments.results import floor_errors, split_below_floor, within_floor_bounds
 
 from .families import FAMILIES
 from .recovery import BAND_M, front_ratio, matched_recovery, recovery_of_log
@@ -165,8 +165,7 @@ def floor_check(rows: list[dict]) -> dict:
     runs = list({r["key"]: r for r in rows
                  if r.get("W_tw") is not None and r.get("W_tw_floor") is not None
                  and r["W_tw_floor"] >= NO_WEAR_J}.values())
-    probe = [{"part": "W_tw"}]
-    within = [r for r in runs if split_below_floor(probe, r)[0]]
+    within = [r for r in runs if within_floor_bounds(r)]
     least = min(within, key=lambda r: r["W_tw"] / r["W_tw_floor"], default=None)
     return {"runs": len(runs), "within": len(within),
             "least_within": None if least is None else {
@@ -200,9 +199,8 @@ def _stray_range(rs: list[dict]) -> str:
         lo, hi = min(v), max(v)
         return [f"{_f(lo, 3)} {unit}" if lo == hi else f"{_f(lo, 3)}-{_f(hi, 3)} {unit}"]
 
-    e = [r["e_pos_max_cm"] if r.get("e_pos_max_cm") is not None else r.get("e_lat_max_cm")
-         for r in rs]
-    return ", ".join(rng(e, "cm") + rng([r.get("e_phi_max_deg") for r in rs], "deg"))
+    errs = [floor_errors(r) for r in rs]
+    return ", ".join(rng([e for e, _ in errs], "cm") + rng([h for _, h in errs], "deg"))
 
 
 def broken_floor_warnings(rows: list[dict]) -> list[str]:
