@@ -756,6 +756,7 @@ def test_a_signal_ends_the_run_with_its_summary_while_the_bus_holds_the_loop(veh
             token.close()
 
 
+@pytest.mark.timeout(60)
 def test_an_interrupt_while_waiting_stops_the_loop_or_says_it_was_left_behind():
     """A second signal (KeyboardInterrupt on the main thread) or Ctrl-C while serve() waits
     on its loop: the interrupt goes on to serve(), but the loop is told to stop first, and
@@ -764,6 +765,17 @@ def test_an_interrupt_while_waiting_stops_the_loop_or_says_it_was_left_behind():
 
     from msagv.bridge.plant_node import _run_within
 
+    # interrupt_main() runs the process's SIGINT handler: Python's own, which raises
+    # KeyboardInterrupt, whatever an earlier test in this worker installed (a handler that
+    # only sets an event had this test wait forever, 1 run in CI)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _interrupt_while_waiting(_thread, _run_within)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _interrupt_while_waiting(_thread, _run_within) -> None:
     for held in (False, True):
         stop, release, ran = threading.Event(), threading.Event(), []
 

@@ -131,11 +131,11 @@ def test_per_km_and_life_by_hand():
 
 # ---- a run on a route the test draws ----------------------------------------------------------
 def s_bend(path, kmh=10.0, dt=0.1):
-    """An S-bend: 5 m straight, 20 m of a sine of 1.5 m amplitude, 5 m straight; heading
-    along the path."""
+    """An S-bend: 2.5 m straight, 10 m of a sine of 0.75 m amplitude, 2.5 m straight (about
+    5 s at 10 km/h); heading along the path."""
     v = kmh / 3.6
-    xs = np.linspace(0.0, 30.0, 3001)
-    ys = np.where((xs > 5) & (xs < 25), 1.5 * np.sin(2 * np.pi * (xs - 5) / 20.0), 0.0)
+    xs = np.linspace(0.0, 15.0, 1501)
+    ys = np.where((xs > 2.5) & (xs < 12.5), 0.75 * np.sin(2 * np.pi * (xs - 2.5) / 10.0), 0.0)
     s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(xs), np.diff(ys)))])
     t = np.arange(0.0, s[-1] / v, dt)
     x, y = np.interp(v * t, s, xs), np.interp(v * t, s, ys)
@@ -201,7 +201,7 @@ def test_without_a_calibration_no_life_is_printed_and_a_price_is_refused(tmp_pat
     assert "tire life  n/a: the vehicle file has no [tire.wear] calibration" in out
     assert "tread loss" not in out and "tire cost" not in out
     rc, out, err = run(capsys, "run", "--trajectory", route, "--vehicle", f, "--duration", "2",
-                       "--json")
+                       "--iterations", "10", "--json")
     doc = json.loads(out)
     assert doc["wear"]["calibration"] is None
     assert all(set(e) == {"W_tw_per_km"} for e in doc["wear"]["per_km"]["wheels"].values())
