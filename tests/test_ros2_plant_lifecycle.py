@@ -18,7 +18,7 @@ import pytest
 
 import test_ros2_nodes as ros_nodes
 from helpers import msagv
-from test_ros2_nodes import Peer, _call, _ros, _yaw, answer_each_state
+from test_ros2_nodes import Peer, _call, _ros, _yaw, answer_each_state, node_calls
 
 T = 0.2  # the period, and --stale-ms below: long enough that a loaded machine's stall of the
 # plant's own loop (seen: 380 ms and 1.14 s at a load of 4-10 on 2 cores) is no re-anchor
@@ -217,3 +217,69 @@ def test_the_managed_plant_refuses_a_wrong_transition_and_waits_only_while_activ
             assert all(t["result"] == "success" for t in s["transitions"])
     finally:
         peer.close()
+
+
+def _lockstep_plant(procs, name: str, duration: float, period: float) -> None:
+    procs.start(name, msagv("ros2", "plant", "--managed", "--run-mode", "lockstep",
+                            "--period", f"{period:g}", "--case", "line", "--speed", "10",
+                            "--from-rest", "--initial", "vx=2.0,delta_11=0.05",
+                            "--duration", f"{duration:g}", "--timeout", "600",
+                            "--wait", "60", "--json"))
+
+
+def test_a_deactivate_in_the_runs_end_lets_the_plant_end(procs, ros_env):
+    """The run's end (``--duration``): the plant publishes its end state, lingers a moment
+    for the last messages and ends. A deactivate that comes in that linger (the manager
+    saw the end state and pauses the simulator) is served (success) and the plant still
+    ends: exit 0, the run completed, its summary printed, the deactivate in its
+    transitions - a finished simulation is not kept standing by a pause. The deactivate is
+    sent as soon as the end state is in; where it missed the linger (the process had ended
+    before it came) the run is tried again, up to three times."""
+    _ros()
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+    from std_msgs.msg import Float64MultiArray
+
+    steps = 10
+    tries = []
+    for i in range(3):
+        name = f"plant{i}"
+        _lockstep_plant(procs, name, steps * T, T)
+        peer = Peer("lifecycle_manager")
+        n = peer.node
+        try:
+            _, transition, _ = node_calls(peer, "/msagv_plant")
+            change = n.create_client(ChangeState, "/msagv_plant/change_state")
+            steer = n.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
+            wheel = n.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
+            sent = []
+
+            def answer(k):
+                if k < steps:
+                    steer.publish(Float64MultiArray(data=DELTA0))
+                    wheel.publish(Float64MultiArray(data=[2.2 / R_W] * 4))
+                elif not sent:  # the end state: pause the simulator at once
+                    sent.append(change.call_async(ChangeState.Request(
+                        transition=Transition(id=Transition.TRANSITION_DEACTIVATE))))
+
+            odoms, _ = answer_each_state(n, T, answer)
+            assert transition(Transition.TRANSITION_CONFIGURE)
+            assert transition(Transition.TRANSITION_ACTIVATE)
+            assert peer.spin(120, until=lambda: steps in odoms), procs.err(name)[-2000:]
+            peer.spin(1.0)  # the deactivate's answer, if it came in the linger
+            assert procs.wait(name, 30) == 0, procs.err(name)[-2000:]
+        finally:
+            peer.close()
+        s = procs.json(name)
+        done = [t["transition"] for t in s["transitions"]]
+        tries.append(done)
+        if "deactivate" in done:
+            break
+    else:
+        pytest.fail(f"the deactivate never came in the linger: {tries}")
+    assert sent[0].done() and sent[0].result().success
+    assert done == ["configure", "activate", "deactivate", "shutdown"], done
+    assert s["completed"] and s["error"] is None and s["steps"] == steps
+    assert s["lifecycle"] == "finalized"
+    assert sorted(odoms) == list(range(steps + 1))
+

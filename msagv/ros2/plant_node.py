@@ -524,7 +524,10 @@ class RosPlant:
 
     def idle(self, seconds: float, wake: bool = True) -> None:
         self.ctx.spin_once(seconds)  # the callbacks run only here: always spun
-        while not self.active and not self.stop.is_set():  # managed, not active: held
+        # managed, not active: held - not once the end state is out (a deactivate in the
+        # end's linger is served, and the run ends as it would have: the process is not
+        # kept standing for a run that has nothing left to step)
+        while not self.active and not self.stop.is_set() and self.core.final_state is None:
             self.ctx.spin_once(HOLD_LOOK_S)
 
     def unanswered(self, k: int, first: bool) -> None:
