@@ -18,7 +18,7 @@ import pytest
 
 import test_ros2_nodes as ros_nodes
 from helpers import msagv
-from test_ros2_nodes import Peer, _call, _ros, _yaw, answer_each_state
+from test_ros2_nodes import Peer, _call, _ros, _yaw, answer_each_state, node_calls
 
 T = 0.2  # the period, and --stale-ms below: long enough that a loaded machine's stall of the
 # plant's own loop (seen: 380 ms and 1.14 s at a load of 4-10 on 2 cores) is no re-anchor
@@ -217,3 +217,149 @@ def test_the_managed_plant_refuses_a_wrong_transition_and_waits_only_while_activ
             assert all(t["result"] == "success" for t in s["transitions"])
     finally:
         peer.close()
+
+
+def _lockstep_plant(procs, name: str, duration: float, period: float) -> None:
+    procs.start(name, msagv("ros2", "plant", "--managed", "--run-mode", "lockstep",
+                            "--period", f"{period:g}", "--case", "line", "--speed", "10",
+                            "--from-rest", "--initial", "vx=2.0,delta_11=0.05",
+                            "--duration", f"{duration:g}", "--timeout", "600",
+                            "--wait", "60", "--json"))
+
+
+def test_a_deactivate_in_the_runs_end_lets_the_plant_end(procs, ros_env):
+    """The run's end (``--duration``): the plant publishes its end state, lingers a moment
+    for the last messages and ends. A deactivate that comes in that linger (the manager
+    saw the end state and pauses the simulator) is served (success) and the plant still
+    ends: exit 0, the run completed, its summary printed, the deactivate in its
+    transitions - a finished simulation is not kept standing by a pause. The deactivate is
+    sent as soon as the end state is in; where it missed the linger (the process had ended
+    before it came) the run is tried again, up to three times."""
+    _ros()
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+    from std_msgs.msg import Float64MultiArray
+
+    steps = 10
+    tries = []
+    for i in range(3):
+        name = f"plant{i}"
+        _lockstep_plant(procs, name, steps * T, T)
+        peer = Peer("lifecycle_manager")
+        n = peer.node
+        try:
+            _, transition, _ = node_calls(peer, "/msagv_plant")
+            change = n.create_client(ChangeState, "/msagv_plant/change_state")
+            steer = n.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
+            wheel = n.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
+            sent = []
+
+            def answer(k):
+                if k < steps:
+                    steer.publish(Float64MultiArray(data=DELTA0))
+                    wheel.publish(Float64MultiArray(data=[2.2 / R_W] * 4))
+                elif not sent:  # the end state: pause the simulator at once
+                    sent.append(change.call_async(ChangeState.Request(
+                        transition=Transition(id=Transition.TRANSITION_DEACTIVATE))))
+
+            odoms, _ = answer_each_state(n, T, answer)
+            assert transition(Transition.TRANSITION_CONFIGURE)
+            assert transition(Transition.TRANSITION_ACTIVATE)
+            assert peer.spin(120, until=lambda: steps in odoms), procs.err(name)[-2000:]
+            peer.spin(1.0)  # the deactivate's answer, if it came in the linger
+            assert procs.wait(name, 30) == 0, procs.err(name)[-2000:]
+        finally:
+            peer.close()
+        s = procs.json(name)
+        done = [t["transition"] for t in s["transitions"]]
+        tries.append(done)
+        if "deactivate" in done:
+            break
+    else:
+        pytest.fail(f"the deactivate never came in the linger: {tries}")
+    assert sent[0].done() and sent[0].result().success
+    assert done == ["configure", "activate", "deactivate", "shutdown"], done
+    assert s["completed"] and s["error"] is None and s["steps"] == steps
+    assert s["lifecycle"] == "finalized"
+    assert sorted(odoms) == list(range(steps + 1))
+
+
+def test_a_lockstep_cleanup_with_the_answer_owed_starts_the_run_again(procs, ros_env):
+    """Lockstep: the plant has sent state K and owes its step to the controller's answer.
+    The manager deactivates it and cleans it up before the answer is in: the answer, sent
+    while the command topics are down, is lost with them (a command names no state). Once
+    configured and activated again the plant does not wait for it (it never comes) nor
+    take a later command for it: it starts the run again at state 0, as ``~/reset`` does
+    (the vehicle at its initial state), and says so. The reference: the second run's states
+    are the plant's equations stepped from the start in this process, and the summary
+    counts one reset."""
+    _ros()
+    from lifecycle_msgs.msg import Transition
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    from msagv.experiments.scenario import Scenario
+
+    K = 5
+    _lockstep_plant(procs, "plant", 20, T)  # (the line case is 20 s long)
+    peer = Peer("lifecycle_manager")
+    n = peer.node
+    state, transition, _ = node_calls(peer, "/msagv_plant")
+    steer = n.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
+    wheel = n.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
+    runs = [({}, {})]  # per run: (odometry, joint states) by k
+    answered = set()
+
+    def send():
+        steer.publish(Float64MultiArray(data=DELTA0))
+        wheel.publish(Float64MultiArray(data=[2.2 / R_W] * 4))
+
+    def took(i):
+        def on(m):
+            k = round((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9) / T)
+            if k == 0 and max((*runs[-1][0], *runs[-1][1]), default=0) > 0:
+                runs.append(({}, {}))  # state 0 after later states: a new run
+            runs[-1][i][k] = m
+            r = len(runs) - 1
+            if (r, k) not in answered and k in runs[-1][0] and k in runs[-1][1] and \
+                    not (r == 0 and k >= K):  # the first run's state K: held
+                answered.add((r, k))
+                send()
+        return on
+
+    n.create_subscription(Odometry, "odom", took(0), 10)
+    n.create_subscription(JointState, "joint_states", took(1), 10)
+    try:
+        assert transition(Transition.TRANSITION_CONFIGURE)
+        assert transition(Transition.TRANSITION_ACTIVATE)
+        assert peer.spin(120, until=lambda: K in runs[0][0] and K in runs[0][1]), \
+            procs.err("plant")[-2000:]
+        assert transition(Transition.TRANSITION_DEACTIVATE)
+        assert transition(Transition.TRANSITION_CLEANUP) and state() == "unconfigured"
+        assert peer.spin(60, until=lambda: n.count_subscribers(
+            "/wheel_controller/commands") == 0)
+        send()  # the answer to state K: nobody takes it
+        peer.spin(1.0)
+        assert transition(Transition.TRANSITION_CONFIGURE)
+        assert transition(Transition.TRANSITION_ACTIVATE)
+        assert peer.spin(60, until=lambda: len(runs) == 2 and 3 in runs[1][0]), \
+            (sorted(runs[0][0]), procs.err("plant")[-2000:])
+        assert transition(Transition.TRANSITION_ACTIVE_SHUTDOWN)
+        assert procs.wait("plant", 60) == 0, procs.err("plant")[-2000:]
+    finally:
+        peer.close()
+    assert sorted(runs[0][0]) == list(range(K + 1))
+    s = procs.json("plant")
+    assert s["resets"] == 1 and s["error"] is None, json.dumps(s)
+    assert "cleanup" in procs.err("plant") and "state 0" in procs.err("plant")
+    plant, _, _, _ = Scenario(case="line", speed=10, from_rest=True,
+                              initial={"vx": 2.0, "delta_11": 0.05}).make_plant()
+    second = runs[1][0]
+    for k in range(max(second) + 1):
+        st, o = plant.state_message(), second[k]
+        assert o.pose.pose.position.x == pytest.approx(st["x"], abs=1e-9), k
+        assert o.pose.pose.position.y == pytest.approx(st["y"], abs=1e-9), k
+        assert _yaw(o.pose.pose.orientation) == pytest.approx(st["phi"], abs=1e-9), k
+        plant.set_inputs([2.2 / R_W] * 4, [0.0] * 4)
+        plant.do_step(plant.t, T)

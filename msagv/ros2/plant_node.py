@@ -47,7 +47,10 @@ there); ``deactivate`` holds the run between two steps on a clock that stands
 (:class:`bridge.run_core.PausableClock`): the vehicle stands, the pause is no time of the
 run's (no period missed, no command aged, no wait's bound used, no watchdog), and
 ``activate`` takes it up with the state that was due; ``cleanup`` takes the topics down
-and unbinds the command topics; ``shutdown`` (or a signal) ends the run and the process.
+and unbinds the command topics (in lockstep with the current state's answer owed, that
+answer is lost with them: the run starts again at state 0, as ``~/reset``);
+``shutdown`` (or a signal) ends the run and the process, and so does the run's end (a
+deactivate after the end state is out does not hold it).
 The transitions run in the run's thread (the node's callbacks run only in its idle), so
 never in the middle of a step. docs/ROS2.md, "A managed plant".
 
@@ -213,8 +216,8 @@ class RosPlant:
         if managed:  # unconfigured until a lifecycle manager says otherwise
             self.lifecycle = Lifecycle(self.ctx.node, {
                 "configure": self._configure, "activate": self._activate,
-                "deactivate": self._deactivate, "cleanup": self._cleanup,
-                "shutdown": self._shutdown, "error": self._cleanup}, log)
+                "deactivate": self._deactivate, "cleanup": self._cleanup_transition,
+                "shutdown": self._shutdown, "error": self._cleanup_transition}, log)
         else:
             self._declare()
             self.active = True
@@ -286,6 +289,32 @@ class RosPlant:
         self.sources = dict.fromkeys(self.sources)
         self.source_node = None
         self.configured = False
+
+    def _cleanup_transition(self) -> None:
+        """``cleanup`` (and ``error``, which ends unconfigured too): :meth:`_cleanup`; in
+        lockstep with the current state's answer still owed, the run starts again at state
+        0 as ``~/reset`` does. The answer is lost with the command topics (one sent while
+        they are down reaches nobody), and a command names no state: waiting for it would
+        wait for ever, and a later command (a controller's stop, another state's answer)
+        would be taken for it. The reset's hazard - an answer in flight to the old state
+        taken as the new state 0's - is gone with the subscriptions."""
+        k = self.seq
+        owed = (self.configured and self.cfg.run_mode == "lockstep" and 0 <= k < self.cfg.steps
+                and self.core.resettable() is None and self.answer(k) is None)
+        self._cleanup()
+        if owed:
+            log.warning("cleanup: state %d's answer was owed and is lost with the command "
+                        "topics (a command names no state): the run starts again at state 0 "
+                        "once active, as ~/reset does", k)
+            self._reset_run()
+
+    def _reset_run(self) -> None:
+        """The run back to state 0 (:meth:`bridge.run_core.PlantRun.reset`), the answers
+        held and state 0 as sent forgotten."""
+        self.core.reset()
+        self._steer = self._wheel = None
+        self._st0 = None
+        self._delta = None
 
     def _shutdown(self) -> None:
         """The run ends (the process prints its summary and exits)."""
@@ -452,10 +481,7 @@ class RosPlant:
             log.warning("reset refused: %s", why)
             response.success, response.message = False, f"reset refused: {why}"
             return response
-        self.core.reset()
-        self._steer = self._wheel = None
-        self._st0 = None
-        self._delta = None
+        self._reset_run()
         response.success = True
         response.message = (f"reset: the vehicle is at its initial state; the run starts "
                             f"again at state 0 (t = 0), was at state {k}")
@@ -524,7 +550,10 @@ class RosPlant:
 
     def idle(self, seconds: float, wake: bool = True) -> None:
         self.ctx.spin_once(seconds)  # the callbacks run only here: always spun
-        while not self.active and not self.stop.is_set():  # managed, not active: held
+        # managed, not active: held - not once the end state is out (a deactivate in the
+        # end's linger is served, and the run ends as it would have: the process is not
+        # kept standing for a run that has nothing left to step)
+        while not self.active and not self.stop.is_set() and self.core.final_state is None:
             self.ctx.spin_once(HOLD_LOOK_S)
 
     def unanswered(self, k: int, first: bool) -> None:
