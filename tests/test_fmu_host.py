@@ -473,3 +473,56 @@ def test_cli_options_make_an_fmu_plant(fmu_prefixed, tmp_path):
     a = ap.parse_args([str(fmu_prefixed), "--param", "mass=15000"])
     with pytest.raises(FmuHostError, match="omega_w_11"):
         fmu_plant_from_args(a)
+
+
+# ---- the FMU's log messages, in a process that hosts other FMUs too ------------------------
+LOG_ROUTING = textwrap.dedent("""
+    import gc, json, sys
+    from fmpy import extract, read_model_description
+    from fmpy.fmi2 import FMU2Slave
+    from msagv.fmu_build.host import FmuPlant
+    from msagv.plant import PlantError
+
+    fmu = sys.argv[1]
+
+    def fail(p):  # a negative wheel speed past the host's checks: the FMU logs why it fails
+        p._fmu.setReal(p._in_vr[:1], [-1.0])
+        try:
+            p.do_step(p.t, 0.01)
+        except PlantError:
+            pass
+
+    a, b = FmuPlant(fmu), FmuPlant(fmu)
+    fail(a)
+    logs = {"a": list(a.log), "b": list(b.log)}
+    a.close(); b.close(); del a, b; gc.collect()
+    # an instance of fmpy's own, with fmpy's default callbacks, after the hosts are gone
+    md = read_model_description(fmu)
+    f = FMU2Slave(guid=md.guid, unzipDirectory=extract(fmu), modelIdentifier="MsagvPlant",
+                  instanceName="plain")
+    f.instantiate(loggingOn=True)
+    f.setupExperiment(startTime=0.0); f.enterInitializationMode(); f.exitInitializationMode()
+    vr = {v.name: v.valueReference for v in md.modelVariables}
+    f.setReal([vr["omega_w_11"]], [-1.0])  # and it fails: the FMU logs why
+    try:
+        f.doStep(0.0, 0.01)
+    except Exception:
+        pass
+    f.terminate(); f.freeInstance()
+    print(json.dumps(logs))
+""")
+
+
+def test_each_instance_keeps_its_own_log_and_a_closed_one_leaves_no_logger_behind(fmu2):
+    """fmpy formats an FMU's messages in one process-wide proxy that calls the logger last
+    given to it. Two hosts: the messages of one land in its own log only; after both are
+    closed and collected, an instance with fmpy's default callbacks logs (pythonfmu logs at
+    every setReal with logging on) without calling a logger that is gone. The host had given
+    its own logger to the proxy and left it there: this process crashed (SIGSEGV in ctypes'
+    closure), in the suite as soon as test_fmu's fmpy slave followed this module's hosts."""
+    r = subprocess.run([sys.executable, "-c", LOG_ROUTING, str(fmu2)], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, (r.returncode, r.stderr[-3000:])
+    logs = __import__("json").loads(r.stdout.strip().splitlines()[-1])
+    assert any("[error]" in m for m in logs["a"]), logs
+    assert not any("[error]" in m for m in logs["b"]), logs

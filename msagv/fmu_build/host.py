@@ -117,6 +117,89 @@ class FmuSnapshot:
     omega_s: np.ndarray
 
 
+class _LogRouter:
+    """Every FMU message of this process's hosts to the log of the instance that sent it.
+
+    fmpy formats an FMU's printf-style messages in a native proxy (``fmpy.logging``) that
+    calls one logger for the whole process: the one last given to ``addLoggerProxy``. A host
+    that gave it a logger of its own would get every other instance's messages, and once
+    its logger is gone (the host collected) the next message from any instance would call
+    freed memory. So the logger given to the proxy is this router's, made once and kept for
+    the process; it sends a message to the log its ``componentEnvironment`` names, and one
+    from an instance of somebody else's (fmpy's default callbacks have none) to fmpy's own
+    printer, as fmpy would have. Code that gives the proxy another logger afterwards
+    (``fmpy.simulate_fmu`` with a logger) is undone before each call of a host's instance
+    (:class:`_Routed`)."""
+
+    def __init__(self):
+        self._logs: dict[int, deque] = {}
+        self._next = 1
+        self._logger = None  # the ctypes callback, made on first use, never freed
+        self._arg = None
+
+    def open(self, log: deque) -> int:
+        env, self._next = self._next, self._next + 1
+        self._logs[env] = log
+        return env
+
+    def close(self, env: int | None) -> None:
+        self._logs.pop(env, None)
+
+    def _route(self, env, instance, status, category, message) -> None:
+        log = self._logs.get(env or 0)
+        if log is None:
+            from fmpy.fmi2 import printLogMessage
+
+            printLogMessage(env, instance, status, category, message)
+            return
+        label = ["ok", "warning", "discard", "error", "fatal", "pending"][status] \
+            if 0 <= status <= 5 else str(status)
+        log.append(f"[{label}] {(message or b'').decode('utf-8', 'replace').strip()}")
+
+    def attach(self, cb) -> None:
+        """``cb``'s logger: the proxy, which calls this router."""
+        from fmpy.fmi2 import fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+
+        if self._logger is None:
+            self._logger = fmi2CallbackLoggerTYPE(self._route)
+            self._arg = fmi2CallbackFunctions()
+        cb.logger = self._logger
+        self.claim(cb)
+
+    def claim(self, cb=None) -> None:
+        """Make the proxy call this router (again)."""
+        from ctypes import byref
+
+        try:
+            from fmpy.logging import addLoggerProxy
+        except Exception:  # no proxy (fmpy without its native logging): cb.logger is ours
+            return
+        if cb is None:
+            cb = self._arg
+            cb.logger = self._logger  # (the proxy swapped it for itself last time)
+        addLoggerProxy(byref(cb))
+
+
+_ROUTER = _LogRouter()
+
+
+class _Routed:
+    """An fmpy instance whose every call first has the proxy call the router."""
+
+    def __init__(self, fmu):
+        self._fmu = fmu
+
+    def __getattr__(self, name):
+        attr = getattr(self._fmu, name)
+        if not callable(attr):
+            return attr
+
+        def call(*args, **kwargs):
+            _ROUTER.claim()
+            return attr(*args, **kwargs)
+        return call
+
+
 class FmuPlant:
     """An FMU stepped by fmpy, with the interface of :class:`plant.Plant`.
 
@@ -168,6 +251,7 @@ class FmuPlant:
         self._own_dir = unpack_dir is None
         self._unzip = self._unpack(unpack_dir)
         self._fmu = None
+        self._env: int | None = None  # this instance's key in _ROUTER
         self.t = 0.0
         try:
             self._instantiate(instance_name)
@@ -315,26 +399,18 @@ class FmuPlant:
 
     def _instantiate(self, instance_name: str) -> None:
         from fmpy.fmi2 import (FMU2Slave, fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFunctions,
-                               fmi2CallbackFreeMemoryTYPE, fmi2CallbackLoggerTYPE)
+                               fmi2CallbackFreeMemoryTYPE)
         from fmpy import calloc, free
-        from ctypes import byref
 
-        def logger(component, instance, status, category, message):
-            label = ["ok", "warning", "discard", "error", "fatal", "pending"][status] \
-                if 0 <= status <= 5 else str(status)
-            self._log.append(f"[{label}] {message.decode('utf-8', 'replace').strip()}")
-
+        # the FMU hands componentEnvironment back with every message: this instance's key
+        # in the process-wide router (see _LogRouter)
+        self._env = _ROUTER.open(self._log)
         cb = fmi2CallbackFunctions()
-        cb.logger = fmi2CallbackLoggerTYPE(logger)
+        cb.componentEnvironment = self._env
         cb.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
         cb.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
-        try:
-            from fmpy.logging import addLoggerProxy
-
-            addLoggerProxy(byref(cb))  # formats the FMU's printf-style messages
-        except Exception:
-            pass
-        self._callbacks = cb  # keep the ctypes callbacks alive as long as the instance
+        _ROUTER.attach(cb)
+        self._callbacks = cb  # the FMU keeps a pointer to it (pythonfmu does) until freed
         md = self.model_description
         fmu = FMU2Slave(guid=md.guid, unzipDirectory=str(self._unzip),
                         modelIdentifier=md.coSimulation.modelIdentifier,
@@ -343,8 +419,9 @@ class FmuPlant:
             fmu.instantiate(loggingOn=True, callbacks=cb)
         except Exception as e:
             self._cleanup_dir()
+            _ROUTER.close(self._env)
             raise FmuHostError(f"{self.path.name}: instantiation failed: {e}{self._log_tail()}") from None
-        self._fmu = fmu
+        self._fmu = _Routed(fmu)
 
     def _initialize(self) -> None:
         fmu = self._fmu
@@ -487,6 +564,7 @@ class FmuPlant:
                 fmu.freeInstance()
             except Exception:
                 pass
+            _ROUTER.close(self._env)
         self._cleanup_dir()
 
     def _cleanup_dir(self) -> None:
