@@ -50,6 +50,12 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
     ap.add_argument("--wear-plot", metavar="FILE",
                     help="write a figure of the wear per wheel and per axle (.png, .pdf, .svg)")
     add_tire_price_arg(ap)
+    ap.add_argument("--floor", action=argparse.BooleanOptionalAction, default=True,
+                    help="after the run, its wear floor: the least wear of any motion within "
+                         "1 cm and 2 deg of the path over the window it drove (IPOPT, "
+                         "docs/WEAR.md section 4), and a warning if the run wears less "
+                         "(default on; --no-floor skips it: on a long or many-axle run it "
+                         "can take longer than the run)")
     add_view_args(ap)  # --view, --view-save, --view-port: the run in Rerun
     add_foxglove_args(ap)  # --foxglove: the run in Foxglove, paced in real time
     ap.add_argument("--foxglove-wait", type=float, default=0.0, metavar="S",
@@ -248,8 +254,10 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
                         f"cover the {len(log.t)} steps run")
         warn(prog, warnings[-1:])
     m = log.metrics()
+    floors, broken = None, []  # --no-floor: none computed (the JSON's floors: null)
     try:
-        floors, broken = _floors(scenario, vehicle, ref, len(log.t) * scenario.period, m)
+        if a.floor:
+            floors, broken = _floors(scenario, vehicle, ref, len(log.t) * scenario.period, m)
     except FloorError as e:  # no floor on this path: the run's figures stand without it
         floors, broken = None, []
         warnings.append(f"no wear floor for this run: {e}")
