@@ -767,8 +767,8 @@ def test_an_interrupt_while_waiting_stops_the_loop_or_says_it_was_left_behind():
     # interrupts at once, under Python's own handler (a process started in the background
     # of a shell inherits SIGINT ignored). _thread.interrupt_main(), used before, sends no
     # signal: it only marks one pending, and in the full suite the main thread waited on
-    # the 50 ms wait for 300-600 s without ever running the handler (2 runs of 2 here,
-    # once in CI), while alone the test passed 34 of 34.
+    # the 50 ms wait for 300-600 s without ever running the handler (2 full runs of 2
+    # here), while alone the test passed 34 of 34.
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     main = threading.main_thread().ident
     try:
