@@ -219,6 +219,23 @@ def test_the_managed_plant_refuses_a_wrong_transition_and_waits_only_while_activ
         peer.close()
 
 
+def assert_poses_from_start(odoms: dict, n: int) -> None:
+    """``odoms[k]`` for k = 0..n is the plant's state k: the equations stepped k periods
+    from the start these tests give (line at 10 km/h, from rest at vx 2 m/s, delta_11
+    0.05) with every wheel at 2.2 m/s and the steering held, as their peers answer."""
+    from msagv.experiments.scenario import Scenario
+
+    plant, _, _, _ = Scenario(case="line", speed=10, from_rest=True,
+                              initial={"vx": 2.0, "delta_11": 0.05}).make_plant()
+    for k in range(n + 1):
+        st, o = plant.state_message(), odoms[k]
+        assert o.pose.pose.position.x == pytest.approx(st["x"], abs=1e-9), k
+        assert o.pose.pose.position.y == pytest.approx(st["y"], abs=1e-9), k
+        assert _yaw(o.pose.pose.orientation) == pytest.approx(st["phi"], abs=1e-9), k
+        plant.set_inputs([2.2 / R_W] * 4, [0.0] * 4)
+        plant.do_step(plant.t, T)
+
+
 def _lockstep_plant(procs, name: str, duration: float, period: float) -> None:
     procs.start(name, msagv("ros2", "plant", "--managed", "--run-mode", "lockstep",
                             "--period", f"{period:g}", "--case", "line", "--speed", "10",
@@ -299,8 +316,6 @@ def test_a_lockstep_cleanup_with_the_answer_owed_starts_the_run_again(procs, ros
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from msagv.experiments.scenario import Scenario
-
     K = 5
     _lockstep_plant(procs, "plant", 20, T)  # (the line case is 20 s long)
     peer = Peer("lifecycle_manager")
@@ -353,13 +368,5 @@ def test_a_lockstep_cleanup_with_the_answer_owed_starts_the_run_again(procs, ros
     s = procs.json("plant")
     assert s["resets"] == 1 and s["error"] is None, json.dumps(s)
     assert "cleanup" in procs.err("plant") and "state 0" in procs.err("plant")
-    plant, _, _, _ = Scenario(case="line", speed=10, from_rest=True,
-                              initial={"vx": 2.0, "delta_11": 0.05}).make_plant()
     second = runs[1][0]
-    for k in range(max(second) + 1):
-        st, o = plant.state_message(), second[k]
-        assert o.pose.pose.position.x == pytest.approx(st["x"], abs=1e-9), k
-        assert o.pose.pose.position.y == pytest.approx(st["y"], abs=1e-9), k
-        assert _yaw(o.pose.pose.orientation) == pytest.approx(st["phi"], abs=1e-9), k
-        plant.set_inputs([2.2 / R_W] * 4, [0.0] * 4)
-        plant.do_step(plant.t, T)
+    assert_poses_from_start(second, max(second))

@@ -21,6 +21,7 @@ import test_ros2_nodes as ros_nodes
 from helpers import ROOT, msagv
 from msagv.bridge.process import EXIT_RUNTIME
 from test_ros2_nodes import Peer, _call, _ros, _stamp, _yaw, node_calls
+from test_ros2_plant_lifecycle import assert_poses_from_start
 
 T = 0.2  # the period (as test_ros2_plant_lifecycle: a loaded machine's stall is no issue)
 N = 12  # the periods run in each part
@@ -308,8 +309,6 @@ def test_a_realtime_plant_resets_while_running_and_takes_a_new_staleness_bound(p
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from msagv.experiments.scenario import Scenario
-
     procs.start("plant", msagv("ros2", "plant", "--run-mode", "realtime", "--period", f"{T:g}",
                                "--stale-ms", "600000", "--case", "line", "--speed", "10",
                                "--from-rest", "--initial", "vx=2.0,delta_11=0.05",
@@ -374,15 +373,7 @@ def test_a_realtime_plant_resets_while_running_and_takes_a_new_staleness_bound(p
     s = procs.json("plant")
     assert s["resets"] == 1 and s["error"] is None and s["parameters"]["stale_ms"] == 400.0
     assert s["safe"]["events"] >= 1 and s["periods"]["max_missed"] == 2, s  # 0.4 s / T
-    plant, _, _, _ = Scenario(case="line", speed=10, from_rest=True,
-                              initial={"vx": 2.0, "delta_11": 0.05}).make_plant()
     second = runs[-1][0]
     assert s["steps"] >= max(second)
     assert sorted(second)[:N + 1] == list(range(N + 1))
-    for k in range(N + 1):
-        st, o = plant.state_message(), second[k]
-        assert o.pose.pose.position.x == pytest.approx(st["x"], abs=1e-9), k
-        assert o.pose.pose.position.y == pytest.approx(st["y"], abs=1e-9), k
-        assert _yaw(o.pose.pose.orientation) == pytest.approx(st["phi"], abs=1e-9), k
-        plant.set_inputs([2.2 / R_W] * 4, [0.0] * 4)
-        plant.do_step(plant.t, T)
+    assert_poses_from_start(second, N)
