@@ -255,13 +255,12 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
         warn(prog, warnings[-1:])
     m = log.metrics()
     floors, broken = None, []  # --no-floor: none computed (the JSON's floors: null)
-    try:
-        if a.floor:
+    if a.floor:
+        try:
             floors, broken = _floors(scenario, vehicle, ref, len(log.t) * scenario.period, m)
-    except FloorError as e:  # no floor on this path: the run's figures stand without it
-        floors, broken = None, []
-        warnings.append(f"no wear floor for this run: {e}")
-        warn(prog, warnings[-1:])
+        except FloorError as e:  # no floor on this path: the run's figures stand without it
+            warnings.append(f"no wear floor for this run: {e}")
+            warn(prog, warnings[-1:])
     broken, below_off = split_below_floor(broken, m)
     if broken:
         warnings.append(broken_floor_warning(broken))

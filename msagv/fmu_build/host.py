@@ -31,6 +31,7 @@ import shutil
 import tomllib
 import zipfile
 from collections import deque
+from ctypes import byref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -136,6 +137,7 @@ class _LogRouter:
         self._next = 1
         self._logger = None  # the ctypes callback, made on first use, never freed
         self._arg = None
+        self._add_proxy = None  # fmpy.logging.addLoggerProxy, found on first use (or none)
 
     def open(self, log: deque) -> int:
         env, self._next = self._next, self._next + 1
@@ -163,21 +165,24 @@ class _LogRouter:
         if self._logger is None:
             self._logger = fmi2CallbackLoggerTYPE(self._route)
             self._arg = fmi2CallbackFunctions()
+            try:
+                from fmpy.logging import addLoggerProxy
+
+                self._add_proxy = addLoggerProxy
+            except Exception:  # no proxy (fmpy without its native logging): cb.logger is ours
+                pass
         cb.logger = self._logger
         self.claim(cb)
 
     def claim(self, cb=None) -> None:
-        """Make the proxy call this router (again)."""
-        from ctypes import byref
-
-        try:
-            from fmpy.logging import addLoggerProxy
-        except Exception:  # no proxy (fmpy without its native logging): cb.logger is ours
+        """Make the proxy call this router (again): before every call of a host's instance,
+        so looked up once (:meth:`attach`), not here."""
+        if self._add_proxy is None:
             return
         if cb is None:
             cb = self._arg
             cb.logger = self._logger  # (the proxy swapped it for itself last time)
-        addLoggerProxy(byref(cb))
+        self._add_proxy(byref(cb))
 
 
 _ROUTER = _LogRouter()
