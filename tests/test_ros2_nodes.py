@@ -794,6 +794,56 @@ def test_under_sim_time_a_simulator_at_its_own_pace_is_answered_state_by_state(
     assert s["rejected"] == 0
 
 
+def test_a_plant_that_comes_back_at_its_last_stamp_is_answered_as_a_new_run(procs, ros_env):
+    """A repeated stamp is a repeat (not answered again), except from a plant that was
+    gone in between: a lockstep plant whose answer to state 0 was lost with its command
+    topics (``cleanup`` of the managed plant, docs/ROS2.md) publishes state 0 again at t = 0
+    from new publishers. The controller, which answered the first state 0, takes the odometry
+    losing its last publisher as the run's end and answers the new state 0 as a new run.
+    Before, it counted it a repeat; under ``use_sim_time`` (a simulator's /clock, here
+    standing at 0 as a lockstep simulator's does while it waits) no period passed either,
+    so no safe behaviour's hold answered it and the simulator waited for ever. (An answer
+    is told by its predicted path: the holds publish commands too, never a path.)"""
+    _ros()
+    from nav_msgs.msg import Odometry, Path
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import JointState
+
+    from msagv.experiments.scenario import Scenario
+
+    procs.start("ctl", msagv("ros2", "controller", "--case", "curve", "--speed", "15",
+                             "--json", "--ros-args", "-p", "use_sim_time:=true"))
+    plant, vehicle, _, _ = Scenario(case="curve", speed=15).make_plant()
+    peer = Peer("comes_back")
+    car = SimVehicle(peer, vehicle, plant)
+    n = peer.node
+    n.create_publisher(Clock, "clock", 10).publish(Clock())  # t = 0 (and it stays there)
+    paths = []
+    n.create_subscription(Path, "predicted_path", paths.append, 10)
+    err = lambda: procs.err("ctl")[-2000:]  # noqa: E731
+    try:
+        assert car.matched(), err()
+        assert peer.spin(30, until=lambda: n.count_publishers("predicted_path") > 0), err()
+        car.publish()
+        assert peer.spin(30, until=lambda: len(paths) == 1), err()
+        car.publish()  # the same stamp again from the same publishers: a repeat
+        assert not peer.spin(1.0, until=lambda: len(paths) > 1), "a repeat was answered"
+        n.destroy_publisher(car.pub_odom)  # the plant's cleanup: its topics go down
+        n.destroy_publisher(car.pub_js)
+        peer.spin(1.0)
+        car.pub_odom = n.create_publisher(Odometry, "odom", 10)
+        car.pub_js = n.create_publisher(JointState, "joint_states", 10)
+        assert car.matched(), err()
+        car.publish()  # state 0 again, t = 0, from the plant that came back
+        assert peer.spin(30, until=lambda: len(paths) == 2), \
+            f"the plant that came back was not answered: {err()}"
+    finally:
+        peer.close()
+    procs.stop_all()
+    s = procs.json("ctl")
+    assert s["answered"] == 2 and s["repeated"] == 1 and s["new_runs"] == 2, s
+
+
 # ---- the real-time plant and a controller that dies ----------------------------------------
 def test_the_realtime_plant_goes_safe_when_its_controller_dies(procs, ros_env):
     """``--run-mode realtime``: the plant steps on the wall clock with the newest commands;

@@ -13,7 +13,8 @@ its integral; the plant publishes its own, measured, on ``wear``).
 One solve per odometry message: when the joint states stamped no earlier than it have
 arrived (a plant that stamps both alike, as ``msagv ros2 plant``, is answered state by
 state), or after half a period with the newest joint states. A repeated stamp (a plant
-sending its state again) gets the same commands again, unsolved.
+sending its state again) is not answered again: a command names no state, so a second
+answer would be taken for the next state's (counted ``repeated``).
 
 Safety, the same state machine as the plant's (:class:`bridge.loss.CommandWatch`), run on
 the node's timer at 1/T over the inputs instead of the commands - on ROS time under
@@ -487,6 +488,7 @@ class RosController:
         self._told_frames: set[str] = set()  # plan frames refused (each said once)
         self._retime = False  # the plan's limits changed: the next plan is timed afresh
         self._restart = False  # ~/reset: the next state starts a new run
+        self._odom_lost = False  # the odometry had no publisher: its next stamp is new
         self._goal_held: tuple | None = None  # the goal (x, y, phi) reached and held
         self._hold: tuple | None = None  # (steering held, wheel speeds ramping down)
         self._diag_from = len(self.solve_ms)
@@ -496,7 +498,7 @@ class RosController:
         self.pub_wheel = c.publisher(R.WHEEL_COMMANDS)
         self.pub_pred = c.publisher(R.PREDICTED_PATH)
         self.pub_wear = c.publisher(R.WEAR_ESTIMATE, R.TYPES[R.WEAR])  # not the plant's wear
-        self._subs = [c.subscription(R.ODOM, self._on_odom),
+        self._subs = [c.subscription(R.ODOM, self._on_odom, matched=self._on_odom_matched),
                       c.subscription(R.JOINT_STATES, self._on_joints),
                       c.subscription(R.PLAN, self._on_plan)]
         from rclpy.clock import Clock, ClockType
@@ -707,6 +709,16 @@ class RosController:
         self._odom, self._odom_rx = msg, self._now()
         self._try()
 
+    def _on_odom_matched(self, info) -> None:
+        """The odometry's last publisher gone (a plant's cleanup or its end): the next state
+        starts a new run, also at the stamp of the last one answered - a plant whose
+        answer was lost with its command topics sends its state 0 again at t = 0, which
+        would otherwise be a repeat, never answered. No answer of ours can be in flight
+        to the old run: the topics it went on are gone with the plant."""
+        if info.current_count == 0 and self._last_t is not None and not self._odom_lost:
+            self._restart = self._odom_lost = True
+            log.info("odometry: no publisher left; the next state starts a new run")
+
     def _on_joints(self, msg) -> None:
         if not self.active:
             return
@@ -722,13 +734,14 @@ class RosController:
         if o is None or j is None or not self.active:
             return
         to = R.stamp_seconds(o.header.stamp)
-        if self._last_t is not None and to == self._last_t:
+        if self._last_t is not None and to == self._last_t and not self._odom_lost:
             self._odom = None  # the same state again: answered once (a command names no
             self.stats["repeated"] += 1  # state, so a second answer would answer the next)
             return
         if not force and R.stamp_seconds(j.header.stamp) < to:
             return  # the joint states of this period are on their way
         self._odom = None
+        self._odom_lost = False
         self._odom_frame = o.header.frame_id
         try:
             st = R.state_from_ros(o, j, self.nw)

@@ -105,9 +105,17 @@ class Context:
         return self.node.create_publisher(msg_class(typename or R.TYPES[topic]), topic,
                                           qos(topic))
 
-    def subscription(self, topic: str, callback):
+    def subscription(self, topic: str, callback, matched=None):
+        """A subscription to ``topic`` with its QoS; ``matched(info)`` (optional) is called
+        as publishers come and go (``info.current_count``: how many are matched now)."""
+        events = None
+        if matched is not None:
+            from rclpy.event_handler import SubscriptionEventCallbacks
+
+            events = SubscriptionEventCallbacks(matched=matched)
         return self.node.create_subscription(msg_class(R.TYPES[topic]), topic, callback,
-                                             qos(topic, subscriber=True))
+                                             qos(topic, subscriber=True),
+                                             event_callbacks=events)
 
     def spin_once(self, timeout: float) -> None:
         self.executor.spin_once(timeout_sec=max(0.0, timeout))
