@@ -36,13 +36,13 @@ from typing import Callable
 import numpy as np
 
 from . import messages as M
+from .controller_run import AnswerCounts, ControllerRun
 from .loss import LOST, STALE_MS, LossTimer
 from .link_key import KeyPair, LinkKeyError, LinkKeys, derive
 from .ownership import (BAD_CLAIM, CLAIM_REFRESH_S, CLAIM_RETRY_S, LATCHED, RELEASE, claim,
                         params_replies)
 from .plant_node import percentiles_ms
 from .presence import Presence
-from .ros_msgs import predicted_poses
 from .process import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, freeze_heap
 from .recording import NullRecorder
 from .session import Keys, SessionError, SessionOptions
@@ -86,19 +86,18 @@ class ControllerConfig:
 
 
 @dataclasses.dataclass
-class ControllerStats:
-    answered: int = 0
+class ControllerStats(AnswerCounts):
+    """:class:`bridge.controller_run.AnswerCounts` (answered, new runs, stale, solve times)
+    and the Zenoh node's own counts."""
+
     skipped: int = 0  # states superseded by a newer one before they were solved
     duplicates: int = 0
-    new_runs: int = 0
-    dropped_stale: int = 0  # solved but too old to send
     ignored_no_plant: int = 0  # states while the plant's token was gone
     not_granted: int = 0  # solved but not sent: the plant did not grant us the vehicle
     resent: int = 0  # commands sent again: their state came again (a lockstep re-send)
     references: int = 0
     ends: int = 0
     replayed: int = 0  # signed states older than the newest one of the same grant
-    solve_ms: list = dataclasses.field(default_factory=list)
 
 
 class ControllerNode:
@@ -118,6 +117,8 @@ class ControllerNode:
         self.rec = recorder if recorder is not None else NullRecorder()
         self.rej = M.Rejections(f"controller {keys.id}", log)
         self.stats = ControllerStats()
+        self.run_core = ControllerRun(lambda: [self.mpc], lambda: self.cfg.max_age_ms,
+                                      counts=self.stats, recorder=recorder)
         self.stop = threading.Event()
         self._event = threading.Event()
         self._lock = threading.Lock()
@@ -131,7 +132,6 @@ class ControllerNode:
         self._last_seq: int | None = None
         self._sent: tuple[int, bytes] | None = None  # (state seq, payload) of the last command
         self._solved = None  # (state seq, command) of the last solve
-        self._cmd_seq = 0
         self.plant_present = False
         self.plant_seen = False
         self.exit_reason: str | None = None
@@ -513,7 +513,7 @@ class ControllerNode:
                     return "duplicate"
                 # the plant sent this state again: our answer was lost (a lockstep plant
                 # re-sends an unanswered state); the same command again, not a new solve
-                self._pub.put(sent[1], self._cmd_seq - 1)
+                self._pub.put(sent[1], self.run_core.cmd_seq - 1)
                 self.stats.resent += 1
                 self.rec.message("tx", self.keys.cmd, sent[1])
                 return "resent"
@@ -524,11 +524,9 @@ class ControllerNode:
         if reuse is None and (last is None or seq == 0 or seq < last):
             # a new plant run (or the first state seen): forget the warm start and reseed,
             # as closed_loop does after its warm-up
-            self.mpc.reset()
-            self.stats.new_runs += 1
             if last is not None:
                 log.info("new plant run (state seq %d after %d): MPC reset", seq, last)
-            self.rec.event("new_run", seq=seq)
+            self.run_core.new_run(seq=seq)
         self._last_seq = seq
         if st.get("end"):
             self.stats.ends += 1
@@ -541,12 +539,9 @@ class ControllerNode:
         if reuse is not None:
             cmd = reuse
         else:
-            cmd = self.mpc.step(st)
+            cmd = self.run_core.solve(self.mpc, st)
             self._solved = (seq, cmd)
-            self.stats.solve_ms.append(cmd.solve_ms)
-        if self.cfg.max_age_ms is not None and \
-                (time.perf_counter() - rx_perf) * 1000.0 > self.cfg.max_age_ms:
-            self.stats.dropped_stale += 1
+        if self.run_core.too_old(rx_perf):
             return "stale"
         if not self.plant_present:
             self.stats.ignored_no_plant += 1
@@ -566,18 +561,11 @@ class ControllerNode:
             self._hold(st, rx_perf, cmd)
             return "not granted"
         link = self._link
-        payload = M.encode_cmd(self._cmd_seq, st["t"], seq, cmd.omega_w, cmd.omega_s,
-                               solve_ms=cmd.solve_ms, cost=cmd.cost,
-                               mac_key=None if link is None else link.cmd)
-        self._pub.put(payload, self._cmd_seq)
+        payload = self.run_core.encode(st, seq, cmd, None if link is None else link.cmd)
+        self._pub.put(payload, self.run_core.cmd_seq)
         self._sent = (seq, payload)
-        self._cmd_seq += 1
-        self.rec.message("tx", self.keys.cmd, payload)
-        if self.recording:  # the ROS 2 channel predicted_path (a prediction: only recorded)
-            poses = predicted_poses(self.mpc)
-            if poses is not None:
-                self.rec.predicted_path(st["t"], self.mpc.settings.dt, poses)
-        self.stats.answered += 1
+        # recorded: the command, and the horizon as the ROS 2 channel predicted_path
+        self.run_core.sent(self.mpc, st, self.keys.cmd, payload)
         return "sent"
 
     def _hold(self, st: dict, rx_perf: float, cmd) -> None:

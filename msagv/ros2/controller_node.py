@@ -52,6 +52,7 @@ import numpy as np
 
 from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
+from msagv.bridge.controller_run import ControllerRun
 from msagv.bridge.loss import RESUME_PERIODS, SAFE, SAFE_DECEL, STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
 from msagv.bridge.recording import NullRecorder
@@ -389,13 +390,15 @@ class RosController:
         self.configured = False
         self.active = False
         self._ended = False
-        self.stats = {"answered": 0, "repeated": 0, "safe_events": 0, "safe_periods": 0,
-                      "resumes": 0, "plans": 0, "rejected": 0, "new_runs": 0,
-                      "dropped_stale": 0, "no_reference": 0, "goals_reached": 0,
+        # answered, new_runs, dropped_stale and the solve times: the run core's counts
+        self.run_core = ControllerRun(self._controllers, lambda: self.cfg.max_age_ms,
+                                      now=self._now, recorder=recorder)
+        self.stats = {"repeated": 0, "safe_events": 0, "safe_periods": 0,
+                      "resumes": 0, "plans": 0, "rejected": 0,
+                      "no_reference": 0, "goals_reached": 0,
                       "held_at_goal": 0, "plans_at_goal": 0, "plans_same_route": 0,
                       "low_speed": 0, "rearms": 0, "resets": 0, "parameter_changes": 0,
                       "parameters_refused": 0, "plans_wrong_frame": 0}
-        self.solve_ms: list = []
         self.goal_errors: list = []  # (distance [m], heading [deg]) at each goal reached
         self.rej = M.Rejections("ros2 controller", log)
         self.mpc = self.low = None
@@ -482,7 +485,6 @@ class RosController:
         self._safe = False
         self._safe_why = ""
         self._seq = 0
-        self._cmd_seq = 0
         self._told_arc = False
         self._odom_frame = ""  # the newest state's header.frame_id
         self._told_frames: set[str] = set()  # plan frames refused (each said once)
@@ -491,7 +493,7 @@ class RosController:
         self._odom_lost = False  # the odometry had no publisher: its next stamp is new
         self._goal_held: tuple | None = None  # the goal (x, y, phi) reached and held
         self._hold: tuple | None = None  # (steering held, wheel speeds ramping down)
-        self._diag_from = len(self.solve_ms)
+        self._diag_from = len(self.run_core.counts.solve_ms)
         c = self.ctx
         node = c.node
         self.pub_steer = c.publisher(R.STEERING_COMMANDS)
@@ -810,10 +812,8 @@ class RosController:
         t = st["t"]
         if self._last_t is None or t < self._last_t or self._restart:  # a new run
             self._restart = False
-            for c in self._controllers():
-                c.reset()
+            self.run_core.new_run(t=t)
             self.wear.reset()
-            self.stats["new_runs"] += 1
             self._goal_held = None
             self._seq = 0
             if self.base_reference is not None:
@@ -844,27 +844,19 @@ class RosController:
         if self._at_goal(st):
             return
         ctl = self._controller_for(st)
-        cmd = ctl.step(st, self.reference)
-        self.solve_ms.append(cmd.solve_ms)
-        if self.cfg.max_age_ms is not None and \
-                (self._now() - rx_perf) * 1000 > self.cfg.max_age_ms:
-            self.stats["dropped_stale"] += 1
+        cmd = self.run_core.solve(ctl, st, self.reference)
+        if self.run_core.too_old(rx_perf):
             return
         tgt = R.steering_targets(st["delta"], cmd.omega_s, self.cfg.period, self.vehicle.limits)
         w = np.asarray(cmd.omega_w, dtype=float)
         self._publish_cmd(tgt, w)
         self._last_cmd = (t, tgt, w)
-        self.stats["answered"] += 1
-        self.rec.message("tx", self.key_cmd, M.encode_cmd(
-            self._cmd_seq, t, seq, cmd.omega_w, cmd.omega_s, solve_ms=cmd.solve_ms,
-            cost=cmd.cost))
-        self._cmd_seq += 1
-        # after the commands: the horizon and the wear (not on the command's path)
-        poses = R.predicted_poses(ctl)
+        # after the commands: the horizon (recorded there) and the wear, not on their path
+        poses = self.run_core.sent(ctl, st, self.key_cmd, self.run_core.encode(st, seq, cmd),
+                                   poses=True)
         if poses is not None:
             self.pub_pred.publish(R.encode(R.predicted_path(t, ctl.settings.dt, poses),
                                            R.TYPES[R.PREDICTED_PATH]))
-            self.rec.predicted_path(t, ctl.settings.dt, poses)
         p, work = self.wear.update(st, cmd.omega_w, cmd.omega_s)
         self.pub_wear.publish(R.encode(self._wear_msg(p, work), R.TYPES[R.WEAR]))
 
@@ -1024,8 +1016,9 @@ class RosController:
         """``(level, message, values)`` of the node's diagnostic status now (see
         docs/ROS2.md, "Diagnostics"): level 0 OK, 1 WARN, 3 STALE; values as strings."""
         cfg = self.cfg
-        new = np.asarray(self.solve_ms[self._diag_from:], dtype=float)
-        self._diag_from = len(self.solve_ms)
+        solves = self.run_core.counts.solve_ms
+        new = np.asarray(solves[self._diag_from:], dtype=float)
+        self._diag_from = len(solves)
         age = None if self._fresh_rx is None else (self._now() - self._fresh_rx) * 1000
         v = {"lifecycle": self.state_label(), "safe": str(self._safe).lower(),
              "safe_reason": self._safe_why if self._safe else "",
@@ -1036,7 +1029,7 @@ class RosController:
              "period_ms": f"{cfg.period * 1000:g}",
              "reference": "none" if self.reference is None else self.reference.name,
              "goal": "reached" if self._goal_held is not None else "",
-             "answered": str(self.stats["answered"]),
+             "answered": str(self.run_core.counts.answered),
              "low_speed": str(self.stats["low_speed"]),
              "safe_events": str(self.stats["safe_events"]),
              "rejected": str(self.stats["rejected"])}
@@ -1060,8 +1053,10 @@ class RosController:
         return OK, "goal reached" if self._goal_held is not None else "commanding", v
 
     def summary(self) -> dict:
-        return {"role": "ros2 controller", **self.stats,
-                "solve_ms": percentiles_ms(np.asarray(self.solve_ms) / 1000.0),
+        c = self.run_core.counts
+        return {"role": "ros2 controller", "answered": c.answered, **self.stats,
+                "new_runs": c.new_runs, "dropped_stale": c.dropped_stale,
+                "solve_ms": percentiles_ms(np.asarray(c.solve_ms) / 1000.0),
                 "rejected_by_reason": self.rej.summary(),
                 "goal_errors": [{"distance_m": d, "yaw_deg": y} for d, y in self.goal_errors],
                 "parameters": self.params, "safe": self._safe,
