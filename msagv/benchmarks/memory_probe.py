@@ -16,9 +16,23 @@ them (``--same``: the same 1,000 names every round). Prints this process's RSS b
 after and its Python heap's growth (tracemalloc): what the Python side keeps, and what
 Zenoh itself keeps.
 
-Run ``python -m msagv.benchmarks.memory_probe realtime [--minutes 10]`` or
+``sessions``: how many stock sessions a listening session links, with Zenoh's shared
+memory on or off at either end (issue 30: with it on at both, 351 and no more). A bare
+session of this process listens on a free port (``--listener-shm``); a child process opens
+``--sessions`` stock peer sessions to it, one after another, as the flood of
+``tests/test_processes.py -k session_flood`` does (``--sessions-shm``: ``default`` leaves
+Zenoh's default, on). Prints how many the listener links, and its maps and open files. The
+cause of the 351 is in Zenoh's source (``io/zenoh-transport/src/unicast/establishment/ext/
+shm/segment.rs``): a listener's shared-memory metadata segment holds a fixed array of 2,810
+counters, leased 8 to each peer that negotiates shared memory with QoS priorities on
+(2,810 / 8 = 351); the next handshake fails with "No available SHM counters" (its debug
+log: ``RUST_LOG=zenoh_transport=debug``) and the session is refused, whatever the memory
+or file limits. A peer without shared memory takes no counter.
+
+Run ``python -m msagv.benchmarks.memory_probe realtime [--minutes 10]``,
 ``python -m msagv.benchmarks.memory_probe churn [--names 5000] [--watch plant|none]
-[--same]`` (Linux: reads ``/proc``).
+[--same]`` or ``python -m msagv.benchmarks.memory_probe sessions [--sessions 400]
+[--listener-shm on|off] [--sessions-shm default|on|off]`` (Linux: reads ``/proc``).
 """
 
 from __future__ import annotations
@@ -170,6 +184,57 @@ def churn(names: int, watch: str, same: bool) -> dict:
         t.close()
 
 
+SESSIONS_CHILD = r"""
+import json, sys, time
+import zenoh
+
+port, n, shm = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+sessions = []
+for i in range(n):
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    c.insert_json5("listen/endpoints", "[]")
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("scouting/gossip/enabled", "false")
+    if shm != "default":
+        c.insert_json5("transport/shared_memory/enabled", "true" if shm == "on" else "false")
+    sessions.append(zenoh.open(c))
+print(len(sessions), flush=True)
+sys.stdin.read()  # held open until the parent has counted
+"""
+
+
+def sessions(n: int, listener_shm: str, sessions_shm: str) -> dict:
+    import json
+
+    import zenoh
+
+    port = _free_port()
+    c = zenoh.Config()
+    c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("transport/shared_memory/enabled",
+                   "true" if listener_shm == "on" else "false")
+    z = zenoh.open(c)
+    child = subprocess.Popen([sys.executable, "-c", SESSIONS_CHILD, str(port), str(n),
+                              sessions_shm], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        t0 = time.monotonic()
+        opened = int(child.stdout.readline() or 0)
+        open_s = time.monotonic() - t0
+        time.sleep(2.0)  # links that were coming up
+        maps = sum(1 for _ in open("/proc/self/maps"))
+        return {"sessions": n, "listener_shm": listener_shm, "sessions_shm": sessions_shm,
+                "opened": opened, "open_s": open_s, "linked": len(list(z.info.peers_zid())),
+                "listener_maps": maps, "listener_fds": len(os.listdir("/proc/self/fd"))}
+    finally:
+        child.stdin.close()
+        _stop(child)
+        z.close()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m msagv.benchmarks.memory_probe",
                                  description=__doc__.split("\n\n")[0])
@@ -182,9 +247,17 @@ def main(argv=None) -> int:
     c.add_argument("--names", type=int, default=5000)
     c.add_argument("--watch", choices=["plant", "none"], default="plant")
     c.add_argument("--same", action="store_true")
+    s = sub.add_parser("sessions")
+    s.add_argument("--sessions", type=int, default=400)
+    s.add_argument("--listener-shm", choices=["on", "off"], default="on")
+    s.add_argument("--sessions-shm", choices=["default", "on", "off"], default="default")
     a = ap.parse_args(argv)
-    res = (realtime(a.minutes, a.every, a.skip) if a.what == "realtime"
-           else churn(a.names, a.watch, a.same))
+    if a.what == "realtime":
+        res = realtime(a.minutes, a.every, a.skip)
+    elif a.what == "churn":
+        res = churn(a.names, a.watch, a.same)
+    else:
+        res = sessions(a.sessions, a.listener_shm, a.sessions_shm)
     for k, v in res.items():
         print(f"{k}: {v:.2f}" if isinstance(v, float) else f"{k}: {v}")
     return 0

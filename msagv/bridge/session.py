@@ -17,7 +17,8 @@ One helper turns ``--id/--connect/--listen/--mode/--zenoh-config/--lease-ms`` in
   of its liveliness token is noticed within about a second;
 * no shared memory (``transport/shared_memory/enabled = false``): with Zenoh's default the
   plant linked 351 sessions and no more (issue 30: a flood of sessions kept any later peer
-  out; docs/PROTOCOL.md section 1); the protocol's messages are small and none is a
+  out; Zenoh leases each peer that negotiates shared memory 8 of a listener's 2,810
+  counters, docs/PROTOCOL.md section 1); the protocol's messages are small and none is a
   shared-memory buffer;
 * a maximum message size on the transport (:data:`MAX_MESSAGE_BYTES`, just above the
   largest message of the protocol, 1 MiB): Zenoh buffers at most that much of a larger
