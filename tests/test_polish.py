@@ -5,7 +5,8 @@
   ``|r|^2 + e + z'Az + b'z + c`` from the residuals against ``rollout.batch_cost``, for
   every wear method and both policies with offsets (random states, random decisions);
 * the damped step solves its linear system (against numpy's solver) and refuses a matrix
-  that is not positive definite;
+  that is not positive definite; its factorisation by panels and the Hessian by blocks of
+  residuals are the plain one-at-a-time sums to the bit;
 * the compiled polish is the plain one of tests/annealer_reference.py on the MPC's
   problem (same steps, same candidates, same answer), and that one solves a problem with a
   known minimum (linear residuals: one step, the least-squares solution);
@@ -114,6 +115,46 @@ def test_linear_algebra_is_numpys(D):
         assert sk.damped_step(H, g, mu, Lc, x)
         assert np.allclose(x, np.linalg.solve(H + mu * np.diag(np.diag(H)), -g), rtol=1e-8,
                            atol=1e-10)
+
+
+def _plain_factor(H, mu):
+    """Right-looking Cholesky of ``H + mu diag H``, one pivot at a time, in numpy's
+    elementwise IEEE operations: the order of operations the polish's factorisation keeps."""
+    U = H.copy()
+    D = len(U)
+    U[np.arange(D), np.arange(D)] *= 1.0 + mu
+    for k in range(D):
+        d = np.sqrt(U[k, k])
+        U[k, k] = d
+        U[k, k + 1:] *= 1.0 / d
+        for i in range(k + 1, D):
+            U[i, i:] += -U[k, i] * U[k, i:]
+    return np.triu(U)
+
+
+@pytest.mark.parametrize("D", [5, 8, 13, 24, 97])
+def test_panel_factorisation_and_hessian_are_the_plain_ones_to_the_bit(D):
+    """The factorisation by panels of eight pivots and the Hessian by eight residuals a
+    pass (sa_kernel._axpy8) add the same terms in the same order as one pivot (one
+    residual) at a time: the same numbers to the bit, with whole panels, a partial last
+    one (13, 97) and none (5)."""
+    rng = np.random.default_rng(D)
+    M = 60
+    JrT = rng.normal(size=(M, D))
+    B = rng.normal(size=(D, D))
+    A = B @ B.T / D
+    H = np.empty((D, D))
+    sk.gauss_newton_hessian(JrT, A, H)
+    want = np.zeros((D, D))
+    for i in range(D):
+        for m in range(M):
+            want[i, i:] += JrT[m, i] * JrT[m, i:]
+    want = np.triu(want) + np.triu(want, 1).T
+    assert np.array_equal(H, 2.0 * want + 2.0 * A)
+    U, dz = np.empty((D, D)), np.empty(D)
+    for mu in (0.0, 0.1):
+        assert sk.damped_step(H, rng.normal(size=D), mu, U, dz)
+        assert np.array_equal(np.triu(U), _plain_factor(H, mu))
 
 
 def test_reference_polish_solves_linear_least_squares_in_one_step():

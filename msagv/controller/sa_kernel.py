@@ -282,6 +282,29 @@ def _axpy(y, x, a):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _axpy8(y, X, r, c, a):
+    """``y += a[0] X[r, c:] + ... + a[7] X[r + 7, c:]``, the eight terms added to each
+    element in that order (so the same sums as eight :func:`_axpy` calls, with one pass
+    over ``y`` instead of eight: the loop is bound by its loads and stores). The rows
+    are taken here, not passed as a 2-d view: a view's rows lose numba's contiguous
+    layout, and the loop stayed scalar."""
+    x0, x1, x2, x3 = X[r, c:], X[r + 1, c:], X[r + 2, c:], X[r + 3, c:]
+    x4, x5, x6, x7 = X[r + 4, c:], X[r + 5, c:], X[r + 6, c:], X[r + 7, c:]
+    a0, a1, a2, a3, a4, a5, a6, a7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    for j in range(y.shape[0]):
+        v = y[j]
+        v += a0 * x0[j]
+        v += a1 * x1[j]
+        v += a2 * x2[j]
+        v += a3 * x3[j]
+        v += a4 * x4[j]
+        v += a5 * x5[j]
+        v += a6 * x6[j]
+        v += a7 * x7[j]
+        y[j] = v
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _dot(x, y):
     """``x . y`` in index order."""
     t = 0.0
@@ -328,13 +351,20 @@ def gauss_newton_gradient(JrT, r0, ge, A, z, b, g):
 @njit(cache=True, error_model="numpy")
 def gauss_newton_hessian(JrT, A, H):
     """``H = 2 Jr' Jr + 2 A`` (``JrT`` (M, D)): each row's upper part as updates by the
-    residuals' rows, then mirrored."""
+    residuals' rows (eight at a time), then mirrored."""
     M, D = JrT.shape
+    a = np.empty(8)
     for i in range(D):
         Hi = H[i, i:]
         for j in range(Hi.shape[0]):
             Hi[j] = 0.0
-        for m in range(M):
+        m0 = 0
+        while m0 + 8 <= M:  # eight residuals' rows a pass, in order (_axpy8)
+            for q in range(8):
+                a[q] = JrT[m0 + q, i]
+            _axpy8(Hi, JrT, m0, i, a)
+            m0 += 8
+        for m in range(m0, M):
             _axpy(Hi, JrT[m, i:], JrT[m, i])
     for i in range(D):
         for j in range(i, D):
@@ -373,7 +403,10 @@ def broyden_update(JrT, ge, H, dz, dr, de):
 def damped_step(H, g, mu, U, dz):
     """Solve ``(H + mu diag H) dz = -g`` by Cholesky, ``U'U`` with ``U`` (D, D) upper
     triangular (scratch; the right-looking form: each pivot row updates the rows below
-    it); False when the matrix is not positive definite (then ``dz`` is undefined)."""
+    it, in panels of eight pivots: a panel's rows are factored among themselves, then
+    update each row below in one pass, :func:`_axpy8`; every element receives the same
+    updates in the same order as one pivot at a time, so the same factor to the bit);
+    False when the matrix is not positive definite (then ``dz`` is undefined)."""
     D = H.shape[0]
     for i in range(D):
         Ui = U[i]
@@ -381,19 +414,30 @@ def damped_step(H, g, mu, U, dz):
         for j in range(D):
             Ui[j] = Hi[j]
         Ui[i] *= 1.0 + mu
-    for k in range(D):
-        Uk = U[k]
-        s = Uk[k]
-        if not s > 0.0:
-            return False
-        d = math.sqrt(s)
-        Uk[k] = d
-        row = Uk[k + 1:]
-        inv = 1.0 / d
-        for j in range(row.shape[0]):
-            row[j] *= inv
-        for i in range(k + 1, D):
-            _axpy(U[i, i:], Uk[i:], -Uk[i])
+    a = np.empty(8)
+    for k0 in range(0, D, 8):
+        k1 = min(k0 + 8, D)
+        for k in range(k0, k1):  # the panel's pivots, on the panel's rows
+            Uk = U[k]
+            s = Uk[k]
+            if not s > 0.0:
+                return False
+            d = math.sqrt(s)
+            Uk[k] = d
+            row = Uk[k + 1:]
+            inv = 1.0 / d
+            for j in range(row.shape[0]):
+                row[j] *= inv
+            for i in range(k + 1, k1):
+                _axpy(U[i, i:], Uk[i:], -Uk[i])
+        for i in range(k1, D):  # the rows below, by the whole panel
+            if k1 - k0 == 8:
+                for q in range(8):
+                    a[q] = -U[k0 + q, i]
+                _axpy8(U[i, i:], U, k0, i, a)
+            else:
+                for k in range(k0, k1):
+                    _axpy(U[i, i:], U[k, i:], -U[k, i])
     for i in range(D):  # U' y = -g, by the rows of U
         dz[i] = -g[i]
     for k in range(D):
