@@ -177,7 +177,7 @@ def test_reference_polish_solves_linear_least_squares_in_one_step():
     assert J == pytest.approx(float(np.sum((M @ want - y) ** 2) + want @ A @ want), rel=1e-9)
 
 
-@pytest.mark.parametrize("axles", [2, 4])
+@pytest.mark.parametrize("axles", [2, 4, 12])  # 12: D = 144 > 2 M, the Woodbury steps
 def test_compiled_polish_is_the_plain_one(axles):
     mpc, x0, R, zprev, rng = _problem(axles, seed=10 + axles, iterations=4, polish=6)
     sa, m = mpc.solver.kernel, mpc.model
@@ -201,7 +201,9 @@ def test_compiled_polish_is_the_plain_one(axles):
     assert got.polish_steps == n >= 1
     assert got.evaluations == res.evaluations + 1 + (1 + refreshes) * D + n * sk.GN_CANDIDATES
     assert got.cost == pytest.approx(J, rel=1e-9)
-    assert np.allclose(got.x, z, rtol=0, atol=1e-7)
+    # at 12 axles the steps are less well conditioned: 1.3e-7 from numpy's by Cholesky
+    # (GN_LOWRANK raised) as by Woodbury
+    assert np.allclose(got.x, z, rtol=0, atol=1e-7 if axles <= 4 else 1e-6)
     assert got.cost < res.cost  # from 4 iterations of annealing there is room
     assert np.all(got.x >= mpc.horizon.lower) and np.all(got.x <= mpc.horizon.upper)
     assert got.iterations == res.iterations
@@ -273,3 +275,33 @@ def test_compiled_and_cached_kernels_command_the_same(tmp_path):
     assert any((tmp_path / "numba").rglob("*.nbc"))
     first, second = (json.loads(r.stdout) for r in runs)
     assert first == second
+
+
+@pytest.mark.parametrize("D, stride", [(24, 8), (144, 48), (192, 64)])
+def test_lowrank_step_is_the_damped_step(D, stride):
+    """The damped step through the residuals' side (Woodbury, for D well above M) solves
+    the same system as the Cholesky step, on the polish's own quadratic terms (the
+    smoothing couples each offset across the move blocks) with a Jacobian of widely spread
+    column scales; both against numpy's solver. A matrix E = 2A + mu diag H that is not
+    positive definite is refused."""
+    rng = np.random.default_rng(D)
+    M = 60
+    JrT = rng.normal(size=(M, D)) * np.exp(rng.normal(size=D))
+    A, b = np.empty((D, D)), np.empty(D)
+    sk.quadratic_terms(stride, stride // 2, np.array([0.01, 0.5, 1e-3, 1e-2]),
+                       rng.normal(size=stride), A, b)
+    assert A[stride, 0] != 0.0  # the blocks are coupled
+    H = np.empty((D, D))
+    sk.gauss_newton_hessian(JrT, A, H)
+    g = rng.normal(size=D)
+    JT, WT = np.ascontiguousarray(JrT.T), np.empty((D, M))
+    dz, dz2, U = np.empty(D), np.empty(D), np.empty((D, D))
+    for mu in (0.01, 0.1, 1.0, 10.0):
+        assert sk.lowrank_step(H, JT, A, stride, g, mu, WT, dz)
+        assert sk.damped_step(H, g, mu, U, dz2)
+        want = np.linalg.solve(H + mu * np.diag(np.diag(H)), -g)
+        scale = np.abs(want).max()
+        assert np.abs(dz - want).max() < 1e-11 * scale
+        assert np.abs(dz - dz2).max() < 1e-11 * scale
+    A[3, 3] = -1.0
+    assert not sk.lowrank_step(H, JT, A, stride, g, 0.01, WT, dz)

@@ -194,8 +194,9 @@ ITERATE = {(pred.name, kind, parallel): _make_iterate(
 # residuals' Jacobian Jr (stored by residual, JrT) by forward differences once (D perturbed
 # candidates: D / LANES tiles of the SIMD prediction), then steps: the Gauss-Newton model's gradient
 # g = 2 Jr'r + grad e + 2Az + b and Hessian H = 2 Jr'Jr + 2A, the Levenberg-Marquardt
-# steps (H + mu diag H) dz = -g for the damping factors GN_MUS, each at the lengths
-# GN_ALPHAS: clipped to the box, these LANES candidates are one tile; the best is kept if
+# steps (H + mu diag H) dz = -g for the damping factors GN_MUS (by Cholesky, or through
+# the M residuals by Woodbury's identity when D > GN_LOWRANK M: lowrank_step), each at the
+# lengths GN_ALPHAS: clipped to the box, these LANES candidates are one tile; the best is kept if
 # it lowers the cost, and the Jacobian follows the step by Broyden's rank-one update
 # (Jr += (r' - r - Jr dz) dz' / dz'dz, the same for grad e) instead of new differences.
 # When a step stalls (gains less than GN_TOL of the cost) with an updated Jacobian, the
@@ -448,6 +449,74 @@ def damped_step(H, g, mu, U, dz):
     return True
 
 
+GN_LOWRANK = 2.0  # the damped steps by Woodbury (lowrank_step) when D > this times M
+
+
+@njit(cache=True, error_model="numpy")
+def lowrank_step(H, JT, A, stride, g, mu, WT, dz):
+    """Solve ``(H + mu diag H) dz = -g`` for ``H = 2 Jr'Jr + 2A`` through the residuals'
+    side (``JT`` (D, M): the Jacobian by variable, ``Jr'``), in O(M^2 D) instead of the
+    Cholesky factorisation's O(D^3): ``E = 2A + mu diag H`` is, for each of the ``stride``
+    offsets, a tridiagonal matrix across the move blocks (the smoothing couples a variable
+    only with itself one block before and after, :func:`quadratic_terms`), so ``E^-1`` is a
+    sweep down and up the blocks; then Woodbury's identity,
+    ``(E + 2 Jr'Jr)^-1 = E^-1 - W (I/2 + Jr W)^-1 W'``, ``W = E^-1 Jr'`` (``WT`` (D, M),
+    scratch), leaves an M x M system (:func:`damped_step` with ``mu = 0``). False when
+    ``E`` or that system is not positive definite. Faster than :func:`damped_step` when
+    D is well above M (:data:`GN_LOWRANK`)."""
+    D, M = JT.shape
+    dp = np.empty(D)  # E = L diag(dp) L', L unit lower with lo[i] at (i, i - stride)
+    lo = np.zeros(D)
+    for i in range(D):
+        e = 2.0 * A[i, i] + mu * H[i, i]
+        if i >= stride:
+            lo[i] = 2.0 * A[i, i - stride] / dp[i - stride]
+            e -= lo[i] * lo[i] * dp[i - stride]
+        if not e > 0.0:
+            return False
+        dp[i] = e
+    u = np.empty(D)  # u = E^-1 g, WT = E^-1 Jr'
+    for i in range(D):
+        WT[i] = JT[i]
+        u[i] = g[i]
+        if i >= stride:
+            _axpy(WT[i], WT[i - stride], -lo[i])
+            u[i] -= lo[i] * u[i - stride]
+    for i in range(D - 1, -1, -1):
+        inv = 1.0 / dp[i]
+        for n in range(M):
+            WT[i, n] *= inv
+        u[i] *= inv
+        if i + stride < D:
+            _axpy(WT[i], WT[i + stride], -lo[i + stride])
+            u[i] -= lo[i + stride] * u[i + stride]
+    S = np.zeros((M, M))  # I/2 + Jr W: the upper part by rows, eight variables a pass
+    a = np.empty(8)
+    for m in range(M):
+        Sm = S[m, m:]
+        i0 = 0
+        while i0 + 8 <= D:
+            for q in range(8):
+                a[q] = JT[i0 + q, m]
+            _axpy8(Sm, WT, i0, m, a)
+            i0 += 8
+        for i in range(i0, D):
+            _axpy(Sm, WT[i, m:], JT[i, m])
+    for m in range(M):
+        S[m, m] += 0.5
+        for n in range(m + 1, M):
+            S[n, m] = S[m, n]
+    v = np.zeros(M)  # -Jr u
+    for i in range(D):
+        _axpy(v, JT[i], -u[i])
+    w = np.empty(M)  # S w = Jr u
+    if not damped_step(S, v, 0.0, np.empty((M, M)), w):
+        return False
+    for i in range(D):  # dz = -(u - W w)
+        dz[i] = _dot(WT[i], w) - u[i]
+    return True
+
+
 def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, lin, Zfd,
                  poses, wear, cmds, JrT, ge, H):
     """The residuals' Jacobian ``JrT`` (M, D; row m: residual m's derivatives) and the linear
@@ -471,8 +540,8 @@ def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, 
     gauss_newton_hessian(JrT, A, H)
 
 
-def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, mus, alphas,
-             z, J, r, lin, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc):
+def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, upper, mus,
+             alphas, z, J, r, lin, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc, JT, WT):
     """One polish step from ``z`` (cost ``J``, residuals ``r[0]``, linear term ``lin[0]``,
     Jacobian ``JrT``, ``ge``, Hessian ``H``): the candidates of the damped steps, predicted
     in one call; the best, if it is below ``J``, becomes ``z`` (with its residuals) and
@@ -482,8 +551,16 @@ def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, 
     M = r.shape[1]
     na = alphas.shape[0]
     gauss_newton_gradient(JrT, r[0], ge, A, z, b, g)
+    lowrank = D > GN_LOWRANK * M
+    if lowrank:
+        for m in range(M):
+            for j in range(D):
+                JT[j, m] = JrT[m, j]
     for k in range(mus.shape[0]):
-        ok = damped_step(H, g, mus[k], Lc, dz)
+        if lowrank:
+            ok = lowrank_step(H, JT, A, stride, g, mus[k], WT, dz)
+        else:
+            ok = damped_step(H, g, mus[k], Lc, dz)
         for a in range(na):
             for j in range(D):
                 v = z[j] + alphas[a] * dz[j] if ok else z[j]
@@ -525,8 +602,9 @@ def _gn_start(model, x0, ref, block, P, S, wx, wy, Q, Lw, z, r, lin, Zfd, poses,
     lin[0] = residuals(poses, wear, ref, Q, Lw, 0, r, 0)
 
 
-def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, h, mus, alphas,
-            tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc):
+def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, upper, h, mus,
+            alphas, tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, JrT, ge, g, H, Lc,
+            dz, Zc, JT, WT):
     """Up to ``n`` polish steps (:func:`_gn_step`) from the state ``st`` = [cost, steps
     taken, Jacobian fresh (1) or updated (0), refreshes, stopped]: a step that lowers the
     cost by less than ``tol`` of it stops the polish if the Jacobian is fresh from the
@@ -537,8 +615,8 @@ def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, h
     fresh = st[2] > 0.0
     for _ in range(n):
         Jn = gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c,  # noqa: F821
-                     lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds, JrT, ge, g,
-                     H, Lc, dz, Zc)
+                     stride, lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds, JrT,
+                     ge, g, H, Lc, dz, Zc, JT, WT)
         st[1] += 1.0
         stalled = not Jn < J or J - Jn < tol * J
         J = min(J, Jn)
@@ -645,7 +723,8 @@ class CompiledAnnealer:
         self._gn_r, self._gn_lin, self._gn_Zfd = np.empty((2, M)), np.empty(1), np.empty((D, D))
         self._gn_J = (np.empty((M, D)), np.empty(D))  # JrT (by residual), ge
         self._gn_la = (np.empty(D), np.empty((D, D)), np.empty((D, D)), np.empty(D),
-                       np.empty((GN_CANDIDATES, D)))  # g, H, Lc, dz, Zc
+                       np.empty((GN_CANDIDATES, D)), np.empty((D, M)),
+                       np.empty((D, M)))  # g, H, Lc, dz, Zc, JT, WT
         self._A, self._b = np.empty((D, D)), np.empty(D)
         self._gn_state = np.empty(5)
         self._h = GN_STEP * self.sigma / self.sigma.max()
@@ -676,8 +755,8 @@ class CompiledAnnealer:
                           *self._gn_J, self._gn_la[1])
         st = self._gn_state
         st[:] = (res.cost, 0.0, 1.0, 0.0, 0.0)
-        run = (*head, self._A, self._b, c, self.lower, self.upper, self._h, GN_MUS, GN_ALPHAS,
-               GN_TOL, GN_REFRESH)
+        run = (*head, self._A, self._b, c, m.stride, self.lower, self.upper, self._h, GN_MUS,
+               GN_ALPHAS, GN_TOL, GN_REFRESH)
         bufs = (z, r, lin, Zfd, *out, *self._gn_J, *self._gn_la)
         if deadline_s is None:
             self._gn_run(*run, n, st, *bufs)
