@@ -273,8 +273,9 @@ def residuals(poses, wear, ref, Q, Lw, row, r, rrow):
 # running dot products, whose single chain of dependent additions cannot be split without
 # changing the result; the Jacobian is stored by residual (JrT (M, D)) so that its rows
 # are those of the products. Measured at 8 axles (D = 96): the factorisation 82 -> 40 us,
-# the Hessian 143 -> 60 us (python -m msagv.benchmarks.polish_bench, "linear_algebra";
-# docs/PERFORMANCE.md, issue 31).
+# the Hessian 143 -> 60 us, then by eight pivots (residuals) a pass (_axpy8) the damped
+# step 42 -> 31 us, the Hessian 52 -> 41 us (python -m msagv.benchmarks.polish_bench,
+# "linear_algebra"; docs/PERFORMANCE.md, issue 31; each on a loaded machine).
 @njit(cache=True, inline="always", error_model="numpy")
 def _axpy(y, x, a):
     """``y += a x`` (views of equal length)."""
