@@ -305,3 +305,25 @@ def test_lowrank_step_is_the_damped_step(D, stride):
         assert np.abs(dz - dz2).max() < 1e-11 * scale
     A[3, 3] = -1.0
     assert not sk.lowrank_step(H, JT, A, stride, g, 0.01, WT, dz)
+
+
+def test_diagonal_only_hessian_and_update_are_the_full_ones_diagonal():
+    """Above the Woodbury threshold the polish keeps H's diagonal alone (all lowrank_step
+    reads): the Hessian and Broyden's update of it with ``full=False`` give the full
+    ones' diagonal to the bit."""
+    rng = np.random.default_rng(7)
+    M, D = 60, 144
+    JrT = rng.normal(size=(M, D))
+    B = rng.normal(size=(D, D))
+    A = B @ B.T / D
+    H, Hd = np.empty((D, D)), np.full((D, D), np.nan)
+    sk.gauss_newton_hessian(JrT, A, H)
+    sk.gauss_newton_hessian(JrT, A, Hd, False)
+    assert np.array_equal(np.diag(Hd), np.diag(H))
+    dz, dr, ge = 1e-2 * rng.normal(size=D), rng.normal(size=M), rng.normal(size=D)
+    J1, J2 = JrT.copy(), JrT.copy()
+    sk.broyden_update(J1, ge.copy(), H, dz, dr, 0.3)
+    sk.broyden_update(J2, ge.copy(), Hd, dz, dr, 0.3, False)
+    assert np.array_equal(np.diag(Hd), np.diag(H))
+    assert np.array_equal(J1, J2)
+    assert not np.array_equal(np.diag(Hd), np.diag(2 * JrT.T @ JrT + 2 * A))  # it moved

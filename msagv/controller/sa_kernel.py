@@ -351,10 +351,18 @@ def gauss_newton_gradient(JrT, r0, ge, A, z, b, g):
 
 
 @njit(cache=True, error_model="numpy")
-def gauss_newton_hessian(JrT, A, H):
+def gauss_newton_hessian(JrT, A, H, full=True):
     """``H = 2 Jr' Jr + 2 A`` (``JrT`` (M, D)): each row's upper part as updates by the
-    residuals' rows (eight at a time), then mirrored."""
+    residuals' rows (eight at a time), then mirrored; ``full=False``: the diagonal alone
+    (all that :func:`lowrank_step` reads), the same numbers to the bit."""
     M, D = JrT.shape
+    if not full:
+        for i in range(D):
+            t = 0.0
+            for m in range(M):
+                t += JrT[m, i] * JrT[m, i]
+            H[i, i] = 2.0 * t + 2.0 * A[i, i]
+        return
     a = np.empty(8)
     for i in range(D):
         Hi = H[i, i:]
@@ -374,12 +382,13 @@ def gauss_newton_hessian(JrT, A, H):
 
 
 @njit(cache=True, error_model="numpy")
-def broyden_update(JrT, ge, H, dz, dr, de):
+def broyden_update(JrT, ge, H, dz, dr, de, full=True):
     """Broyden's rank-one update of the Jacobian (``JrT`` (M, D), by residual) and the
     linear term's gradient ``ge`` after the step ``dz`` that changed the residuals by
     ``dr`` and the linear term by ``de``: ``Jr += t dz'``, ``t = (dr - Jr dz) / dz'dz``
     (likewise ``ge``), and ``H = 2 Jr'Jr + 2A`` with it, in O(D M + D^2):
-    ``H += 2 (u dz' + dz u' + t't dz dz')``, ``u = Jr' t`` (before the update)."""
+    ``H += 2 (u dz' + dz u' + t't dz dz')``, ``u = Jr' t`` (before the update);
+    ``full=False``: H's diagonal alone (:func:`gauss_newton_hessian`)."""
     M, D = JrT.shape
     ss = _dot(dz, dz)
     if not ss > 0.0:
@@ -392,9 +401,13 @@ def broyden_update(JrT, ge, H, dz, dr, de):
         tt += t[m] * t[m]
         _axpy(u, JrT[m], t[m])
     for i in range(D):
-        Hi = H[i]
-        _axpy(Hi, dz, 2.0 * u[i] + 2.0 * tt * dz[i])
-        _axpy(Hi, u, 2.0 * dz[i])
+        if full:
+            Hi = H[i]
+            _axpy(Hi, dz, 2.0 * u[i] + 2.0 * tt * dz[i])
+            _axpy(Hi, u, 2.0 * dz[i])
+        else:  # the same two updates of the diagonal element
+            H[i, i] += (2.0 * u[i] + 2.0 * tt * dz[i]) * dz[i]
+            H[i, i] += 2.0 * dz[i] * u[i]
     for m in range(M):
         _axpy(JrT[m], dz, t[m])
     v = (de - _dot(ge, dz)) / ss
@@ -538,7 +551,7 @@ def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, 
         for m in range(M):
             JrT[m, d] = (r[1, m] - r[0, m]) * inv
         ge[d] = (e - lin[0]) * inv
-    gauss_newton_hessian(JrT, A, H)
+    gauss_newton_hessian(JrT, A, H, not D > GN_LOWRANK * M)  # (lowrank_step: the diagonal)
 
 
 def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, upper, mus,
@@ -584,7 +597,7 @@ def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower,
         dz[j] = Zc[best, j] - z[j]
     for m in range(M):
         r[1, m] -= r[0, m]  # (the change of the residuals)
-    broyden_update(JrT, ge, H, dz, r[1], e - lin[0])
+    broyden_update(JrT, ge, H, dz, r[1], e - lin[0], not lowrank)
     for m in range(M):
         r[1, m] += r[0, m]
     for m in range(M):
