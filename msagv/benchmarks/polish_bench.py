@@ -9,8 +9,9 @@ polish's residuals at its start, its Jacobian by forward differences with the He
 (``_gn_jacobian``, once per solve plus each refresh) and its Gauss-Newton steps with the
 refreshes inside them (``_gn_run``); with the steps and refreshes taken. Then the
 polish's linear algebra alone on random data of the same size (D decision variables,
-M residuals): one damped step (Cholesky and the two triangular solves), the Gauss-Newton
-Hessian, Broyden's update. Percentiles over ``repeats`` passes over the states (the first
+M residuals): one damped step (Cholesky and the two triangular solves), the same step
+through the residuals' side (``lowrank_step``, Woodbury; the polish takes it when D > 2 M),
+the Gauss-Newton Hessian, Broyden's update. Percentiles over ``repeats`` passes over the states (the first
 pass, which loads the kernels, is not counted). Each part is timed twice: its wall time
 (``*_ms``) and the CPU time of this thread (``*_cpu_ms``, ``time.thread_time``): on a
 shared machine the wall time of a long call grows with every preemption (at load 10 on
@@ -66,7 +67,9 @@ def linear_algebra(D: int, M: int, seed: int = 0) -> dict:
     H, U, dz, g = np.empty((D, D)), np.empty((D, D)), np.empty(D), rng.normal(size=D)
     sk.gauss_newton_hessian(JrT, A, H)
     step = 1e-3 * rng.normal(size=D)
+    JT, WT = np.ascontiguousarray(JrT.T), np.empty((D, M))
     return {"damped_step_us": _time(sk.damped_step, H, g, 0.1, U, dz),
+            "lowrank_step_us": _time(sk.lowrank_step, H, JT, A, max(D // 3, 1), g, 0.1, WT, dz),
             "hessian_us": _time(sk.gauss_newton_hessian, JrT, A, H),
             "broyden_us": _time(sk.broyden_update, JrT.copy(), np.zeros(D), H.copy(), step,
                                 rng.normal(size=M), 0.0)}

@@ -194,8 +194,9 @@ ITERATE = {(pred.name, kind, parallel): _make_iterate(
 # residuals' Jacobian Jr (stored by residual, JrT) by forward differences once (D perturbed
 # candidates: D / LANES tiles of the SIMD prediction), then steps: the Gauss-Newton model's gradient
 # g = 2 Jr'r + grad e + 2Az + b and Hessian H = 2 Jr'Jr + 2A, the Levenberg-Marquardt
-# steps (H + mu diag H) dz = -g for the damping factors GN_MUS, each at the lengths
-# GN_ALPHAS: clipped to the box, these LANES candidates are one tile; the best is kept if
+# steps (H + mu diag H) dz = -g for the damping factors GN_MUS (by Cholesky, or through
+# the M residuals by Woodbury's identity when D > GN_LOWRANK M: lowrank_step), each at the
+# lengths GN_ALPHAS: clipped to the box, these LANES candidates are one tile; the best is kept if
 # it lowers the cost, and the Jacobian follows the step by Broyden's rank-one update
 # (Jr += (r' - r - Jr dz) dz' / dz'dz, the same for grad e) instead of new differences.
 # When a step stalls (gains less than GN_TOL of the cost) with an updated Jacobian, the
@@ -272,13 +273,37 @@ def residuals(poses, wear, ref, Q, Lw, row, r, rrow):
 # running dot products, whose single chain of dependent additions cannot be split without
 # changing the result; the Jacobian is stored by residual (JrT (M, D)) so that its rows
 # are those of the products. Measured at 8 axles (D = 96): the factorisation 82 -> 40 us,
-# the Hessian 143 -> 60 us (python -m msagv.benchmarks.polish_bench, "linear_algebra";
-# docs/PERFORMANCE.md, issue 31).
+# the Hessian 143 -> 60 us, then by eight pivots (residuals) a pass (_axpy8) the damped
+# step 42 -> 31 us, the Hessian 52 -> 41 us (python -m msagv.benchmarks.polish_bench,
+# "linear_algebra"; docs/PERFORMANCE.md, issue 31; each on a loaded machine).
 @njit(cache=True, inline="always", error_model="numpy")
 def _axpy(y, x, a):
     """``y += a x`` (views of equal length)."""
     for j in range(y.shape[0]):
         y[j] += a * x[j]
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _axpy8(y, X, r, c, a):
+    """``y += a[0] X[r, c:] + ... + a[7] X[r + 7, c:]``, the eight terms added to each
+    element in that order (so the same sums as eight :func:`_axpy` calls, with one pass
+    over ``y`` instead of eight: the loop is bound by its loads and stores). The rows
+    are taken here, not passed as a 2-d view: a view's rows lose numba's contiguous
+    layout, and the loop stayed scalar."""
+    x0, x1, x2, x3 = X[r, c:], X[r + 1, c:], X[r + 2, c:], X[r + 3, c:]
+    x4, x5, x6, x7 = X[r + 4, c:], X[r + 5, c:], X[r + 6, c:], X[r + 7, c:]
+    a0, a1, a2, a3, a4, a5, a6, a7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    for j in range(y.shape[0]):
+        v = y[j]
+        v += a0 * x0[j]
+        v += a1 * x1[j]
+        v += a2 * x2[j]
+        v += a3 * x3[j]
+        v += a4 * x4[j]
+        v += a5 * x5[j]
+        v += a6 * x6[j]
+        v += a7 * x7[j]
+        y[j] = v
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -326,15 +351,30 @@ def gauss_newton_gradient(JrT, r0, ge, A, z, b, g):
 
 
 @njit(cache=True, error_model="numpy")
-def gauss_newton_hessian(JrT, A, H):
+def gauss_newton_hessian(JrT, A, H, full=True):
     """``H = 2 Jr' Jr + 2 A`` (``JrT`` (M, D)): each row's upper part as updates by the
-    residuals' rows, then mirrored."""
+    residuals' rows (eight at a time), then mirrored; ``full=False``: the diagonal alone
+    (all that :func:`lowrank_step` reads), the same numbers to the bit."""
     M, D = JrT.shape
+    if not full:
+        for i in range(D):
+            t = 0.0
+            for m in range(M):
+                t += JrT[m, i] * JrT[m, i]
+            H[i, i] = 2.0 * t + 2.0 * A[i, i]
+        return
+    a = np.empty(8)
     for i in range(D):
         Hi = H[i, i:]
         for j in range(Hi.shape[0]):
             Hi[j] = 0.0
-        for m in range(M):
+        m0 = 0
+        while m0 + 8 <= M:  # eight residuals' rows a pass, in order (_axpy8)
+            for q in range(8):
+                a[q] = JrT[m0 + q, i]
+            _axpy8(Hi, JrT, m0, i, a)
+            m0 += 8
+        for m in range(m0, M):
             _axpy(Hi, JrT[m, i:], JrT[m, i])
     for i in range(D):
         for j in range(i, D):
@@ -342,12 +382,13 @@ def gauss_newton_hessian(JrT, A, H):
 
 
 @njit(cache=True, error_model="numpy")
-def broyden_update(JrT, ge, H, dz, dr, de):
+def broyden_update(JrT, ge, H, dz, dr, de, full=True):
     """Broyden's rank-one update of the Jacobian (``JrT`` (M, D), by residual) and the
     linear term's gradient ``ge`` after the step ``dz`` that changed the residuals by
     ``dr`` and the linear term by ``de``: ``Jr += t dz'``, ``t = (dr - Jr dz) / dz'dz``
     (likewise ``ge``), and ``H = 2 Jr'Jr + 2A`` with it, in O(D M + D^2):
-    ``H += 2 (u dz' + dz u' + t't dz dz')``, ``u = Jr' t`` (before the update)."""
+    ``H += 2 (u dz' + dz u' + t't dz dz')``, ``u = Jr' t`` (before the update);
+    ``full=False``: H's diagonal alone (:func:`gauss_newton_hessian`)."""
     M, D = JrT.shape
     ss = _dot(dz, dz)
     if not ss > 0.0:
@@ -360,9 +401,13 @@ def broyden_update(JrT, ge, H, dz, dr, de):
         tt += t[m] * t[m]
         _axpy(u, JrT[m], t[m])
     for i in range(D):
-        Hi = H[i]
-        _axpy(Hi, dz, 2.0 * u[i] + 2.0 * tt * dz[i])
-        _axpy(Hi, u, 2.0 * dz[i])
+        if full:
+            Hi = H[i]
+            _axpy(Hi, dz, 2.0 * u[i] + 2.0 * tt * dz[i])
+            _axpy(Hi, u, 2.0 * dz[i])
+        else:  # the same two updates of the diagonal element
+            H[i, i] += (2.0 * u[i] + 2.0 * tt * dz[i]) * dz[i]
+            H[i, i] += 2.0 * dz[i] * u[i]
     for m in range(M):
         _axpy(JrT[m], dz, t[m])
     v = (de - _dot(ge, dz)) / ss
@@ -373,7 +418,10 @@ def broyden_update(JrT, ge, H, dz, dr, de):
 def damped_step(H, g, mu, U, dz):
     """Solve ``(H + mu diag H) dz = -g`` by Cholesky, ``U'U`` with ``U`` (D, D) upper
     triangular (scratch; the right-looking form: each pivot row updates the rows below
-    it); False when the matrix is not positive definite (then ``dz`` is undefined)."""
+    it, in panels of eight pivots: a panel's rows are factored among themselves, then
+    update each row below in one pass, :func:`_axpy8`; every element receives the same
+    updates in the same order as one pivot at a time, so the same factor to the bit);
+    False when the matrix is not positive definite (then ``dz`` is undefined)."""
     D = H.shape[0]
     for i in range(D):
         Ui = U[i]
@@ -381,19 +429,30 @@ def damped_step(H, g, mu, U, dz):
         for j in range(D):
             Ui[j] = Hi[j]
         Ui[i] *= 1.0 + mu
-    for k in range(D):
-        Uk = U[k]
-        s = Uk[k]
-        if not s > 0.0:
-            return False
-        d = math.sqrt(s)
-        Uk[k] = d
-        row = Uk[k + 1:]
-        inv = 1.0 / d
-        for j in range(row.shape[0]):
-            row[j] *= inv
-        for i in range(k + 1, D):
-            _axpy(U[i, i:], Uk[i:], -Uk[i])
+    a = np.empty(8)
+    for k0 in range(0, D, 8):
+        k1 = min(k0 + 8, D)
+        for k in range(k0, k1):  # the panel's pivots, on the panel's rows
+            Uk = U[k]
+            s = Uk[k]
+            if not s > 0.0:
+                return False
+            d = math.sqrt(s)
+            Uk[k] = d
+            row = Uk[k + 1:]
+            inv = 1.0 / d
+            for j in range(row.shape[0]):
+                row[j] *= inv
+            for i in range(k + 1, k1):
+                _axpy(U[i, i:], Uk[i:], -Uk[i])
+        for i in range(k1, D):  # the rows below, by the whole panel
+            if k1 - k0 == 8:
+                for q in range(8):
+                    a[q] = -U[k0 + q, i]
+                _axpy8(U[i, i:], U, k0, i, a)
+            else:
+                for k in range(k0, k1):
+                    _axpy(U[i, i:], U[k, i:], -U[k, i])
     for i in range(D):  # U' y = -g, by the rows of U
         dz[i] = -g[i]
     for k in range(D):
@@ -401,6 +460,74 @@ def damped_step(H, g, mu, U, dz):
         _axpy(dz[k + 1:], U[k, k + 1:], -dz[k])
     for i in range(D - 1, -1, -1):  # U dz = y
         dz[i] = (dz[i] - _dot(U[i, i + 1:], dz[i + 1:])) / U[i, i]
+    return True
+
+
+GN_LOWRANK = 2.0  # the damped steps by Woodbury (lowrank_step) when D > this times M
+
+
+@njit(cache=True, error_model="numpy")
+def lowrank_step(H, JT, A, stride, g, mu, WT, dz):
+    """Solve ``(H + mu diag H) dz = -g`` for ``H = 2 Jr'Jr + 2A`` through the residuals'
+    side (``JT`` (D, M): the Jacobian by variable, ``Jr'``), in O(M^2 D) instead of the
+    Cholesky factorisation's O(D^3): ``E = 2A + mu diag H`` is, for each of the ``stride``
+    offsets, a tridiagonal matrix across the move blocks (the smoothing couples a variable
+    only with itself one block before and after, :func:`quadratic_terms`), so ``E^-1`` is a
+    sweep down and up the blocks; then Woodbury's identity,
+    ``(E + 2 Jr'Jr)^-1 = E^-1 - W (I/2 + Jr W)^-1 W'``, ``W = E^-1 Jr'`` (``WT`` (D, M),
+    scratch), leaves an M x M system (:func:`damped_step` with ``mu = 0``). False when
+    ``E`` or that system is not positive definite. Faster than :func:`damped_step` when
+    D is well above M (:data:`GN_LOWRANK`)."""
+    D, M = JT.shape
+    dp = np.empty(D)  # E = L diag(dp) L', L unit lower with lo[i] at (i, i - stride)
+    lo = np.zeros(D)
+    for i in range(D):
+        e = 2.0 * A[i, i] + mu * H[i, i]
+        if i >= stride:
+            lo[i] = 2.0 * A[i, i - stride] / dp[i - stride]
+            e -= lo[i] * lo[i] * dp[i - stride]
+        if not e > 0.0:
+            return False
+        dp[i] = e
+    u = np.empty(D)  # u = E^-1 g, WT = E^-1 Jr'
+    for i in range(D):
+        WT[i] = JT[i]
+        u[i] = g[i]
+        if i >= stride:
+            _axpy(WT[i], WT[i - stride], -lo[i])
+            u[i] -= lo[i] * u[i - stride]
+    for i in range(D - 1, -1, -1):
+        inv = 1.0 / dp[i]
+        for n in range(M):
+            WT[i, n] *= inv
+        u[i] *= inv
+        if i + stride < D:
+            _axpy(WT[i], WT[i + stride], -lo[i + stride])
+            u[i] -= lo[i + stride] * u[i + stride]
+    S = np.zeros((M, M))  # I/2 + Jr W: the upper part by rows, eight variables a pass
+    a = np.empty(8)
+    for m in range(M):
+        Sm = S[m, m:]
+        i0 = 0
+        while i0 + 8 <= D:
+            for q in range(8):
+                a[q] = JT[i0 + q, m]
+            _axpy8(Sm, WT, i0, m, a)
+            i0 += 8
+        for i in range(i0, D):
+            _axpy(Sm, WT[i, m:], JT[i, m])
+    for m in range(M):
+        S[m, m] += 0.5
+        for n in range(m + 1, M):
+            S[n, m] = S[m, n]
+    v = np.zeros(M)  # -Jr u
+    for i in range(D):
+        _axpy(v, JT[i], -u[i])
+    w = np.empty(M)  # S w = Jr u
+    if not damped_step(S, v, 0.0, np.empty((M, M)), w):
+        return False
+    for i in range(D):  # dz = -(u - W w)
+        dz[i] = _dot(WT[i], w) - u[i]
     return True
 
 
@@ -424,11 +551,11 @@ def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, 
         for m in range(M):
             JrT[m, d] = (r[1, m] - r[0, m]) * inv
         ge[d] = (e - lin[0]) * inv
-    gauss_newton_hessian(JrT, A, H)
+    gauss_newton_hessian(JrT, A, H, not D > GN_LOWRANK * M)  # (lowrank_step: the diagonal)
 
 
-def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, mus, alphas,
-             z, J, r, lin, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc):
+def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, upper, mus,
+             alphas, z, J, r, lin, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc, JT, WT):
     """One polish step from ``z`` (cost ``J``, residuals ``r[0]``, linear term ``lin[0]``,
     Jacobian ``JrT``, ``ge``, Hessian ``H``): the candidates of the damped steps, predicted
     in one call; the best, if it is below ``J``, becomes ``z`` (with its residuals) and
@@ -438,8 +565,16 @@ def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, 
     M = r.shape[1]
     na = alphas.shape[0]
     gauss_newton_gradient(JrT, r[0], ge, A, z, b, g)
+    lowrank = D > GN_LOWRANK * M
+    if lowrank:
+        for m in range(M):
+            for j in range(D):
+                JT[j, m] = JrT[m, j]
     for k in range(mus.shape[0]):
-        ok = damped_step(H, g, mus[k], Lc, dz)
+        if lowrank:
+            ok = lowrank_step(H, JT, A, stride, g, mus[k], WT, dz)
+        else:
+            ok = damped_step(H, g, mus[k], Lc, dz)
         for a in range(na):
             for j in range(D):
                 v = z[j] + alphas[a] * dz[j] if ok else z[j]
@@ -462,7 +597,7 @@ def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, 
         dz[j] = Zc[best, j] - z[j]
     for m in range(M):
         r[1, m] -= r[0, m]  # (the change of the residuals)
-    broyden_update(JrT, ge, H, dz, r[1], e - lin[0])
+    broyden_update(JrT, ge, H, dz, r[1], e - lin[0], not lowrank)
     for m in range(M):
         r[1, m] += r[0, m]
     for m in range(M):
@@ -481,8 +616,9 @@ def _gn_start(model, x0, ref, block, P, S, wx, wy, Q, Lw, z, r, lin, Zfd, poses,
     lin[0] = residuals(poses, wear, ref, Q, Lw, 0, r, 0)
 
 
-def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, h, mus, alphas,
-            tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc):
+def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, upper, h, mus,
+            alphas, tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, JrT, ge, g, H, Lc,
+            dz, Zc, JT, WT):
     """Up to ``n`` polish steps (:func:`_gn_step`) from the state ``st`` = [cost, steps
     taken, Jacobian fresh (1) or updated (0), refreshes, stopped]: a step that lowers the
     cost by less than ``tol`` of it stops the polish if the Jacobian is fresh from the
@@ -493,8 +629,8 @@ def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, lower, upper, h
     fresh = st[2] > 0.0
     for _ in range(n):
         Jn = gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c,  # noqa: F821
-                     lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds, JrT, ge, g,
-                     H, Lc, dz, Zc)
+                     stride, lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds, JrT,
+                     ge, g, H, Lc, dz, Zc, JT, WT)
         st[1] += 1.0
         stalled = not Jn < J or J - Jn < tol * J
         J = min(J, Jn)
@@ -601,7 +737,8 @@ class CompiledAnnealer:
         self._gn_r, self._gn_lin, self._gn_Zfd = np.empty((2, M)), np.empty(1), np.empty((D, D))
         self._gn_J = (np.empty((M, D)), np.empty(D))  # JrT (by residual), ge
         self._gn_la = (np.empty(D), np.empty((D, D)), np.empty((D, D)), np.empty(D),
-                       np.empty((GN_CANDIDATES, D)))  # g, H, Lc, dz, Zc
+                       np.empty((GN_CANDIDATES, D)), np.empty((D, M)),
+                       np.empty((D, M)))  # g, H, Lc, dz, Zc, JT, WT
         self._A, self._b = np.empty((D, D)), np.empty(D)
         self._gn_state = np.empty(5)
         self._h = GN_STEP * self.sigma / self.sigma.max()
@@ -632,8 +769,8 @@ class CompiledAnnealer:
                           *self._gn_J, self._gn_la[1])
         st = self._gn_state
         st[:] = (res.cost, 0.0, 1.0, 0.0, 0.0)
-        run = (*head, self._A, self._b, c, self.lower, self.upper, self._h, GN_MUS, GN_ALPHAS,
-               GN_TOL, GN_REFRESH)
+        run = (*head, self._A, self._b, c, m.stride, self.lower, self.upper, self._h, GN_MUS,
+               GN_ALPHAS, GN_TOL, GN_REFRESH)
         bufs = (z, r, lin, Zfd, *out, *self._gn_J, *self._gn_la)
         if deadline_s is None:
             self._gn_run(*run, n, st, *bufs)
