@@ -52,8 +52,12 @@ def paper_fmu(tmp_path_factory):
 # processes that keep a period (plants at 100 Hz, controllers, ROS 2 nodes, a browser) or
 # count what crosses a loopback bus: they run one after another on one worker, never beside
 # each other; the in-process tests (numerics, kernels, files) share the other core.
+# test_cli_ux is not one of them: its processes are one-shot commands (msagv --help, an
+# offline msagv run stopped by Ctrl-C), none with a period or a bus; as one, its 68 s (of
+# 1265 s) lengthened the processes unit, the suite's longest, while the other worker sat
+# idle for 142 s at the end (a clean clone's make test at load 3-12).
 PROCESS_MODULES = frozenset({
-    "test_cli_ux", "test_foxglove", "test_handover", "test_no_nonsense", "test_ownership",
+    "test_foxglove", "test_handover", "test_ownership",
     "test_processes", "test_protocol_doc", "test_recording", "test_ros2_nodes",
     "test_ros2_plant_lifecycle", "test_ros2_plant_services", "test_ros2_sim", "test_ros2_three_ways", "test_ros_recording",
     "test_security", "test_viewer",
@@ -86,6 +90,28 @@ def _scope(nodeid: str) -> str:
     return "processes" if module in PROCESS_MODULES else path
 
 
+# The modules that take longest, longest first (module totals of --durations=0 on a clean
+# clone, i.e. on a cold numba cache). xdist hands units out by their number of tests, so a
+# long module of few tests came last and the other worker sat idle while it ran (62 s for
+# test_determinism, one test); longest first leaves the short ones for the end. The
+# processes unit, the longest, goes first. test_determinism then goes to the other worker:
+# it compiles into a cache of its own, so it overlaps warm_kernels' compile (the shared
+# cache) instead of compiling the same kernels beside it, as the first in-process kernel
+# tests did.
+LONGEST_FIRST = (
+    "processes", "test_determinism", "test_rollout_simd", "test_study", "test_experiments",
+    "test_offset_free", "test_cli_ux", "test_tire_life", "test_nmpc", "test_ipopt",
+    "test_no_nonsense", "test_controller", "test_calibrate",
+)
+
+
+def _unit_rank(scope: str) -> int:
+    """A unit's place in :data:`LONGEST_FIRST` (the others after it, in the order xdist
+    queued them: ``min`` keeps the first of equals)."""
+    name = scope.rsplit("/", 1)[-1].removesuffix(".py")
+    return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+
+
 @pytest.hookimpl(optionalhook=True)  # (a run with -p no:xdist does not know the hook)
 def pytest_xdist_make_scheduler(config, log):
     """xdist's loadscope scheduling over :func:`_scope` (xdist's own grouping mark,
@@ -98,5 +124,10 @@ def pytest_xdist_make_scheduler(config, log):
     class ProcessesApart(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             return _scope(nodeid)
+
+        def _assign_work_unit(self, node) -> None:
+            # the next unit by _unit_rank, not xdist's (most tests first)
+            self.workqueue.move_to_end(min(self.workqueue, key=_unit_rank), last=False)
+            super()._assign_work_unit(node)
 
     return ProcessesApart(config, log)

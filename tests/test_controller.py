@@ -346,6 +346,31 @@ def test_speed_profile_and_errors():
             SpeedProfile.parse(bad)
 
 
+@pytest.mark.parametrize("profile", ["15", "0:0,10:36", "0.5", "0:5,10:0"])
+def test_a_path_reference_finds_its_end_where_the_whole_1e5_s_table_does(profile):
+    """path_reference searches the first steps of its 1e5 s table only (the whole one, 10
+    million steps, took seconds per reference): the same step, the same time, as a search
+    of the whole table. 0.5 km/h reaches 150 m after 108,000 steps (the table grows four
+    times); "0:5,10:0" stops after 6.9 m and never reaches 10 m."""
+    from msagv.controller import reference as R
+
+    sp = SpeedProfile.parse(profile)
+    table = np.arange(0.0, 1e5, 0.01)
+    dist = sp.distance(table)
+    for d in (0.0, 1e-3, 6.9, 10.0, 150.0, 170.0):
+        k = R._reach_step(sp, d)
+        assert k == np.searchsorted(dist, d)
+        if k < len(table):
+            assert R._reach_times(k + 1)[k] == table[k]
+    assert R._REACH_STEPS == len(table)
+    if dist[-1] < 150.0:
+        with pytest.raises(ReferenceError, match="never reaches the end of the path"):
+            case1_curve(sp)
+    else:  # the duration is one of the table's times, to the bit
+        dur = case1_curve(sp).duration
+        assert table[round(dur / 0.01)] == dur
+
+
 def test_reference_from_csv(tmp_path):
     t = np.linspace(0, 4, 81)
     path = tmp_path / "traj.csv"
