@@ -410,7 +410,7 @@ def test_controller_does_not_send_a_stale_command(make_ctl, vehicle):
 
 
 def test_controller_rejects_malformed_states_and_references(make_ctl, bus):
-    ctl, plant = make_ctl()
+    ctl, plant = make_ctl(ControllerConfig(bus_references="on"))
     tool = bus.endpoint("tool").publisher(K.reference)
     cases = faults.state_cases(4) + faults.reference_cases()
     for i, (p, _) in enumerate(faults.state_cases(4)):
@@ -425,7 +425,7 @@ def test_controller_rejects_malformed_states_and_references(make_ctl, bus):
 
 
 def test_controller_takes_a_new_reference_relative_to_the_next_state(make_ctl, vehicle, bus):
-    ctl, plant = make_ctl()
+    ctl, plant = make_ctl(ControllerConfig(bus_references="on"))
     t = np.linspace(0, 5, 51)
     bus.endpoint("tool").publisher(K.reference).put(
         M.encode_reference(t, t, 0 * t, 0 * t, name="line", relative=True), 0)
@@ -434,6 +434,40 @@ def test_controller_takes_a_new_reference_relative_to_the_next_state(make_ctl, v
     ctl.step(st, time.perf_counter())
     ref = ctl.mpc.reference
     assert ref.name == "line" and ref.t[0] == pytest.approx(0.07) and ctl.stats.references == 1
+
+
+@pytest.mark.parametrize("authenticated,setting,taken", [
+    (False, "auto", False), (False, "on", True), (False, "off", False),
+    (True, "auto", True), (True, "on", True), (True, "off", False)])
+def test_references_from_the_bus_are_taken_only_where_their_sender_is_known(
+        mpc, vehicle, authenticated, setting, taken):
+    """Issue 30: on a plain bus any session, or a client that copied a sender's source
+    info, could give the vehicle a path. By default ('auto') the controller takes bus
+    references only on an authenticated bus (``--secure``); a refused one is counted as
+    ``references_off``, changes nothing and is recorded as rejected."""
+    from msagv.bridge.loopback import LoopbackBus
+    from msagv.controller.reference import case1_curve
+
+    lb = LoopbackBus(authenticated=authenticated)
+    mpc.reset()
+    mpc.set_reference(case1_curve(15.0))
+    plant = LoopbackPlant(lb)
+    node = ControllerNode(mpc, K, ControllerConfig(bus_references=setting), plant_zid="p1")
+    node.open(lb.endpoint("c1"))
+    try:
+        wait_until(lambda: node.plant_present and node.granted, 5.0, "the grant")
+        t = np.linspace(0, 5, 51)
+        lb.endpoint("tool").publisher(K.reference).put(
+            M.encode_reference(t, t, 0 * t + 5.0, 0 * t, name="side", relative=True), 0)
+        node.step(M.decode_state(_state_payload(3, vehicle), 4), time.perf_counter())
+        assert (mpc.reference.name == "side") == taken
+        assert node.stats.references == int(taken)
+        assert node.rej.summary()["by_reason"] == ({} if taken else {M.REFERENCES_OFF: 1})
+        assert node._pending_ref is None
+    finally:
+        node.close()
+    with pytest.raises(ValueError, match="bus_references: expected one of auto, on, off"):
+        ControllerConfig(bus_references="yes")
 
 
 @pytest.mark.parametrize("lose", [None, "state", "cmd"])

@@ -13,6 +13,7 @@ import signal
 import threading
 import time
 
+import numpy as np
 import msgpack
 import pytest
 
@@ -893,7 +894,7 @@ class Copier:
         conf.insert_json5("scouting/multicast/enabled", "false")
         self.session = zenoh.open(conf)
         self.owner = self.owner_si = self.plant_si = None
-        self.sent = {"cmd": 0, "state": 0, "tampered": 0, "claims": 0}
+        self.sent = {"cmd": 0, "state": 0, "tampered": 0, "claims": 0, "reference": 0}
         self.released = 0
         self.errors: list[str] = []
         self.top_state = 0
@@ -957,6 +958,13 @@ class Copier:
                              [0.8] * n)
             self._put(f"{self.keys.cmd}/{self.owner}", c, self.owner_si)
             self.sent["cmd"] += 1
+            if st["seq"] % 40 == 0 and self.sent["reference"] < 20:
+                # a path 5 m to the side, in the owner's name
+                t = np.linspace(0.0, 5.0, 51)
+                r = M.encode_reference(t, st["x"] + 2.0 * t, st["y"] + 5.0 + 0 * t, 0 * t,
+                                       name="forged", relative=True)
+                self._put(f"{self.keys.reference}/{self.owner}", r, self.owner_si)
+                self.sent["reference"] += 1
             if self.sent["state"] < 200:
                 fake = dict(st, seq=10 ** 6, t=10 ** 6 * T, x=st["x"] + 5.0)
                 fake.pop("mac", None)
@@ -997,9 +1005,10 @@ class Copier:
 @pytest.mark.timeout(300)
 def test_a_client_copying_the_owners_source_info_drives_nothing(procs):
     """Issue 30, item 2: before the grant's key, a client on the plant's port that attached
-    the owner's source info to its own commands drove the vehicle (wheels at 25 rad/s), and
-    states forged as the plant's reset the MPC. Now: none of its commands, states, claims or
-    releases is taken, each is counted by its reason, and the owner drives to the end."""
+    the owner's source info to its own commands drove the vehicle (wheels at 25 rad/s),
+    states forged as the plant's reset the MPC, and a reference in the owner's name was
+    taken up. Now: none of its commands, states, references, claims or releases is taken,
+    each is counted by its reason, and the owner drives to the end."""
     P = free_port()
     procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 10,
                                "--listen", ep(P), "--json"))
@@ -1042,6 +1051,9 @@ def test_a_client_copying_the_owners_source_info_drives_nothing(procs):
     assert s["ownership"]["key_mismatches"] >= sent["claims"] // 4
     assert s["ownership"]["latches"] == 0 and s["ownership"]["grants"] == 1
     assert c["rejected"]["by_reason"].get(M.BAD_MAC, 0) >= sent["state"] // 2
+    # no reference taken: on a plain bus the controller takes none from the bus by default
+    assert sent["reference"] >= 5 and c["references"] == 0
+    assert c["rejected"]["by_reason"].get(M.REFERENCES_OFF, 0) >= sent["reference"] // 2
     print(f"\ncopier: sent {sent}; plant rejected {s['rejected']['by_reason']}, "
           f"key mismatches {s['ownership']['key_mismatches']}; controller rejected "
           f"{c['rejected']['by_reason']}")

@@ -9,7 +9,8 @@ plant's certificate proves it): states from any other identity are rejected
 ``msagv/{id}/claim`` (asking for the per-wheel wear), and while the plant grants it,
 answers every ``state`` with a ``cmd`` naming the state it answers (never for a state older
 than ``--max-age-ms``; a state sent again gets the same command again). It takes new
-references on ``msagv/{id}/reference``. It stops commanding while the plant's token
+references on ``msagv/{id}/reference`` where their sender is known (``--bus-references``:
+by default only with ``--secure``). It stops commanding while the plant's token
 ``msagv/{id}/alive/plant/{identity}`` is gone, and decides the plant is lost only after
 :class:`bridge.loss.LossTimer`'s confirmation time of its own running time.
 
@@ -59,6 +60,7 @@ LOSS_CONFIRM_S = 2.0  # s of running time without the plant before it is lost
 
 
 ON_PLANT_LOSS = ("wait", "exit")  # --on-plant-loss
+BUS_REFERENCES = ("auto", "on", "off")  # --bus-references
 
 
 class ControllerRunError(RuntimeError):
@@ -73,16 +75,29 @@ class ControllerConfig:
         (None: no limit; the default against a realtime plant is its staleness bound).
     on_plant_loss : 'wait' for the plant to come back, or 'exit' (code 3).
     exit_at_end : exit (code 0) after a state with ``end = true``.
+    bus_references : take references from the bus: 'auto' only on an authenticated bus
+        (``--secure``: the access control lets only the controller's own and the operator's
+        certificates put them), 'on' from anyone, 'off' never. Refused ones are counted
+        as ``references_off``. On a plain bus any session, or a client that copied a
+        sender's source info, could give the vehicle a path.
     """
 
     max_age_ms: float | None = None
     on_plant_loss: str = "wait"
     exit_at_end: bool = False
+    bus_references: str = "auto"
 
     def __post_init__(self):
-        if self.on_plant_loss not in ON_PLANT_LOSS:
-            raise ValueError(f"on_plant_loss: expected one of {', '.join(ON_PLANT_LOSS)}, got "
-                             f"'{self.on_plant_loss}'")
+        for name, allowed in (("on_plant_loss", ON_PLANT_LOSS),
+                              ("bus_references", BUS_REFERENCES)):
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name}: expected one of {', '.join(allowed)}, got "
+                                 f"'{getattr(self, name)}'")
+
+    def takes_references(self, authenticated: bool) -> bool:
+        """Whether references from a bus (``authenticated``: ``--secure``) are taken."""
+        return self.bus_references == "on" or (self.bus_references == "auto"
+                                               and authenticated)
 
 
 @dataclasses.dataclass
@@ -128,6 +143,7 @@ class ControllerNode:
         self._fallback = False  # present because its states arrive, its token never seen
         self._last_state_rx = 0.0  # time.monotonic() of the last valid state
         self._pending_ref = None  # decoded reference message
+        self._takes_refs = cfg.takes_references(False)  # decided again in open()
         self._again = None  # (state, command): a held state, solved, to answer later
         self._last_seq: int | None = None
         self._sent: tuple[int, bytes] | None = None  # (state seq, payload) of the last command
@@ -166,6 +182,10 @@ class ControllerNode:
             self._watch_plant(self.plant_zid)
         self._pub = t.publisher(k.cmd)
         self._decls.append(t.subscribe(k.state, self._on_state_sample))
+        self._takes_refs = self.cfg.takes_references(t.authenticated)
+        if not self._takes_refs and self.cfg.bus_references == "auto":
+            log.info("references from the bus are not taken (a plain bus: anyone could send "
+                     "one); --bus-references on takes them, --secure authenticates them")
         self._decls.append(t.subscribe(k.reference,
                                        lambda smp: self.handle_reference(smp.payload)))
         # the token, then the claim: a plant that grants us the vehicle finds our token and
@@ -429,6 +449,10 @@ class ControllerNode:
     def handle_reference(self, payload: bytes) -> dict | None:
         key = self.keys.reference
         try:
+            if not self._takes_refs:
+                raise M.MessageError(M.REFERENCES_OFF, "this controller takes no reference "
+                                     "from the bus (--bus-references; a plain bus: anyone "
+                                     "could send one)")
             m = M.decode_reference(payload)
             from msagv.controller.reference import ReferenceError, from_samples
 

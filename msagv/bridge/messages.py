@@ -49,9 +49,10 @@ T_MISMATCH = "t_mismatch"  # a command's t is not the t of the state it answers
 NOT_OWNER = "not_owner"  # a command from an identity that does not own the vehicle
 NOT_BOUND = "not_bound"  # a state from a plant the controller is not bound to
 BAD_MAC = "bad_mac"  # an owner's command or a bound plant's state without the grant's mac
+REFERENCES_OFF = "references_off"  # a reference to a controller that takes none from this bus
 REASONS = (NOT_MSGPACK, TOO_LARGE, NOT_A_MAP, VERSION_MISMATCH, MISSING_FIELD, EXTRA_FIELD,
            BAD_TYPE, BAD_LENGTH, NON_FINITE, NEGATIVE_WHEEL_SPEED, BAD_VALUE, UNKNOWN_STATE,
-           T_MISMATCH, NOT_OWNER, NOT_BOUND, BAD_MAC)
+           T_MISMATCH, NOT_OWNER, NOT_BOUND, BAD_MAC, REFERENCES_OFF)
 
 # field tables: name -> kind. kinds: "int" (>= 0), "float" (finite), "wheels" (2n finite
 # floats), "wheels+" (2n finite floats >= 0), "bool", "float+" (finite, >= 0), "str",

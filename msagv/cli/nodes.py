@@ -256,7 +256,7 @@ def _plant_report(s: dict, as_json: bool) -> None:
 
 # ---- msagv controller ---------------------------------------------------------------------
 def controller_parser() -> argparse.ArgumentParser:
-    from msagv.bridge.controller_node import ON_PLANT_LOSS, ControllerConfig
+    from msagv.bridge.controller_node import BUS_REFERENCES, ON_PLANT_LOSS, ControllerConfig
 
     d = ControllerConfig()
     ap = argparse.ArgumentParser(
@@ -275,6 +275,13 @@ def controller_parser() -> argparse.ArgumentParser:
                          f"(default {d.on_plant_loss})")
     ap.add_argument("--exit-at-end", action="store_true",
                     help="exit after the plant's last state (end = true)")
+    ap.add_argument("--bus-references", choices=list(BUS_REFERENCES),
+                    default=d.bus_references,
+                    help="take new references from the bus (msagv/ID/reference): 'auto' only "
+                         "with --secure, where only this controller's and the operator's "
+                         "certificates may send them; 'on' from anyone (a plain bus cannot "
+                         "tell who sent one); 'off' never. Refused ones are counted as "
+                         f"references_off (default {d.bus_references})")
     add_record_args(ap)
     ap.add_argument("--json", action="store_true", help="print the summary as JSON at exit")
     add_common_args(ap)  # -q: log warnings only; -v: debug
@@ -334,7 +341,7 @@ def controller_main(argv: list[str]) -> int:
             return None
 
     sig = StopOnSignal(threading.Event())
-    cfg = ControllerConfig(a.max_age_ms, a.on_plant_loss, a.exit_at_end)
+    cfg = ControllerConfig(a.max_age_ms, a.on_plant_loss, a.exit_at_end, a.bus_references)
     summary, rc = serve(opts, make_mpc, cfg, fetch=not a.vehicle, wait_s=a.wait,
                         open_recorder=open_recorder, stop=sig.event,
                         on_signal_install=sig.install)
