@@ -351,20 +351,21 @@ def test_secure_a_killed_owner_is_taken_over_by_no_other_certificate_until_armed
 
 
 # ---- a flood during a real-time run ------------------------------------------------------------
-def _flood_run(procs, n: int, duration: float = 8.0):
+def _flood_run(procs, n: int, duration: float = 8.0, record: str | None = None):
     """A real-time run of ``duration`` s; 1.5 s in, a tool floods ``n`` small commands at the
     plant and ``n`` small states at the controller, under its own identity (the tool puts
     17-27k messages a second in all, fewer while the run shares the 2 cores: the run must
-    outlast the flood for all of them to be counted)."""
-    from msagv.bridge import faults
+    outlast the flood for all of them to be counted). ``record``: the plant's ``--record``."""
 
     P, W = free_port(), free_port()
     tool = ZenohTransport.open(SessionOptions(listen=[ep(W)]), "tool")
     try:
         states = []
-        tool.subscribe(K.state, lambda s: states.append(1))
+        # the plant's states only (the tool's own flood on this key reaches it too)
+        tool.subscribe(K.state, lambda s: s.sender != tool.id and states.append(1))
         procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", duration,
-                                   "--listen", ep(P), "--connect", ep(W), "--json", "-q"))
+                                   "--listen", ep(P), "--connect", ep(W), "--json", "-q",
+                                   *(("--record", record) if record else ())))
         procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(W),
                                  "--exit-at-end", "--json", "-q"))
         t0 = time.monotonic()
@@ -406,6 +407,28 @@ def test_a_flood_is_counted_by_reason_and_changes_nothing(procs):
     assert c["rejected"]["total"] >= 20_000 * 0.5  # (the controller exits at the end; the
     assert set(c["rejected"]["by_reason"]) == {M.NOT_BOUND}  # flood may outlast the run)
     assert s["ownership"]["grants"] == 1 and s["commands"]["accepted"] > 0
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("n", [20_000, pytest.param(100_000, marks=pytest.mark.slow)])
+def test_a_flood_into_a_recording_plant_is_counted_and_recorded_message_by_message(
+        procs, tmp_path, n):
+    """Issue 30, item 5: with ``--record`` a probe's 100k garbage burst was counted 90,030
+    times. Each of ``n`` commands from a stranger is counted as ``not_owner`` and is in the
+    recording as a received message with that reason, or counted as a dropped record."""
+    from msagv.bridge.recording import read_recording
+
+    rec = str(tmp_path / "flood.mcap")
+    steps = 1200 if n <= 20_000 else 3000
+    s, _, _, at_end = _flood_run(procs, n, duration=steps / 100, record=rec)
+    assert s["completed"] and s["steps"] == steps
+    assert at_end < steps - 50, f"the flood outlasted the run ({at_end} periods)"
+    assert s["rejected"]["by_reason"] == {M.NOT_OWNER: n}
+    _, recs, summary = read_recording(rec)
+    rejected = sum(1 for r in recs if r.get("why") == M.NOT_OWNER)
+    print(f"recorded {rejected} rejected commands, dropped {s['recording']['dropped']}")
+    assert rejected + s["recording"]["dropped"] == n and rejected > 0
+    assert summary is not None and summary["rejected"] == s["rejected"]
 
 
 @pytest.mark.slow
