@@ -416,7 +416,9 @@ def test_polish_differences_are_the_full_ones_to_the_bit(axles, blocks, variant)
     lo, hi = mpc.horizon.lower, mpc.horizon.upper
     z = rng.uniform(lo, hi)
     z[::7] = hi[::7]  # backward differences at the upper bound
+    full = [np.copy(a) for a in sa.differences(x0, R, z, from_nominal=False)]
     r0, e0, JrT, ge = sa.differences(x0, R, z)
+    assert np.array_equal(JrT, full[2]) and np.array_equal(ge, full[3])
     D, M = m.dim, 6 * mpc.settings.N_p
     hd = np.where(z + sa._h <= hi, sa._h, -sa._h)
     Zfd = np.tile(z, (D, 1))

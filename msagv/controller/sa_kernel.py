@@ -778,6 +778,7 @@ class CompiledAnnealer:
         self._gn_first = (first_steps(model.block, model.stride, D),
                           np.zeros(GN_CANDIDATES, dtype=np.int64),
                           np.empty((GN_CANDIDATES, Np, nx)))
+        self._gn_from_x0 = np.zeros(D, dtype=np.int64)  # (differences(from_nominal=False))
         self._gn_nominal = (np.empty((Np, nx)), np.empty((Np, lay.N_POSE)),
                             np.empty((Np, lay.N_WEAR)), np.empty((2, model.n_wheels)))
         self._gn_J = (np.empty((M, D)), np.empty(D))  # JrT (by residual), ge
@@ -788,12 +789,15 @@ class CompiledAnnealer:
         self._gn_state = np.empty(5)
         self._h = GN_STEP * self.sigma / self.sigma.max()
 
-    def differences(self, x0: np.ndarray, ref: np.ndarray, z: np.ndarray) -> tuple:
+    def differences(self, x0: np.ndarray, ref: np.ndarray, z: np.ndarray,
+                    from_nominal: bool = True) -> tuple:
         """The polish's start at ``z``: its residuals and linear term (one rollout), then
         the residuals' Jacobian and the linear term's gradient by forward differences
         (:func:`_gn_jacobian`; the Gauss-Newton Hessian of the polish's current ``A`` in
         its buffer): ``(r (M,), e, JrT (M, D), ge (D,))``, views of the polish's buffers
-        (valid until its next call)."""
+        (valid until its next call). ``from_nominal=False``: every perturbed rollout from
+        ``x0`` (all steps; the same numbers, the work before the restart:
+        ``benchmarks.polish_bench``)."""
         m = self.model
         z = np.ascontiguousarray(z, dtype=np.float64)
         if z.shape != (m.dim,):
@@ -806,7 +810,8 @@ class CompiledAnnealer:
         nom = self._gn_nominal
         self._gn_start(*head, z, r, lin, Zfd, *self._gn_out, first0, trace, *nom)
         self._gn_jacobian(*head, self._A, self.upper, self._h, z, r, lin, Zfd, *self._gn_out,
-                          first, *nom, *self._gn_J, self._gn_la[1])
+                          first if from_nominal else self._gn_from_x0, *nom, *self._gn_J,
+                          self._gn_la[1])
         return r[0], float(lin[0]), self._gn_J[0], self._gn_J[1]
 
     def polish(self, x0: np.ndarray, ref: np.ndarray, zprev: np.ndarray, res: AnnealResult,
