@@ -78,6 +78,8 @@ def test_polish_bench_parts_and_variants():
     assert all(r[p + "_ms"]["p50"] > 0 for p in ("anneal", "jacobian", "steps"))
     assert r["polish_steps_mean"] >= 1 and 0 <= r["refreshes_mean"] <= sk.GN_REFRESH
     assert all(t > 0 for t in r["linear_algebra"].values())
+    assert set(r["differences_cpu_us"]) == {"from_nominal", "from_x0"}
+    assert all(t > 0 for t in r["differences_cpu_us"].values())
     before = (sk.GN_MUS.copy(), sk.GN_ALPHAS.copy(), sk.GN_REFRESH)
     w = bench_variants(v, n_states=2, repeats=1)
     assert set(VARIANTS) <= set(w)

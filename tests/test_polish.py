@@ -22,8 +22,9 @@ import pytest
 from msagv.controller import MPCSettings, make_case
 from msagv.controller import rollout as ro
 from msagv.controller import sa_kernel as sk
+from msagv.controller.adaptation import TIRE_P
 from msagv.controller.mpc import MPC
-from msagv.plant import default_vehicle, n_axle_vehicle
+from msagv.plant import default_vehicle, layout as lay, n_axle_vehicle
 
 from annealer_reference import gauss_newton_polish  # noqa: E402 (tests/ is on sys.path)
 from test_rollout_ref import _random_case  # noqa: E402
@@ -327,3 +328,111 @@ def test_diagonal_only_hessian_and_update_are_the_full_ones_diagonal():
     assert np.array_equal(np.diag(Hd), np.diag(H))
     assert np.array_equal(J1, J2)
     assert not np.array_equal(np.diag(Hd), np.diag(2 * JrT.T @ JrT + 2 * A))  # it moved
+
+
+# ---- the differences from the nominal rollout (rollout.rollout_from) -------------------
+def _changed_after(rng, model, z0, rows):
+    """Rows of ``z0`` each changed (uniformly in the box) in the blocks first used at a
+    random step or later: ``(Z, first)``, with rows changed from step 0 and rows not
+    changed at all (first = N_p) among them."""
+    Np, stride = model.settings.N_p, model.stride
+    Z = np.tile(z0, (rows, 1))
+    first = rng.integers(0, Np + 1, rows)
+    first[:2] = (0, Np)
+    for i, k in enumerate(first):
+        before = set(int(b) for b in model.block[:k])
+        for b in set(int(b) for b in model.block[k:]) - before:
+            Z[i, b * stride:(b + 1) * stride] += rng.normal(0.0, 0.3, stride)
+    return np.ascontiguousarray(Z), first.astype(np.int64)
+
+
+@pytest.mark.parametrize("axles, model, policy, blocks", [
+    (2, "mf", "offsets", (1, 2, 3)), (3, "mf", "twist", (2, 2, 2)), (2, "dugoff", "raw", (1, 1, 1, 1)),
+    (3, "kinematic", "offsets", (3, 4)), (2, "tct", "offsets", (1, 2, 3)), (8, "mf", "offsets", (1, 2, 3))])
+def test_rollout_from_the_nominal_is_the_full_rollout_to_the_bit(axles, model, policy, blocks):
+    """Rows that differ from a nominal one only from some step on, predicted from the
+    nominal's saved states there, are the full rollout's to the bit: poses, wear and first
+    commands, serial and over threads, FAST and EXACT; bad inputs refused."""
+    v = _vehicle(axles)
+    ref, _ = make_case("curve", 25.0)
+    mpc = MPC(v, MPCSettings(model=model, policy=policy, blocks=blocks), ref)
+    m = mpc.model
+    rng = np.random.default_rng(axles + len(blocks))
+    x0, R = _random_case(rng, v, mpc.settings)
+    z0 = rng.uniform(mpc.horizon.lower, mpc.horizon.upper)
+    Z, first = _changed_after(rng, m, z0, 21)  # three tiles, the last one short
+    perm = rng.permutation(len(Z))  # tiles mixing rows of different first steps
+    Z, first = np.ascontiguousarray(Z[perm]), np.ascontiguousarray(first[perm])
+    Np, nw = mpc.settings.N_p, v.n_wheels
+    nx = lay.X0_DELTA + nw
+    for pred in (ro.FAST, ro.EXACT):
+        kern = pred.kernels[ro.step_kind(m.model_id, m.P)]
+        full = m.allocate(len(Z))
+        pred.rollout_batch(m.model_id, x0, R, Z, m.block, m.P, m.S, m.wx, m.wy, full.poses,
+                           full.wear, full.first_commands)
+        nom = m.allocate(1)
+        trace = np.full((1, Np, nx), np.nan)
+        none = (np.empty((Np, nx)), np.empty((Np, 3)), np.empty((Np, 3)), np.empty((2, nw)))
+        kern["rollout_from"](m.model_id, x0, R, z0[None, :].copy(), m.block, m.P, m.S, m.wx, m.wy,
+                             nom.poses, nom.wear, nom.first_commands, np.zeros(1, np.int64),
+                             *none, trace)
+        assert np.array_equal(trace[0, 0], x0[:nx])  # the state at the first step's start
+        nominal = (trace[0], nom.poses[0], nom.wear[0], nom.first_commands[0])
+        for variant in ("rollout_from", "rollout_from_parallel"):
+            got = m.allocate(len(Z))
+            kern[variant](m.model_id, x0, R, Z, m.block, m.P, m.S, m.wx, m.wy, got.poses,
+                          got.wear, got.first_commands, first, *nominal, np.empty((0, 0, 0)))
+            assert np.array_equal(got.poses, full.poses)
+            assert np.array_equal(got.wear, full.wear)
+            assert np.array_equal(got.first_commands, full.first_commands)
+    args = (m.model_id, x0, R, Z, m.block, m.P, m.S, m.wx, m.wy, got.poses, got.wear,
+            got.first_commands)
+    with pytest.raises(ValueError, match="first must be >= 0"):
+        kern["rollout_from"](*args, np.where(first == first.max(), -1, first), *nominal,
+                             np.empty((0, 0, 0)))
+    with pytest.raises(ValueError, match="trace0"):
+        kern["rollout_from"](*args, first, nominal[0][:-1], *nominal[1:], np.empty((0, 0, 0)))
+    with pytest.raises(ValueError, match="trace must be"):
+        kern["rollout_from"](*args, first, *nominal, np.empty((len(Z), Np, nx + 1)))
+
+
+@pytest.mark.parametrize("axles", [2, 8])
+@pytest.mark.parametrize("blocks", [(1, 2, 3), (4, 3, 3), (1,) * 10, (5,)])
+@pytest.mark.parametrize("variant", ["plain", "disturbance", "adapted"])
+def test_polish_differences_are_the_full_ones_to_the_bit(axles, blocks, variant):
+    """The polish's Jacobian, its perturbed rollouts started at each variable's block's
+    first step from the nominal one (sa_kernel._gn_jacobian), is the plain forward
+    differences' of full rollouts from x0 to the bit: the zero rows before each block,
+    the residuals' and the linear term's derivatives, with the offset-free disturbance and
+    with adapted tires in the prediction."""
+    mpc, x0, R, zprev, rng = _problem(axles, seed=axles + len(blocks), blocks=blocks,
+                                      method="two-energy")
+    m, sa = mpc.model, mpc.solver.kernel
+    if variant == "disturbance":
+        m.S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = (0.4, -0.3, 0.05)
+    elif variant == "adapted":
+        m.P[list(TIRE_P)] *= (0.8, 1.15, 0.9, 1.1)
+        m.S[lay.S_K_ALPHA] /= 0.8
+    lo, hi = mpc.horizon.lower, mpc.horizon.upper
+    z = rng.uniform(lo, hi)
+    z[::7] = hi[::7]  # backward differences at the upper bound
+    full = [np.copy(a) for a in sa.differences(x0, R, z, from_nominal=False)]
+    r0, e0, JrT, ge = sa.differences(x0, R, z)
+    assert np.array_equal(JrT, full[2]) and np.array_equal(ge, full[3])
+    D, M = m.dim, 6 * mpc.settings.N_p
+    hd = np.where(z + sa._h <= hi, sa._h, -sa._h)
+    Zfd = np.tile(z, (D, 1))
+    Zfd[np.arange(D), np.arange(D)] += hd
+    out = m.rollout(x0, R, np.vstack([z, Zfd]))
+    r = np.empty((D + 1, M))
+    e = np.array([sk.residuals(out.poses, out.wear, R, mpc.horizon.Q, mpc.horizon.L, i, r, i)
+                  for i in range(D + 1)])
+    assert np.array_equal(r0, r[0]) and e0 == e[0]
+    inv = 1.0 / (np.diag(Zfd) - z)
+    assert np.array_equal(JrT, ((r[1:] - r[0]) * inv[:, None]).T)
+    assert np.array_equal(ge, (e[1:] - e[0]) * inv)
+    first = sk.first_steps(m.block, m.stride, D)
+    assert list(first[::m.stride]) == [int(np.argmax(m.block == b)) for b in range(len(blocks))]
+    for d in range(D):  # nothing before the variable's block moves
+        assert not np.any(JrT[:6 * first[d], d])
+    assert np.any(JrT[6 * first[-1]:])

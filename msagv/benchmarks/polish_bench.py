@@ -11,7 +11,11 @@ refreshes inside them (``_gn_run``); with the steps and refreshes taken. Then th
 polish's linear algebra alone on random data of the same size (D decision variables,
 M residuals): one damped step (Cholesky and the two triangular solves), the same step
 through the residuals' side (``lowrank_step``, Woodbury; the polish takes it when D > 2 M),
-the Gauss-Newton Hessian, Broyden's update. Percentiles over ``repeats`` passes over the states (the first
+the Gauss-Newton Hessian, Broyden's update. And the differences alone at each state's
+warm start (``CompiledAnnealer.differences``, CPU time, median over the states and
+``repeats`` passes, the two alternating): each perturbed rollout started at its variable's
+block's first step from the nominal rollout (the polish's), and from ``x0`` (every step:
+the same Jacobian to the bit). Percentiles over ``repeats`` passes over the states (the first
 pass, which loads the kernels, is not counted). Each part is timed twice: its wall time
 (``*_ms``) and the CPU time of this thread (``*_cpu_ms``, ``time.thread_time``): on a
 shared machine the wall time of a long call grows with every preemption (at load 10 on
@@ -131,7 +135,32 @@ def bench_polish(vehicle, n_states: int = 12, repeats: int = 3) -> dict:
     out["polish_steps_mean"] = float(np.mean([r["polish_steps"] for r in rows]))
     out["refreshes_mean"] = float(np.mean([r["refreshes"] for r in rows]))
     out["linear_algebra"] = linear_algebra(D, M)
+    out["differences_cpu_us"] = differences(m, samples, refs, repeats)
     return out
+
+
+def differences(m, samples, refs, repeats: int) -> dict:
+    """The polish's differences alone (module docstring) at each sample's warm start:
+    median CPU time [us] started from the nominal rollout and from ``x0``."""
+    from .optimality_bench import prime
+
+    k = m.solver.kernel
+    lo, hi = m.horizon.lower, m.horizon.upper
+    probs = []
+    for i, smp in enumerate(samples):
+        prime(m, smp["z"], seed=1000 + i)
+        x0, R, _, warm = m.horizon_problem(smp["state"], refs[smp["run"]])
+        probs.append((x0, R, np.minimum(np.maximum(warm, lo), hi)))
+    ts: dict[bool, list] = {True: [], False: []}
+    for _ in range(repeats + 1):
+        for p in probs:
+            for nominal in (True, False):
+                c = time.thread_time()
+                k.differences(*p, from_nominal=nominal)
+                ts[nominal].append(time.thread_time() - c)
+    n = len(probs)  # (the first pass loads the kernels: not counted)
+    return {"from_nominal": 1e6 * float(np.median(ts[True][n:])),
+            "from_x0": 1e6 * float(np.median(ts[False][n:]))}
 
 
 def bench_variants(vehicle, n_states: int = 12, repeats: int = 2) -> dict:

@@ -301,7 +301,10 @@ class Prediction:
     ``rollout_batch_parallel``) and ``evaluate_serial`` / ``evaluate_parallel`` (``(model,
     x0, ref, Z, block, P, S, wx, wy, Q, L, R, nsplit, zprev, ws, J)``) pick the variant;
     ``kernels[kind]`` holds each variant's compiled ``tile``, ``rollout_batch``,
-    ``rollout_batch_parallel``, ``evaluate_serial`` and ``evaluate_parallel``."""
+    ``rollout_batch_parallel``, ``evaluate_serial``, ``evaluate_parallel``, and
+    ``rollout_from`` / ``rollout_from_parallel`` (:func:`rollout_from`: the rollout of
+    rows that differ from a nominal one only from some step on, and the trace of the
+    states, for the polish's differences)."""
 
     def __init__(self, name: str, commands_from_policy, kernels: dict):
         self.name = name
@@ -650,6 +653,23 @@ def wheel_loop(w, raw, tct, xw, yw, dt, FN, k_t, r_w, v_eps, lonB, lonC, lonD, l
 
 
 # ---- the tile: LANES candidates in structure-of-arrays form --------------------------
+@njit(cache=True, inline="always", error_model="numpy")
+def _save_state(w, trace, b0, nb, k, nw):
+    """Lanes ``0 .. nb - 1``'s state (body and wheel angles) into ``trace[b0 + b, k]``, in
+    ``x0``'s layout (``X0_*``): what a tile needs to start at step ``k``."""
+    wdel = N_FIXED_ROWS
+    for b in range(nb):
+        t = trace[b0 + b, k]
+        t[X0_X] = w[W_X * L + b]
+        t[X0_Y] = w[W_Y * L + b]
+        t[X0_PHI] = w[W_PHI * L + b]
+        t[X0_VX] = w[W_VX * L + b]
+        t[X0_VY] = w[W_VY * L + b]
+        t[X0_R] = w[W_R * L + b]
+        for j in range(nw):
+            t[X0_DELTA + j] = w[(wdel + j) * L + b]
+
+
 def set_body(w, b, x, y, phi, vx, vy, r):
     """Lane ``b``'s body state (pose and world-frame velocity) into ``w``."""
     w[W_X * L + b] = x
@@ -768,12 +788,16 @@ def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls,
 
 
 def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit, w,
-         out, poses, wear, cmds):
+         out, poses, wear, cmds, k0, trace):
     """Predict and cost candidates ``Z[b0 : b0 + nb]`` (``nb <= LANES``; spare lanes
     repeat the last one) in the workspace ``w`` (:func:`workspace_size`); the costs
     end in row ``W_J``. With ``out``, also writes their ``poses``, ``wear`` and
     first commands ``cmds`` (rows b0 ..). The lane loops touch ``w`` only. Each step:
-    :func:`policy_rows`, then every wheel (:func:`wheel_loop`), then :func:`body_rows`."""
+    :func:`policy_rows`, then every wheel (:func:`wheel_loop`), then :func:`body_rows`.
+    The steps ``k0 .. N_p - 1`` from the state ``x0`` at step ``k0``'s start (``k0 > 0``:
+    :func:`rollout_from`; nothing of the steps before is written, and the costs are those
+    of the steps taken); a non-empty ``trace`` receives each candidate's state at each
+    step's start (:func:`_save_state`)."""
     nw = wx.shape[0]
     Np = block.shape[0]
     dt = S[S_DT]
@@ -810,7 +834,10 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
     wdel = N_FIXED_ROWS  # first wheel-angle row
     wz = N_FIXED_ROWS + nw  # first decision row
     load_tile(w, Z, b0, nb, x0, nw)  # noqa: F821 (bound by make_prediction)
-    for k in range(Np):
+    traced = trace.shape[0] > 0
+    for k in range(k0, Np):
+        if traced:
+            _save_state(w, trace, b0, nb, k, nw)
         base = block[k] * stride
         policy_rows(w, ref, k, (wz + base) * L, twist, tct, k_pos, v_fb_max, k_phi,  # noqa: F821
                     r_fb_max, k_alpha)
@@ -863,7 +890,7 @@ def rollout_batch(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
     for t in range((B + L - 1) // L):
         b0 = t * L
         tile(model, x0, ref, Z, b0, min(L, B - b0), block, P, S, wx, wy, no_q, no_l, no_r,
-             zp, 0, w, True, poses, wear, cmds)
+             zp, 0, w, True, poses, wear, cmds, 0, np.empty((0, 0, 0)))
 
 
 def rollout_batch_parallel(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds):
@@ -878,7 +905,7 @@ def rollout_batch_parallel(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, 
     for t in prange(n):
         b0 = t * L
         tile(model, x0, ref, Z, b0, min(L, B - b0), block, P, S, wx, wy, no_q, no_l, no_r,
-             zp, 0, ws[t], True, poses, wear, cmds)
+             zp, 0, ws[t], True, poses, wear, cmds, 0, np.empty((0, 0, 0)))
 
 
 def evaluate(model, x0, ref, Z, block, P, S, wx, wy, Q, Lw, R, nsplit, zprev, ws, J):
@@ -892,9 +919,62 @@ def evaluate(model, x0, ref, Z, block, P, S, wx, wy, Q, Lw, R, nsplit, zprev, ws
         nb = min(L, B - b0)
         w = ws[t]
         tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit, w,
-             False, none, none, none)
+             False, none, none, none, 0, none)
         for b in range(nb):
             J[b0 + b] = w[W_J * L + b]
+
+
+def rollout_from(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, cmds, first, trace0,
+                 poses0, wear0, cmds0, trace):
+    """:func:`rollout_batch`'s outputs for rows of ``Z`` that are a nominal decision vector
+    changed only in the blocks first used at step ``first[b]`` or later (row ``b``; the
+    steps before cannot differ from the nominal's), from the nominal's rollout: its state
+    at each step's start ``trace0`` (N_p, ``X0_DELTA`` + n_w; a ``trace`` of this kernel),
+    its ``poses0``, ``wear0`` (N_p, 3) and ``cmds0`` (2, n_w). Each tile starts at the
+    smallest ``first`` of its rows, from the nominal's state there (from ``x0`` at 0), and
+    its rows' outputs before that step are the nominal's: the steps it takes are the same
+    operations on the same numbers as :func:`rollout_batch`'s (a candidate's result does
+    not depend on its lane or tile), so the outputs are the same to the bit (the polish's
+    finite differences, :func:`controller.sa_kernel._gn_jacobian`: a variable of block
+    ``b`` changes nothing before that block's first step). With ``first`` all 0 it is
+    :func:`rollout_batch`; a non-empty ``trace`` (B, N_p, ``X0_DELTA`` + n_w) receives
+    each row's state at each step's start (at the steps taken)."""
+    B = Z.shape[0]
+    Np = block.shape[0]
+    nw = wx.shape[0]
+    if first.shape[0] != B or trace0.shape[0] != Np or trace0.shape[1] != X0_DELTA + nw:
+        raise ValueError("rollout_from: need first (B,) and trace0 (N_p, X0_DELTA + n_w)")
+    if trace.shape[0] > 0 and (trace.shape[0] != B or trace.shape[1] != Np
+                               or trace.shape[2] != X0_DELTA + nw):
+        raise ValueError("rollout_from: trace must be empty or (B, N_p, X0_DELTA + n_w)")
+    for b in range(B):
+        if first[b] < 0:
+            raise ValueError("rollout_from: first must be >= 0")
+    n = (B + L - 1) // L
+    ws = np.empty((n, workspace_size(nw, Z.shape[1])))
+    zp = np.zeros(Z.shape[1])
+    no_q, no_l, no_r = np.zeros(3), np.zeros(N_L), np.zeros(4)
+    for t in prange(n):
+        b0 = t * L
+        nb = min(L, B - b0)
+        k0 = Np
+        for b in range(nb):
+            k0 = min(k0, first[b0 + b])
+        if k0 == 0:
+            tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, no_q, no_l, no_r, zp, 0,
+                 ws[t], True, poses, wear, cmds, 0, trace)
+        elif k0 < Np:
+            tile(model, trace0[k0], ref, Z, b0, nb, block, P, S, wx, wy, no_q, no_l, no_r,
+                 zp, 0, ws[t], True, poses, wear, cmds, k0, trace)
+        for b in range(nb):
+            for k in range(k0):
+                for q in range(3):
+                    poses[b0 + b, k, q] = poses0[k, q]
+                    wear[b0 + b, k, q] = wear0[k, q]
+            if k0 > 0:
+                for j in range(nw):
+                    cmds[b0 + b, CMD_W, j] = cmds0[CMD_W, j]
+                    cmds[b0 + b, CMD_S, j] = cmds0[CMD_S, j]
 
 
 KINEMATIC = DUGOFF = LON_E0 = False  # bound per kind of step by make_prediction
@@ -904,7 +984,7 @@ _KERNELS = ("policy_head", "policy_wheel", "policy_raw", "tire_forces", "wheel_t
 _TILE_PARTS = ("set_body", "load_tile", "policy_rows", "store_body")  # inlined into the tile
 _RAW_NAMES = _KERNELS + _TILE_PARTS + (
     "wheel_lane", "commands_from_policy", "wheel_loop", "body_rows", "tile", "rollout_batch",
-    "rollout_batch_parallel", "evaluate")
+    "rollout_batch_parallel", "evaluate", "rollout_from")
 
 
 def make_prediction(prims: _approx.Primitives, fastmath) -> Prediction:
@@ -943,7 +1023,10 @@ def make_prediction(prims: _approx.Primitives, fastmath) -> Prediction:
                                              "rollout_batch_parallel_" + kind, gl, parallel=True),
             "evaluate_serial": kernel("evaluate", "evaluate_serial_" + kind, gl),
             "evaluate_parallel": kernel("evaluate", "evaluate_parallel_" + kind, gl,
-                                        parallel=True)}
+                                        parallel=True),
+            "rollout_from": kernel("rollout_from", "rollout_from_" + kind, gl),
+            "rollout_from_parallel": kernel("rollout_from", "rollout_from_parallel_" + kind,
+                                            gl, parallel=True)}
     return Prediction(prims.name, cfp, kernels)
 
 

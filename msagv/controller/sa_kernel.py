@@ -192,8 +192,9 @@ ITERATE = {(pred.name, kind, parallel): _make_iterate(
 # a linear part (the wear-energy term) and a quadratic form of the decision vector (the
 # smoothing and the ridge): J(z) = |r(z)|^2 + e(z) + z'Az + b'z + c. The polish takes the
 # residuals' Jacobian Jr (stored by residual, JrT) by forward differences once (D perturbed
-# candidates: D / LANES tiles of the SIMD prediction), then steps: the Gauss-Newton model's gradient
-# g = 2 Jr'r + grad e + 2Az + b and Hessian H = 2 Jr'Jr + 2A, the Levenberg-Marquardt
+# candidates: D / LANES tiles of the SIMD prediction, each started at its variables' block's
+# first step from the saved nominal rollout: rollout.rollout_from), then steps: the
+# Gauss-Newton model's gradient g = 2 Jr'r + grad e + 2Az + b and Hessian H = 2 Jr'Jr + 2A, the Levenberg-Marquardt
 # steps (H + mu diag H) dz = -g for the damping factors GN_MUS (by Cholesky, or through
 # the M residuals by Woodbury's identity when D > GN_LOWRANK M: lowrank_step), each at the
 # lengths GN_ALPHAS: clipped to the box, these LANES candidates are one tile; the best is kept if
@@ -531,20 +532,44 @@ def lowrank_step(H, JT, A, stride, g, mu, WT, dz):
     return True
 
 
+@njit(cache=True, error_model="numpy")
+def keep_nominal(row, trace, poses, wear, cmds, trace0, poses0, wear0, cmds0):
+    """Row ``row``'s rollout (its ``trace``, ``poses``, ``wear``, ``cmds``) kept as the
+    polish's nominal one (``trace0``, ``poses0``, ``wear0``, ``cmds0``): the point the
+    differences are taken at (:func:`_gn_jacobian`)."""
+    trace0[:] = trace[row]
+    poses0[:] = poses[row]
+    wear0[:] = wear[row]
+    cmds0[:] = cmds[row]
+
+
+def first_steps(block, stride, D):
+    """The first step at which each decision variable acts (``(D,)`` int64): its block's
+    first step in ``block``; a perturbation of it changes nothing before."""
+    first = np.full(D, block.shape[0], dtype=np.int64)
+    for k in range(block.shape[0] - 1, -1, -1):
+        first[block[k] * stride:(block[k] + 1) * stride] = k
+    return first
+
+
 def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, lin, Zfd,
-                 poses, wear, cmds, JrT, ge, H):
+                 poses, wear, cmds, first, trace0, poses0, wear0, cmds0, JrT, ge, H):
     """The residuals' Jacobian ``JrT`` (M, D; row m: residual m's derivatives) and the linear
     term's gradient ``ge`` at ``z`` by forward differences (backward at the upper bound),
     from the residuals ``r[0]`` and linear term ``lin[0]`` of ``z``; ``r[1]`` is scratch;
-    and the Gauss-Newton Hessian ``H`` from them. ``rollout`` is a global bound by
-    :func:`_make_gn`."""
+    and the Gauss-Newton Hessian ``H`` from them. Each perturbed rollout starts at its
+    variable's first step (``first``, :func:`first_steps`) from the nominal rollout of
+    ``z`` (``trace0``, ``poses0``, ``wear0``, ``cmds0``: :func:`keep_nominal`), not from
+    ``x0`` (:func:`controller.rollout.rollout_from`: the same outputs to the bit, the
+    steps before repeated no more). ``rollout`` is a global bound by :func:`_make_gn`."""
     D = z.shape[0]
     M = r.shape[1]
     for d in range(D):
         for j in range(D):
             Zfd[d, j] = z[j]
         Zfd[d, d] += h[d] if z[d] + h[d] <= upper[d] else -h[d]
-    rollout(model, x0, ref, Zfd, block, P, S, wx, wy, poses, wear, cmds)  # noqa: F821
+    rollout(model, x0, ref, Zfd, block, P, S, wx, wy, poses, wear, cmds, first,  # noqa: F821
+            trace0, poses0, wear0, cmds0, np.empty((0, 0, 0)))
     for d in range(D):
         e = residuals(poses, wear, ref, Q, Lw, d, r, 1)
         inv = 1.0 / (Zfd[d, d] - z[d])
@@ -555,12 +580,15 @@ def _gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, upper, h, z, r, 
 
 
 def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, upper, mus,
-             alphas, z, J, r, lin, poses, wear, cmds, JrT, ge, g, H, Lc, dz, Zc, JT, WT):
+             alphas, z, J, r, lin, poses, wear, cmds, first0, trace, trace0, poses0, wear0,
+             cmds0, JrT, ge, g, H, Lc, dz, Zc, JT, WT):
     """One polish step from ``z`` (cost ``J``, residuals ``r[0]``, linear term ``lin[0]``,
     Jacobian ``JrT``, ``ge``, Hessian ``H``): the candidates of the damped steps, predicted
-    in one call; the best, if it is below ``J``, becomes ``z`` (with its residuals) and
-    updates the Jacobian and the Hessian (:func:`broyden_update`). Returns the cost after
-    the step. ``rollout`` is a global bound by :func:`_make_gn`."""
+    in one call (with their ``trace``; ``first0`` zeros); the best, if it is below ``J``,
+    becomes ``z`` (with its residuals and its rollout as the nominal one,
+    :func:`keep_nominal`) and updates the Jacobian and the Hessian
+    (:func:`broyden_update`). Returns the cost after the step. ``rollout`` is a global
+    bound by :func:`_make_gn`."""
     D = z.shape[0]
     M = r.shape[1]
     na = alphas.shape[0]
@@ -579,7 +607,8 @@ def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower,
             for j in range(D):
                 v = z[j] + alphas[a] * dz[j] if ok else z[j]
                 Zc[k * na + a, j] = min(max(v, lower[j]), upper[j])
-    rollout(model, x0, ref, Zc, block, P, S, wx, wy, poses, wear, cmds)  # noqa: F821
+    rollout(model, x0, ref, Zc, block, P, S, wx, wy, poses, wear, cmds, first0,  # noqa: F821
+            trace0, poses0, wear0, cmds0, trace)
     best = -1
     Jb = J
     for k in range(Zc.shape[0]):
@@ -593,6 +622,7 @@ def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower,
     if best < 0:
         return J
     e = residuals(poses, wear, ref, Q, Lw, best, r, 1)
+    keep_nominal(best, trace, poses, wear, cmds, trace0, poses0, wear0, cmds0)
     for j in range(D):
         dz[j] = Zc[best, j] - z[j]
     for m in range(M):
@@ -608,17 +638,21 @@ def _gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower,
     return Jb
 
 
-def _gn_start(model, x0, ref, block, P, S, wx, wy, Q, Lw, z, r, lin, Zfd, poses, wear, cmds):
-    """The residuals ``r[0]`` and linear term ``lin[0]`` of ``z`` (one rollout)."""
+def _gn_start(model, x0, ref, block, P, S, wx, wy, Q, Lw, z, r, lin, Zfd, poses, wear, cmds,
+              first0, trace, trace0, poses0, wear0, cmds0):
+    """The residuals ``r[0]`` and linear term ``lin[0]`` of ``z`` (one rollout), and that
+    rollout as the nominal one (:func:`keep_nominal`)."""
     for j in range(z.shape[0]):
         Zfd[0, j] = z[j]
-    rollout(model, x0, ref, Zfd[:1], block, P, S, wx, wy, poses, wear, cmds)  # noqa: F821
+    rollout(model, x0, ref, Zfd[:1], block, P, S, wx, wy, poses, wear, cmds,  # noqa: F821
+            first0[:1], trace0, poses0, wear0, cmds0, trace[:1])
     lin[0] = residuals(poses, wear, ref, Q, Lw, 0, r, 0)
+    keep_nominal(0, trace, poses, wear, cmds, trace0, poses0, wear0, cmds0)
 
 
 def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, upper, h, mus,
-            alphas, tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, JrT, ge, g, H, Lc,
-            dz, Zc, JT, WT):
+            alphas, tol, refresh, n, st, z, r, lin, Zfd, poses, wear, cmds, first, first0, trace,
+            trace0, poses0, wear0, cmds0, JrT, ge, g, H, Lc, dz, Zc, JT, WT):
     """Up to ``n`` polish steps (:func:`_gn_step`) from the state ``st`` = [cost, steps
     taken, Jacobian fresh (1) or updated (0), refreshes, stopped]: a step that lowers the
     cost by less than ``tol`` of it stops the polish if the Jacobian is fresh from the
@@ -629,8 +663,9 @@ def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, 
     fresh = st[2] > 0.0
     for _ in range(n):
         Jn = gn_step(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c,  # noqa: F821
-                     stride, lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds, JrT,
-                     ge, g, H, Lc, dz, Zc, JT, WT)
+                     stride, lower, upper, mus, alphas, z, J, r, lin, poses, wear, cmds,
+                     first0, trace, trace0, poses0, wear0, cmds0, JrT, ge, g, H, Lc, dz, Zc,
+                     JT, WT)
         st[1] += 1.0
         stalled = not Jn < J or J - Jn < tol * J
         J = min(J, Jn)
@@ -640,7 +675,8 @@ def _gn_run(model, x0, ref, block, P, S, wx, wy, Q, Lw, A, b, c, stride, lower, 
                 break
             # the updated Jacobian has stopped helping: differences again, at z
             gn_jacobian(model, x0, ref, block, P, S, wx, wy, Q, Lw, A,  # noqa: F821
-                        upper, h, z, r, lin, Zfd, poses, wear, cmds, JrT, ge, H)
+                        upper, h, z, r, lin, Zfd, poses, wear, cmds, first, trace0, poses0,
+                        wear0, cmds0, JrT, ge, H)
             st[3] += 1.0
             fresh = True
         else:
@@ -662,8 +698,9 @@ def _make_gn(rollout, fn, name: str, **bound):
 
 
 def _gn_kernels(pred, kind: str, parallel: bool) -> tuple:
-    """The polish's kernels (start, Jacobian, run) over ``pred``'s rollout of ``kind``."""
-    ro = pred.kernels[kind]["rollout_batch_parallel" if parallel else "rollout_batch"]
+    """The polish's kernels (start, Jacobian, run) over ``pred``'s rollout of ``kind``
+    (:func:`controller.rollout.rollout_from`)."""
+    ro = pred.kernels[kind]["rollout_from_parallel" if parallel else "rollout_from"]
     sfx = f"_{'parallel' if parallel else 'serial'}_{kind}_{pred.name}"
     start = _make_gn(ro, _gn_start, "gn_start" + sfx)
     jac = _make_gn(ro, _gn_jacobian, "gn_jacobian" + sfx)
@@ -735,13 +772,47 @@ class CompiledAnnealer:
         self._gn_out = (np.empty((rows, Np, lay.N_POSE)), np.empty((rows, Np, lay.N_WEAR)),
                         np.empty((rows, 2, model.n_wheels)))
         self._gn_r, self._gn_lin, self._gn_Zfd = np.empty((2, M)), np.empty(1), np.empty((D, D))
+        nx = lay.X0_DELTA + model.n_wheels
+        # the differences' first steps, the candidates' (zeros), the candidates' trace, and
+        # the nominal rollout (trace, poses, wear, cmds: keep_nominal)
+        self._gn_first = (first_steps(model.block, model.stride, D),
+                          np.zeros(GN_CANDIDATES, dtype=np.int64),
+                          np.empty((GN_CANDIDATES, Np, nx)))
+        self._gn_from_x0 = np.zeros(D, dtype=np.int64)  # (differences(from_nominal=False))
+        self._gn_nominal = (np.empty((Np, nx)), np.empty((Np, lay.N_POSE)),
+                            np.empty((Np, lay.N_WEAR)), np.empty((2, model.n_wheels)))
         self._gn_J = (np.empty((M, D)), np.empty(D))  # JrT (by residual), ge
         self._gn_la = (np.empty(D), np.empty((D, D)), np.empty((D, D)), np.empty(D),
                        np.empty((GN_CANDIDATES, D)), np.empty((D, M)),
                        np.empty((D, M)))  # g, H, Lc, dz, Zc, JT, WT
-        self._A, self._b = np.empty((D, D)), np.empty(D)
+        self._A, self._b = np.zeros((D, D)), np.zeros(D)
         self._gn_state = np.empty(5)
         self._h = GN_STEP * self.sigma / self.sigma.max()
+
+    def differences(self, x0: np.ndarray, ref: np.ndarray, z: np.ndarray,
+                    from_nominal: bool = True) -> tuple:
+        """The polish's start at ``z``: its residuals and linear term (one rollout), then
+        the residuals' Jacobian and the linear term's gradient by forward differences
+        (:func:`_gn_jacobian`; the Gauss-Newton Hessian of the polish's current ``A`` in
+        its buffer): ``(r (M,), e, JrT (M, D), ge (D,))``, views of the polish's buffers
+        (valid until its next call). ``from_nominal=False``: every perturbed rollout from
+        ``x0`` (all steps; the same numbers, the work before the restart:
+        ``benchmarks.polish_bench``)."""
+        m = self.model
+        z = np.ascontiguousarray(z, dtype=np.float64)
+        if z.shape != (m.dim,):
+            raise ValueError(f"differences: z must have {m.dim} entries, got shape {z.shape}")
+        x0 = np.ascontiguousarray(x0, dtype=np.float64)
+        ref = np.ascontiguousarray(ref, dtype=np.float64)
+        r, lin, Zfd = self._gn_r, self._gn_lin, self._gn_Zfd
+        head = (m.model_id, x0, ref, m.block, m.P, m.S, m.wx, m.wy, self.Q, self.L)
+        first, first0, trace = self._gn_first
+        nom = self._gn_nominal
+        self._gn_start(*head, z, r, lin, Zfd, *self._gn_out, first0, trace, *nom)
+        self._gn_jacobian(*head, self._A, self.upper, self._h, z, r, lin, Zfd, *self._gn_out,
+                          first if from_nominal else self._gn_from_x0, *nom, *self._gn_J,
+                          self._gn_la[1])
+        return r[0], float(lin[0]), self._gn_J[0], self._gn_J[1]
 
     def polish(self, x0: np.ndarray, ref: np.ndarray, zprev: np.ndarray, res: AnnealResult,
                deadline_s: float | None = None) -> AnnealResult:
@@ -761,17 +832,16 @@ class CompiledAnnealer:
         zprev = np.ascontiguousarray(zprev, dtype=np.float64)
         c = quadratic_terms(m.stride, m.nsplit, self.R, zprev, self._A, self._b)
         z = np.array(res.x, dtype=np.float64)
+        self.differences(x0, ref, z)
         r, lin, Zfd = self._gn_r, self._gn_lin, self._gn_Zfd
         out = self._gn_out
         head = (m.model_id, x0, ref, m.block, m.P, m.S, m.wx, m.wy, self.Q, self.L)
-        self._gn_start(*head, z, r, lin, Zfd, *out)
-        self._gn_jacobian(*head, self._A, self.upper, self._h, z, r, lin, Zfd, *out,
-                          *self._gn_J, self._gn_la[1])
+        nom = self._gn_nominal
         st = self._gn_state
         st[:] = (res.cost, 0.0, 1.0, 0.0, 0.0)
         run = (*head, self._A, self._b, c, m.stride, self.lower, self.upper, self._h, GN_MUS,
                GN_ALPHAS, GN_TOL, GN_REFRESH)
-        bufs = (z, r, lin, Zfd, *out, *self._gn_J, *self._gn_la)
+        bufs = (z, r, lin, Zfd, *out, *self._gn_first, *nom, *self._gn_J, *self._gn_la)
         if deadline_s is None:
             self._gn_run(*run, n, st, *bufs)
         else:  # a step at a time, while the next one fits (at the mean time of those so far)
