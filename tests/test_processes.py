@@ -245,8 +245,11 @@ def _flood_run(procs, bus, tmp_path, n: int, duration: float):
             os.kill(procs.p["ctl"].pid, signal.SIGSTOP)
             held.set()
 
+    # (--bus-references on: a plain bus's references are otherwise refused unread, as
+    # references_off; here each malformation is to be counted)
     procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
-                             "--lease-ms", LONG_LEASE_MS, "--json", "-q"))
+                             "--lease-ms", LONG_LEASE_MS, "--bus-references", "on", "--json",
+                             "-q"))
     bus.on_state = hold
     try:
         bus.wait_for(lambda s: held.is_set(), 120, "the first state")
@@ -270,7 +273,7 @@ def _flood_run(procs, bus, tmp_path, n: int, duration: float):
     assert procs.wait("ctl", 30) == 0, procs.err("ctl")
     ps, cs = procs.json("plant"), procs.json("ctl")
     # the sender is checked first: from the tool, every command is not_owner and every
-    # state not_bound; references (anyone may send one) are counted by their malformation
+    # state not_bound; references (taken from anyone here) are counted by their malformation
     assert ps["rejected"]["total"] == sent_plant == 2 * n
     assert ps["rejected"]["by_key"] == {"msagv/agv0/cmd": 2 * n}
     assert ps["rejected"]["by_reason"] == {M.NOT_OWNER: 2 * n}
