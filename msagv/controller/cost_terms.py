@@ -141,8 +141,8 @@ def wear_cost(wear, L):
 
 @_loop_term
 def smoothing_row(Z, row, zprev, R, stride, nsplit):
-    """:func:`smoothing_cost` of the decision vector ``Z[row]`` (the tile's form: a row
-    taken as a view cost the tile 1 us in 35 at 8 axles)."""
+    """:func:`smoothing_cost` of the decision vector ``Z[row]`` (the tile's form: taking
+    the row as a view first was slower in the tile)."""
     J = 0.0
     for blk in range(Z.shape[1] // stride):
         for j in range(stride):
