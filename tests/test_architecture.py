@@ -103,6 +103,23 @@ def test_the_scenario_default_solver_is_the_tables():
     assert Scenario().solver == solvers.DEFAULT_SOLVER
 
 
+def test_a_cost_terms_files_are_the_ones_listed_here():
+    """ARCHITECTURE.md's count of what a cost term takes is the code's: the modules that
+    call the shared per-step or row terms of controller.cost_terms (and so must call a new
+    one) are exactly the page's list."""
+    text = DOC.read_text()
+    m = re.search(r"<!-- files: cost -->(.*?)<!-- end files -->", text, re.S)
+    assert m, "docs/ARCHITECTURE.md has no list of a cost term's files"
+    listed = set(re.findall(r"^- `([a-z_/]+\.py)`", m.group(1), re.M))  # (items, not tests)
+    pkg = DOC.parent.parent / "msagv"
+    names = re.compile(r"\b(pose_error|tracking_term|wear_term|wear_kw|smoothing_row|ridge_row)\(")
+    found = {str(f.relative_to(pkg)) for f in pkg.rglob("*.py") if names.search(f.read_text())}
+    assert found == listed, (f"in the code, not on the page: {sorted(found - listed)}; "
+                             f"on the page, not in the code: {sorted(listed - found)}")
+    heading = re.search(r"### A cost term: (\w+) files", text)
+    assert heading and {"three": 3, "four": 4, "five": 5}.get(heading.group(1)) == len(listed)
+
+
 def test_the_dugoff_models_files_are_the_ones_listed_here():
     """ARCHITECTURE.md's count of what a prediction model with parameters of its own takes
     (DH's Dugoff model) is the code's: the modules that name Dugoff's parameter slots, model

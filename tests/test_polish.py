@@ -1,7 +1,7 @@
 """The Gauss-Newton polish after the annealing (controller.sa_kernel, CompiledAnnealer.polish).
 
 * its pieces against the cost they stand for: the smoothing and ridge terms as a quadratic
-  form ``z'Az + b'z + c`` against ``rollout.smoothing_cost + ridge_cost``, and
+  form ``z'Az + b'z + c`` against ``cost_terms.smoothing_cost + ridge_cost``, and
   ``|r|^2 + e + z'Az + b'z + c`` from the residuals against ``rollout.batch_cost``, for
   every wear method and both policies with offsets (random states, random decisions);
 * the damped step solves its linear system (against numpy's solver) and refuses a matrix
@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from msagv.controller import MPCSettings, make_case
+from msagv.controller import cost_terms as ct
 from msagv.controller import rollout as ro
 from msagv.controller import sa_kernel as sk
 from msagv.controller.adaptation import TIRE_P
@@ -60,7 +61,7 @@ def test_quadratic_form_and_residuals_are_the_cost(method, axles):
     ro.batch_cost(out.poses, out.wear, R, Z, zprev, mpc.horizon.Q, mpc.horizon.L, mpc.horizon.R, m.stride, m.nsplit, want)
     r = np.empty((len(Z), 6 * m.settings.N_p))
     for i, z in enumerate(Z):
-        quad = ro.smoothing_cost(z, zprev, mpc.horizon.R, m.stride, m.nsplit) + ro.ridge_cost(
+        quad = ct.smoothing_cost(z, zprev, mpc.horizon.R, m.stride, m.nsplit) + ct.ridge_cost(
             z, mpc.horizon.R, m.stride, m.nsplit)
         assert z @ A @ z + b @ z + c == pytest.approx(quad, rel=1e-12, abs=1e-14)
         e = sk.residuals(out.poses, out.wear, R, mpc.horizon.Q, mpc.horizon.L, i, r, i)

@@ -13,7 +13,7 @@ command-smoothing term). At each sample the *same* horizon problem is solved twi
 * by IPOPT (``controller.ipopt``, reference options: tolerance 1e-8, |.| smoothed over
   1 mW, up to 3000 iterations) from the same warm start, run to convergence.
 
-Both costs are the exact cost of ``controller.rollout.candidate_cost`` (true |.|). The
+Both costs are the exact cost of ``controller.cost_terms.candidate_cost`` (true |.|). The
 ratio annealer / IPOPT is reported as percentiles (1 = the optimum found; IPOPT is a local
 method, so a ratio < 1 means the annealer found a better basin), overall, per scenario
 class and per run, with both solvers' times and IPOPT's convergence status counts;

@@ -95,7 +95,8 @@ from msagv.plant import layout as lay
 
 from . import adaptation as _ad
 from . import rollout as _ro
-from .mirrors.casadi_rollout import _wrap, ca, symbolic_step
+from .cost_terms import pose_error, wear_kw
+from .mirrors.casadi_rollout import ca, symbolic_step
 from .horizon import Horizon, Solution
 from .interface import ControllerError
 from .models import MPCSettings
@@ -312,12 +313,12 @@ class HorizonOCP:
         nxt[lay.X0_VX], nxt[lay.X0_VY], nxt[lay.X0_R] = V1
         for j in range(self.nw):
             nxt[lay.X0_DELTA + j] = delta1[j]
-        pw = [None] * 3
-        for i in (lay.WEAR_S, lay.WEAR_ALPHA, lay.WEAR_T):
-            pw[i] = wear[i] * _ro.KW
+        pw = [None] * 3  # the residuals of controller.cost_terms' terms (module docstring)
+        pw[lay.WEAR_S], pw[lay.WEAR_ALPHA], pw[lay.WEAR_T] = wear_kw(
+            wear[lay.WEAR_S], wear[lay.WEAR_ALPHA], wear[lay.WEAR_T])
         f = ca.vertcat(*nxt, znew, *pw)
-        err = ca.vertcat(s[lay.X0_X] - p[lay.REF_X], s[lay.X0_Y] - p[lay.REF_Y],
-                         _wrap(s[lay.X0_PHI] - p[lay.REF_PHI]))
+        err = ca.vertcat(*pose_error(s[lay.X0_X], s[lay.X0_Y], s[lay.X0_PHI], p[lay.REF_X],
+                                     p[lay.REF_Y], p[lay.REF_PHI]))
         ye = [err, wp] + ([ca.sqrt(wp)] if self.linear else [])
         y = ca.vertcat(*ye, u, znew)
         return s, u, p, f, y, ca.vertcat(*ye)

@@ -13,6 +13,8 @@ import numpy as np
 
 from msagv.plant.signals import WEAR_FIELDS
 
+from .cost_terms import wrap
+
 METRIC_KEYS = ["W_tw", "W_s", "W_alpha", "W_t", "e_x_cm", "e_y_cm", "e_phi_deg", "e_bar",
                "Omega", "e_lat_rms_cm", "e_lat_max_cm", "e_pos_max_cm", "e_phi_max_deg",
                "solve_ms", "steps", "distance_m", "W_tw_per_km"]
@@ -22,8 +24,7 @@ WEAR_ROUNDING_J = 1e-6  # J: wear work above minus this is the integrator's roun
 
 def wrap_angle(a):
     """Angle wrapped to (-pi, pi]."""
-    a = np.asarray(a, dtype=float)
-    return a - 2.0 * np.pi * np.ceil((a - np.pi) / (2.0 * np.pi))
+    return wrap(np.asarray(a, dtype=float))  # the cost's own (controller.cost_terms)
 
 
 def omega_index(W_tw: float, e_bar: float) -> float:

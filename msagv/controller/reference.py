@@ -264,7 +264,9 @@ def wheel_speeds(reference: Reference, vehicle, t0: float, t1: float, dt: float 
     return times, np.hypot(wx, wy)
 
 
-def _wrap(a):
+def _wrap_round(a):
+    """Angle differences to [-pi, pi] by the nearest turn (np.round; the cost's heading wrap
+    to (-pi, pi] is controller.cost_terms.wrap)."""
     return a - 2 * np.pi * np.round(a / (2 * np.pi))
 
 
@@ -279,7 +281,7 @@ def check_headings(t, x, y, phi, where: str = "trajectory", lines=None) -> None:
         raise ReferenceError(
             f"{where}: phi looks like degrees (read as degrees it follows the direction of "
             f"travel, read as radians it does not): give phi in radians")
-    d = _wrap(np.diff(phi))
+    d = _wrap_round(np.diff(phi))
     big = np.flatnonzero(np.abs(d) > HEADING_JUMP)
     if big.size:
         k = int(big[0])
@@ -297,14 +299,14 @@ def _looks_like_degrees(t, x, y, phi) -> bool:
     course = np.arctan2(dy, dx)
 
     def mid(h):  # the heading half-way along each segment
-        return h[:-1] + 0.5 * _wrap(np.diff(h))
+        return h[:-1] + 0.5 * _wrap_round(np.diff(h))
 
     as_rad, as_deg = mid(phi), mid(np.radians(phi))
-    use = (np.hypot(dx, dy) / dt > 0.1) & (np.abs(_wrap(as_rad - as_deg)) > math.radians(5))
+    use = (np.hypot(dx, dy) / dt > 0.1) & (np.abs(_wrap_round(as_rad - as_deg)) > math.radians(5))
     if np.count_nonzero(use) < 3:
         return False
-    off_rad = math.degrees(float(np.median(np.abs(_wrap(as_rad - course)[use]))))
-    off_deg = math.degrees(float(np.median(np.abs(_wrap(as_deg - course)[use]))))
+    off_rad = math.degrees(float(np.median(np.abs(_wrap_round(as_rad - course)[use]))))
+    off_deg = math.degrees(float(np.median(np.abs(_wrap_round(as_deg - course)[use]))))
     return off_deg < 2.0 and off_rad > 30.0
 
 

@@ -66,9 +66,13 @@ over a 1 s horizon was 41 cm at dt = 0.1 s; this form is stable at every speed, 
 3x3 solve per step, and its error at 35 km/h is given in docs/CONTROLLER.md. It reduces
 to eq. (19)-(21) as dt -> 0.
 
-The cost (:func:`candidate_cost`) is the sum of named terms, one small function each:
-:func:`tracking_cost`, :func:`wear_cost`, :func:`smoothing_cost`, :func:`ridge_cost` (the
-per-step terms :func:`tracking_term` and :func:`wear_term` are what the tiles accumulate).
+The cost (:func:`controller.cost_terms.candidate_cost`) is the sum of named terms, each
+written once in :mod:`controller.cost_terms` for these kernels and the CasADi mirror alike:
+the tiles accumulate its per-step terms (:func:`~controller.cost_terms.pose_error`,
+:func:`~controller.cost_terms.tracking_term`, :func:`~controller.cost_terms.wear_term` with
+its :class:`~controller.cost_terms.WearWeights`) and add the smoothing and the ridge
+(:func:`~controller.cost_terms.smoothing_row`, :func:`~controller.cost_terms.ridge_row`);
+:func:`batch_cost` scores a batch of predictions.
 
 Mirrors of this module (the CasADi graph for IPOPT, the C reference) live in
 ``controller/mirrors/``, pinned to :data:`EXACT` by tests.
@@ -83,12 +87,12 @@ from numba import njit, prange
 
 import msagv.plant.tire as _tire
 from msagv.plant import layout as lay
-from msagv.plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX,
+from msagv.plant.layout import (CMD_S, CMD_W, P_DELTA_MAX,
                           P_DELTA_MIN, P_DUGOFF_C_ALPHA, P_DUGOFF_C_S, P_DUGOFF_MU, P_G, P_K_T,
                           P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C, P_LON_E,
                           P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN, P_OMEGA_W_MAX,
                           N_L, P_V_EPS, P_WHEEL_RADIUS, P_YAW_INERTIA, POLICY_RAW, POLICY_TWIST,
-                          POSE_PHI, POSE_X, POSE_Y, Q_PHI, Q_X, Q_Y, R_DD, R_DW, R_OD, R_OW,
+                          POSE_PHI, POSE_X, POSE_Y, Q_PHI, Q_X, Q_Y,
                           REF_PHI, REF_R, REF_VX, REF_VY, REF_X, REF_Y, S_DT, S_K_ALPHA,
                           S_DIST_R, S_DIST_U, S_DIST_V, S_K_PHI, S_K_POS, S_K_SERVO, S_POLICY,
                           S_R_FB_MAX, S_STRIDE,
@@ -96,6 +100,11 @@ from msagv.plant.layout import (CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S,
                           X0_VX, X0_VY, X0_X, X0_Y)
 
 from . import approx as _approx
+from . import cost_terms as _cost
+# the cost's terms (controller.cost_terms: numba compiles them into these kernels)
+from .cost_terms import (candidate_cost, pose_error, ridge_row, smoothing_row, tracking_term,
+                         wear_term, wear_weights)
+from .cost_terms import wrap as _wrap
 
 # The names the kernels below call are bound per set of primitives by make_prediction
 # (plant.tire.bind_globals); these module-level ones are the math library's, for reading.
@@ -106,13 +115,12 @@ from .approx import atan2_exact as atan2, cos_exact as cos, sin_exact as sin  # 
 
 MODEL_MF, MODEL_DUGOFF, MODEL_KINEMATIC, MODEL_TCT = 0, 1, 2, 3
 THETA = 0.5  # the trapezoidal rule's weight of the new velocity
-KW = 1e-3  # W -> kW: the cost's wear powers are in kW so that L has usable magnitudes
 LANES = 8  # candidates per tile (a multiple of the widest SIMD register in doubles)
 L = LANES  # (short, in the kernels' row indices)
 H = LANES // 2  # the wheel loop's iterations (two lanes each)
 
-# stale-cache guard (plant.layout): the layout and the inlined plant.tire and approx
-_STAMP = lay.kernel_stamp(_tire.__file__, _approx.__file__)
+# stale-cache guard (plant.layout): the layout and the inlined plant.tire, approx, cost_terms
+_STAMP = lay.kernel_stamp(_tire.__file__, _approx.__file__, _cost.__file__)
 
 
 @njit(cache=True)
@@ -127,13 +135,6 @@ lay.drop_stale_cache(_layout_stamp, _STAMP, __file__)
 # differing in the last bits, issue 29)
 _EXACT_FLAGS = set(_approx.FASTMATH)
 _FAST_FLAGS = set(_approx.FASTMATH)
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _wrap(a):
-    """Angle wrapped to (-pi, pi]."""
-    # (np.ceil: a float; math.ceil is an int, whose conversions do not vectorise)
-    return a - 2.0 * math.pi * np.ceil((a - math.pi) / (2.0 * math.pi))
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -152,108 +153,11 @@ def _clip(v, lo, hi):
     return hi if v > hi else (lo if v < lo else v)
 
 
-# ---- the cost: one function per term ---------------------------------------------------
-@njit(cache=True, inline="always", error_model="numpy")
-def tracking_term(ex, ey, ephi, qx, qy, qphi):
-    """One step's ``(Y_k - Yt_k)^T Q (Y_k - Yt_k)`` (eq. 22-24) from the pose errors."""
-    return qx * ex * ex + qy * ey * ey + qphi * ephi * ephi
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def wear_term(J, ps, pa, pt, ls, la, lt, les, lea, let):
-    """``J`` plus one step's wear term, the powers [W] taken in kW: ``P^T L P`` (eq. 22,
-    25; weights ``L_*`` [1/kW^2]: the paper's TWO) and ``lambda^T P`` (weights ``LE_*``
-    [1/kW]; over the horizon, times the step, the predicted wear work that W_tw measures:
-    TWO-energy)."""
-    p0 = ps * KW
-    p1 = pa * KW
-    p2 = pt * KW
-    J += ls * p0 * p0 + la * p1 * p1 + lt * p2 * p2
-    J += les * p0 + lea * p1 + let * p2
-    return J
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def tracking_cost(poses, ref, Q):
-    """``sum_k (Y_k - Yt_k)^T Q (Y_k - Yt_k)`` (eq. 22-24, W_Y = E (x) Q) over the
-    predicted poses, against the reference rows 1..N_p; heading error wrapped."""
-    J = 0.0
-    for k in range(poses.shape[0]):
-        J += tracking_term(poses[k, POSE_X] - ref[k + 1, REF_X],
-                           poses[k, POSE_Y] - ref[k + 1, REF_Y],
-                           _wrap(poses[k, POSE_PHI] - ref[k + 1, REF_PHI]),
-                           Q[Q_X], Q[Q_Y], Q[Q_PHI])
-    return J
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def wear_cost(wear, L):
-    """The wear term over the horizon (:func:`wear_term` per step; weights
-    ``L[L_S], L[L_ALPHA], L[L_T]`` and ``L[LE_S], L[LE_ALPHA], L[LE_T]``)."""
-    J = 0.0
-    for k in range(wear.shape[0]):
-        J = wear_term(J, wear[k, WEAR_S], wear[k, WEAR_ALPHA], wear[k, WEAR_T], L[L_S],
-                      L[L_ALPHA], L[L_T], L[LE_S], L[LE_ALPHA], L[LE_T])
-    return J
-
-
-@njit(cache=True, error_model="numpy")
-def smoothing_row(Z, row, zprev, R, stride, nsplit):
-    """:func:`smoothing_cost` of the decision vector ``Z[row]``."""
-    J = 0.0
-    for blk in range(Z.shape[1] // stride):
-        for j in range(stride):
-            prev = zprev[j] if blk == 0 else Z[row, (blk - 1) * stride + j]
-            dz = Z[row, blk * stride + j] - prev
-            J += (R[R_DW] if j < nsplit else R[R_DD]) * dz * dz
-    return J
-
-
-@njit(cache=True, error_model="numpy")
-def ridge_row(Z, row, R, stride, nsplit):
-    """:func:`ridge_cost` of the decision vector ``Z[row]``."""
-    J = 0.0
-    for blk in range(Z.shape[1] // stride):
-        for j in range(stride):
-            zi = Z[row, blk * stride + j]
-            J += (R[R_OW] if j < nsplit else R[R_OD]) * zi * zi
-    return J
-
-
-@njit(cache=True, error_model="numpy")
-def smoothing_cost(z, zprev, R, stride, nsplit):
-    """Changes of the decision variables between consecutive blocks (``stride`` variables
-    each) and from the previous solution's first block ``zprev``: R_dw on the first
-    ``nsplit`` of a block (wheel speeds [1/(rad/s)^2]; all three twist offsets), R_dd on
-    the rest (steering targets [1/rad^2]; raw steering rates)."""
-    return smoothing_row(z.reshape(1, z.shape[0]), 0, zprev, R, stride, nsplit)
-
-
-@njit(cache=True, error_model="numpy")
-def ridge_cost(z, R, stride, nsplit):
-    """A ridge on the decision variables themselves: R_ow on the first ``nsplit`` of a
-    block, R_od on the rest (as :func:`smoothing_cost`; raw commands get none)."""
-    return ridge_row(z.reshape(1, z.shape[0]), 0, R, stride, nsplit)
-
-
-@njit(cache=True, error_model="numpy")
-def candidate_cost(poses, wear, ref, z, zprev, Q, L, R, stride, nsplit):
-    """Cost of one candidate (paper eq. 22-26) plus the shared command regularisation.
-
-    ``poses``, ``wear`` (N_p, 3) of the candidate, ``z`` (D,) its decision vector in
-    blocks of ``stride`` (the first ``nsplit`` of each weighted as wheel speeds):
-    ``(tracking + wear) / N_p + smoothing + ridge`` (:func:`tracking_cost`,
-    :func:`wear_cost`, :func:`smoothing_cost`, :func:`ridge_cost`; weights ``Q``, ``L``
-    (``plant.layout.L_*``, ``LE_*``), ``R = (R_dw, R_dd, R_ow, R_od)``).
-    """
-    Np = poses.shape[0]
-    return ((tracking_cost(poses, ref, Q) + wear_cost(wear, L)) / Np
-            + smoothing_cost(z, zprev, R, stride, nsplit) + ridge_cost(z, R, stride, nsplit))
-
-
+# ---- the cost: its terms are controller.cost_terms' (one definition for every kernel and
+# the CasADi mirror); batch_cost scores a batch --------------------------------------------
 @njit(cache=True, error_model="numpy")
 def batch_cost(poses, wear, ref, Z, zprev, Q, L, R, stride, nsplit, costs):
-    """:func:`candidate_cost` of every row of ``Z`` into ``costs`` (B,)."""
+    """:func:`controller.cost_terms.candidate_cost` of every row of ``Z`` into ``costs`` (B,)."""
     for b in range(Z.shape[0]):
         costs[b] = candidate_cost(poses[b], wear[b], ref, Z[b], zprev, Q, L, R, stride, nsplit)
 
@@ -751,19 +655,19 @@ def policy_rows(w, ref, k, tw, twist, tct, k_pos, v_fb_max, k_phi, r_fb_max, k_a
         w[W_PT * L + b] = 0.0
 
 
-def store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi, ps, pa, ls, la,
-               lt, les, lea, let):
+def store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi, ps, pa, lw):
     """Lane ``b``'s new body state into ``w``, its tracking term against the reference's
     next pose and its wear term (slip powers ``ps``, ``pa``; the step's ``P_t`` from
-    ``w``) added to its costs."""
+    ``w``; weights ``lw``, a :class:`controller.cost_terms.WearWeights`) added to its
+    costs."""
     set_body(w, b, x, y, phi, vx, vy, r)  # noqa: F821
-    w[W_JT * L + b] += tracking_term(x - rx1, y - ry1, _wrap(phi - rphi1), qx, qy, qphi)
-    w[W_JW * L + b] = wear_term(w[W_JW * L + b], ps, pa, w[W_PT * L + b], ls, la, lt, les,
-                                lea, let)
+    ex, ey, ephi = pose_error(x, y, phi, rx1, ry1, rphi1)
+    w[W_JT * L + b] += tracking_term(ex, ey, ephi, qx, qy, qphi)
+    w[W_JW * L + b] = wear_term(w[W_JW * L + b], ps, pa, w[W_PT * L + b], lw)
 
 
-def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls, la, lt,
-              les, lea, let, du, dv, dr):
+def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, lw, du, dv,
+              dr):
     """Step ``k``'s body update in every lane (``KINEMATIC``: bound per tile) from the
     wheels' sums, and its tracking and wear terms added to the lanes' costs."""
     rx1, ry1, rphi1 = ref[k + 1, REF_X], ref[k + 1, REF_Y], ref[k + 1, REF_PHI]
@@ -773,7 +677,7 @@ def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls,
                 w[W_X * L + b], w[W_Y * L + b], w[W_PHI * L + b], nw, sx, sy, sxx, syy,
                 w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b], dt, du, dv, dr)
             store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi, 0.0,  # noqa: F821
-                       0.0, ls, la, lt, les, lea, let)
+                       0.0, lw)
     else:
         for b in range(L):  # vectorised: the rigid body's step and the cost
             x, y, phi, vx, vy, r = rigid_body_update(
@@ -784,7 +688,7 @@ def body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, ls,
                 w[W_A22 * L + b], w[W_F0 * L + b], w[W_F1 * L + b], w[W_F2 * L + b],
                 m, Iz, dt, du, dv, dr)
             store_body(w, b, x, y, phi, vx, vy, r, rx1, ry1, rphi1, qx, qy, qphi,  # noqa: F821
-                       w[W_PS * L + b], w[W_PA * L + b], ls, la, lt, les, lea, let)
+                       w[W_PS * L + b], w[W_PA * L + b], lw)
 
 
 def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit, w,
@@ -821,7 +725,7 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
     kservo = (1.0 - math.exp(-S[S_K_SERVO] * dt)) / dt
     du, dv, dr = S[S_DIST_U], S[S_DIST_V], S[S_DIST_R]
     qx, qy, qphi = Q[Q_X], Q[Q_Y], Q[Q_PHI]
-    ls, la, lt, les, lea, let = Lw[L_S], Lw[L_ALPHA], Lw[L_T], Lw[LE_S], Lw[LE_ALPHA], Lw[LE_T]
+    lw = wear_weights(Lw)
     sx = 0.0
     sy = 0.0
     sxx = 0.0
@@ -863,8 +767,8 @@ def tile(model, x0, ref, Z, b0, nb, block, P, S, wx, wy, Q, Lw, R, zprev, nsplit
                 for b in range(nb):
                     cmds[b0 + b, CMD_W, j] = w[W_OMW * L + b]
                     cmds[b0 + b, CMD_S, j] = w[W_OMS * L + b]
-        body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi,  # noqa: F821
-                  ls, la, lt, les, lea, let, du, dv, dr)
+        body_rows(w, ref, k, tct, nw, sx, sy, sxx, syy, m, Iz, dt, qx, qy, qphi, lw,  # noqa: F821
+                  du, dv, dr)
         if out:
             for b in range(nb):
                 poses[b0 + b, k, POSE_X] = w[W_X * L + b]
@@ -909,8 +813,9 @@ def rollout_batch_parallel(model, x0, ref, Z, block, P, S, wx, wy, poses, wear, 
 
 
 def evaluate(model, x0, ref, Z, block, P, S, wx, wy, Q, Lw, R, nsplit, zprev, ws, J):
-    """The cost (:func:`candidate_cost`) of every row of ``Z`` into ``J``, rollout and
-    cost fused per tile; ``ws`` (tiles, :func:`workspace_size`) the tiles' workspaces."""
+    """The cost (:func:`controller.cost_terms.candidate_cost`) of every row of ``Z`` into
+    ``J``, rollout and cost fused per tile; ``ws`` (tiles, :func:`workspace_size`) the
+    tiles' workspaces."""
     B = Z.shape[0]
     n = (B + L - 1) // L
     none = np.empty((0, 0, 0))

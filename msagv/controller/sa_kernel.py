@@ -53,13 +53,15 @@ import msagv.plant.tire as _tire
 from msagv.plant import layout as lay
 
 from . import approx as _approx
+from . import cost_terms as _cost
 from . import rollout as _ro
+from .cost_terms import KW, pose_error
 
 CHUNK = 16  # iterations per kernel call under a deadline (the clock is read between calls)
 SCALE_MIN, SCALE_MAX = 1e-4, 10.0  # bounds of the adaptive per-chain step factors
 
 # stale-cache guard (plant.layout): the layout and the kernels compiled into these
-_STAMP = lay.kernel_stamp(_ro.__file__, _tire.__file__, _approx.__file__)
+_STAMP = lay.kernel_stamp(_ro.__file__, _tire.__file__, _approx.__file__, _cost.__file__)
 
 
 @njit(cache=True)
@@ -244,20 +246,24 @@ def quadratic_terms(stride, nsplit, R, zprev, A, b):
 @njit(cache=True, error_model="numpy")
 def residuals(poses, wear, ref, Q, Lw, row, r, rrow):
     """The cost's squared terms of candidate ``row`` as residuals ``r[rrow]`` (6 N_p: per
-    step the weighted pose errors, heading wrapped, then the weighted wear powers [kW]) and
-    its linear wear-energy term, returned: ``|r|^2 + e`` is the horizon part of
-    :func:`controller.rollout.candidate_cost`."""
+    step the weighted pose errors (:func:`controller.cost_terms.pose_error`), then the
+    weighted wear powers [kW]) and its linear wear-energy term, returned: ``|r|^2 + e`` is
+    the horizon part of :func:`controller.cost_terms.candidate_cost` (the least-squares
+    form of :func:`~controller.cost_terms.tracking_cost` and
+    :func:`~controller.cost_terms.wear_cost`; ``tests/test_polish.py`` checks the sum)."""
     Np = poses.shape[1]
     sq = (math.sqrt(Q[lay.Q_X] / Np), math.sqrt(Q[lay.Q_Y] / Np), math.sqrt(Q[lay.Q_PHI] / Np))
-    sl = (math.sqrt(Lw[lay.L_S] / Np) * _ro.KW, math.sqrt(Lw[lay.L_ALPHA] / Np) * _ro.KW,
-          math.sqrt(Lw[lay.L_T] / Np) * _ro.KW)
+    sl = (math.sqrt(Lw[lay.L_S] / Np) * KW, math.sqrt(Lw[lay.L_ALPHA] / Np) * KW,
+          math.sqrt(Lw[lay.L_T] / Np) * KW)
     e = 0.0
     for k in range(Np):
         o = 6 * k
-        ph = poses[row, k, lay.POSE_PHI] - ref[k + 1, lay.REF_PHI]
-        r[rrow, o] = sq[0] * (poses[row, k, lay.POSE_X] - ref[k + 1, lay.REF_X])
-        r[rrow, o + 1] = sq[1] * (poses[row, k, lay.POSE_Y] - ref[k + 1, lay.REF_Y])
-        r[rrow, o + 2] = sq[2] * (ph - 2.0 * math.pi * math.ceil((ph - math.pi) / (2.0 * math.pi)))
+        ex, ey, ephi = pose_error(poses[row, k, lay.POSE_X], poses[row, k, lay.POSE_Y],
+                                  poses[row, k, lay.POSE_PHI], ref[k + 1, lay.REF_X],
+                                  ref[k + 1, lay.REF_Y], ref[k + 1, lay.REF_PHI])
+        r[rrow, o] = sq[0] * ex
+        r[rrow, o + 1] = sq[1] * ey
+        r[rrow, o + 2] = sq[2] * ephi
         ps = wear[row, k, lay.WEAR_S]
         pa = wear[row, k, lay.WEAR_ALPHA]
         pt = wear[row, k, lay.WEAR_T]
@@ -265,7 +271,7 @@ def residuals(poses, wear, ref, Q, Lw, row, r, rrow):
         r[rrow, o + 4] = sl[1] * pa
         r[rrow, o + 5] = sl[2] * pt
         e += Lw[lay.LE_S] * ps + Lw[lay.LE_ALPHA] * pa + Lw[lay.LE_T] * pt
-    return e * _ro.KW / Np
+    return e * KW / Np
 
 
 # The polish's linear algebra is written so that LLVM vectorises it without reassociating

@@ -3,10 +3,12 @@ its math-library build, :data:`controller.rollout.EXACT`).
 
 Everything else in the project has one implementation per equation; these two cannot:
 
-* ``casadi_rollout.py`` - the policy, the MF prediction and the cost as a CasADi SX graph,
-  so that IPOPT (:mod:`controller.ipopt`) gets exact first and second derivatives. Pinned
-  by ``tests/test_ipopt.py`` (symbolic rollout = numba rollout to 1e-9 relative on states
-  that drive every clip of the policy; symbolic cost = ``batch_cost`` to 1e-9).
+* ``casadi_rollout.py`` - the policy and the MF prediction as a CasADi SX graph, so that
+  IPOPT (:mod:`controller.ipopt`) gets exact first and second derivatives. Pinned by
+  ``tests/test_ipopt.py`` (symbolic rollout = numba rollout to 1e-9 relative on states that
+  drive every clip of the policy; symbolic cost = ``batch_cost`` to 1e-9). The cost is no
+  copy: :mod:`controller.cost_terms`' functions, called on the symbols
+  (``tests/test_cost_terms.py``).
 * ``rollout_ref.c`` - a single-thread C99 reference of the MF batch rollout, the
   throughput the hardware allows (``benchmarks/rollout_bench.py``). Its array indices come
   from a header generated from :mod:`plant.layout` when it is built

@@ -2,11 +2,13 @@
 
 IPOPT needs exact first and second derivatives of the horizon problem, which numba's
 kernels cannot give, so the policy, the MF prediction (linearly implicit trapezoidal
-step) and the cost are written here again, operation for operation, with CasADi
-operations: :func:`symbolic_rollout` mirrors the prediction of :data:`controller.rollout.EXACT`
-with ``model = MODEL_MF`` (:func:`_policy` mirrors ``commands_from_policy``, the tire block
-``tire_forces`` with :mod:`plant.tire`'s slip, Magic Formula and wear functions), and
-:func:`symbolic_cost` mirrors ``candidate_cost`` term by term. The indices are
+step) are written here again, operation for operation, with CasADi operations:
+:func:`symbolic_rollout` mirrors the prediction of :data:`controller.rollout.EXACT` with
+``model = MODEL_MF`` (:func:`_policy` mirrors ``commands_from_policy``, the tire block
+``tire_forces`` with :mod:`plant.tire`'s slip, Magic Formula and wear functions). The cost
+is not mirrored: :func:`symbolic_cost` calls :mod:`controller.cost_terms`' functions, the
+numba kernels' own, on the CasADi expressions (and the heading wrap is
+:func:`controller.cost_terms.wrap`). The indices are
 :mod:`plant.layout`'s. Pinned to the numba kernels by ``tests/test_ipopt.py`` (poses,
 wear powers and first commands to 1e-9 relative; the cost to 1e-9): a change to one side
 that the other does not follow fails there.
@@ -20,16 +22,18 @@ from __future__ import annotations
 
 import math
 
-from msagv.plant.layout import (S_DIST_R, S_DIST_U, S_DIST_V, CMD_S, CMD_W, L_ALPHA, L_S, L_T, LE_ALPHA, LE_S, LE_T, P_DELTA_MAX, P_DELTA_MIN, P_G,
-                          N_REF, P_K_T, P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C,
-                          P_LON_E, P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN,
-                          P_OMEGA_W_MAX, P_V_EPS, P_WHEEL_RADIUS, P_YAW_INERTIA, POSE_PHI,
-                          POSE_X, POSE_Y, Q_PHI, Q_X, Q_Y, R_DD, R_DW, R_OD, R_OW, REF_PHI,
-                          REF_R, REF_VX, REF_VY, REF_X, REF_Y, S_DT, S_K_ALPHA, S_K_PHI,
-                          S_K_POS, S_K_SERVO, S_R_FB_MAX, S_V_FB_MAX, WEAR_ALPHA, WEAR_S,
-                          WEAR_T, X0_DELTA, X0_PHI, X0_R, X0_VX, X0_VY, X0_X, X0_Y)
+from msagv.plant.layout import (S_DIST_R, S_DIST_U, S_DIST_V, CMD_S, CMD_W, P_DELTA_MAX,
+                               P_DELTA_MIN, P_G, N_REF, P_K_T, P_LAT_B, P_LAT_C, P_LAT_E,
+                               P_LAT_MU, P_LON_B, P_LON_C, P_LON_E, P_LON_MU, P_MASS,
+                               P_OMEGA_S_MAX, P_OMEGA_S_MIN, P_OMEGA_W_MAX, P_V_EPS,
+                               P_WHEEL_RADIUS, P_YAW_INERTIA, POSE_PHI, POSE_X, POSE_Y,
+                               REF_PHI, REF_R, REF_VX, REF_VY, REF_X, REF_Y, S_DT, S_K_ALPHA,
+                               S_K_PHI, S_K_POS, S_K_SERVO, S_R_FB_MAX, S_V_FB_MAX,
+                               WEAR_ALPHA, WEAR_S, WEAR_T, X0_DELTA, X0_PHI, X0_R, X0_VX,
+                               X0_VY, X0_X, X0_Y)
 
-from ..rollout import KW, THETA
+from ..cost_terms import candidate_cost, wrap as _wrap
+from ..rollout import THETA
 
 try:  # CasADi is an optional dependency (pip install msagv[ipopt])
     import casadi as ca
@@ -61,11 +65,6 @@ def _atan2_guarded(y, x):
 
 def _clip(v, lo, hi):
     return ca.fmin(ca.fmax(v, lo), hi)
-
-
-def _wrap(a):
-    """Angle wrapped to (-pi, pi], as controller.rollout._wrap (ceil: zero derivative)."""
-    return a - 2.0 * math.pi * ca.ceil((a - math.pi) / (2.0 * math.pi))
 
 
 def _mf_and_slope(xi, B, C, D, E):
@@ -281,41 +280,9 @@ def symbolic_rollout(x0, ref, z, block, P, S, wx, wy, eps=0.0, dist=None):
     return poses, wear, cmds
 
 
-# ---- the cost: the terms of controller.rollout.candidate_cost --------------------------
-def _tracking_cost(poses, ref, Q):
-    J = 0.0
-    for k, pk in enumerate(poses):
-        ex = pk[POSE_X] - ref[k + 1, REF_X]
-        ey = pk[POSE_Y] - ref[k + 1, REF_Y]
-        ep = _wrap(pk[POSE_PHI] - ref[k + 1, REF_PHI])
-        J += Q[Q_X] * ex * ex + Q[Q_Y] * ey * ey + Q[Q_PHI] * ep * ep
-    return J
-
-
-def _wear_cost(wear, L):
-    J = 0.0
-    for wk in wear:
-        p0, p1, p2 = wk[WEAR_S] * KW, wk[WEAR_ALPHA] * KW, wk[WEAR_T] * KW
-        J += L[L_S] * p0 * p0 + L[L_ALPHA] * p1 * p1 + L[L_T] * p2 * p2
-        J += L[LE_S] * p0 + L[LE_ALPHA] * p1 + L[LE_T] * p2
-    return J
-
-
-def _regularisation(z, zprev, R, nw):
-    """smoothing_cost + ridge_cost."""
-    J = 0.0
-    for blk in range(z.shape[0] // (2 * nw)):
-        for j in range(2 * nw):
-            zi = z[blk * 2 * nw + j]
-            prev = zprev[j] if blk == 0 else z[(blk - 1) * 2 * nw + j]
-            dz = zi - prev
-            smooth, ridge = (R[R_DW], R[R_OW]) if j < nw else (R[R_DD], R[R_OD])
-            J += smooth * dz * dz + ridge * zi * zi
-    return J
-
-
+# ---- the cost: controller.cost_terms' functions on the symbols ---------------------------
 def symbolic_cost(poses, wear, ref, z, zprev, Q, L, R, nw):
-    """Symbolic :func:`controller.rollout.candidate_cost` of one candidate (eq. 22-26 + R)."""
-    Np = len(poses)
-    return (_tracking_cost(poses, ref, Q) + _wear_cost(wear, L)) / Np + _regularisation(
-        z, zprev, R, nw)
+    """Symbolic cost of one candidate (eq. 22-26 + R): :func:`controller.cost_terms.candidate_cost`
+    itself, called on the CasADi expressions (``poses``, ``wear``: the lists of
+    :func:`symbolic_rollout`; blocks of ``2 nw`` offsets, the first ``nw`` wheel speeds)."""
+    return candidate_cost(poses, wear, ref, z, zprev, Q, L, R, 2 * nw, nw)
