@@ -103,19 +103,29 @@ def test_the_scenario_default_solver_is_the_tables():
     assert Scenario().solver == solvers.DEFAULT_SOLVER
 
 
+def _listed_files_are_the_codes(what: str, item: str, names: str) -> tuple[str, set]:
+    """Assert that the files ARCHITECTURE.md lists between ``<!-- files: what -->`` and
+    ``<!-- end files -->`` (each matched by ``item``, multi-line) are exactly the package's
+    modules whose text matches ``names``; return the page's text and that list."""
+    text = DOC.read_text()
+    m = re.search(rf"<!-- files: {what} -->(.*?)<!-- end files -->", text, re.S)
+    assert m, f"docs/ARCHITECTURE.md has no list of files for '{what}'"
+    listed = set(re.findall(item, m.group(1), re.M))
+    pkg = DOC.parent.parent / "msagv"
+    pattern = re.compile(names)
+    found = {str(f.relative_to(pkg)) for f in pkg.rglob("*.py") if pattern.search(f.read_text())}
+    assert found == listed, (f"in the code, not on the page: {sorted(found - listed)}; "
+                             f"on the page, not in the code: {sorted(listed - found)}")
+    return text, listed
+
+
 def test_a_cost_terms_files_are_the_ones_listed_here():
     """ARCHITECTURE.md's count of what a cost term takes is the code's: the modules that
     call the shared per-step or row terms of controller.cost_terms (and so must call a new
     one) are exactly the page's list."""
-    text = DOC.read_text()
-    m = re.search(r"<!-- files: cost -->(.*?)<!-- end files -->", text, re.S)
-    assert m, "docs/ARCHITECTURE.md has no list of a cost term's files"
-    listed = set(re.findall(r"^- `([a-z_/]+\.py)`", m.group(1), re.M))  # (items, not tests)
-    pkg = DOC.parent.parent / "msagv"
-    names = re.compile(r"\b(pose_error|tracking_term|wear_term|wear_kw|smoothing_row|ridge_row)\(")
-    found = {str(f.relative_to(pkg)) for f in pkg.rglob("*.py") if names.search(f.read_text())}
-    assert found == listed, (f"in the code, not on the page: {sorted(found - listed)}; "
-                             f"on the page, not in the code: {sorted(listed - found)}")
+    text, listed = _listed_files_are_the_codes(
+        "cost", r"^- `([a-z_/]+\.py)`",  # (the items, not the tests named in them)
+        r"\b(pose_error|tracking_term|wear_term|wear_kw|smoothing_row|ridge_row)\(")
     heading = re.search(r"### A cost term: (\w+) files", text)
     assert heading and {"three": 3, "four": 4, "five": 5}.get(heading.group(1)) == len(listed)
 
@@ -124,15 +134,9 @@ def test_the_dugoff_models_files_are_the_ones_listed_here():
     """ARCHITECTURE.md's count of what a prediction model with parameters of its own takes
     (DH's Dugoff model) is the code's: the modules that name Dugoff's parameter slots, model
     id, tire law, FMU variables or vehicle-file section are exactly the page's list."""
-    text = DOC.read_text()
-    m = re.search(r"<!-- files: dugoff -->(.*?)<!-- end files -->", text, re.S)
-    assert m, "docs/ARCHITECTURE.md has no list of the Dugoff model's files"
-    listed = set(re.findall(r"`([a-z_/]+\.py)`", m.group(1)))
-    pkg = DOC.parent.parent / "msagv"
-    names = re.compile(r"P_DUGOFF|MODEL_DUGOFF|dugoff_forces|tire_dugoff|[\"']dugoff[\"']")
-    found = {str(f.relative_to(pkg)) for f in pkg.rglob("*.py") if names.search(f.read_text())}
-    assert found == listed, (f"in the code, not on the page: {sorted(found - listed)}; "
-                             f"on the page, not in the code: {sorted(listed - found)}")
+    text, listed = _listed_files_are_the_codes(
+        "dugoff", r"`([a-z_/]+\.py)`",
+        r"P_DUGOFF|MODEL_DUGOFF|dugoff_forces|tire_dugoff|[\"']dugoff[\"']")
     heading = re.search(r"### A prediction model: two files, or (\w+) with", text)
     words = {"nine": 9, "ten": 10, "eleven": 11, "twelve": 12, "thirteen": 13}
     assert heading and words.get(heading.group(1)) == len(listed), heading
