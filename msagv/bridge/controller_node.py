@@ -143,7 +143,6 @@ class ControllerNode:
         self._fallback = False  # present because its states arrive, its token never seen
         self._last_state_rx = 0.0  # time.monotonic() of the last valid state
         self._pending_ref = None  # decoded reference message
-        self._takes_refs = cfg.takes_references(False)  # decided again in open()
         self._again = None  # (state, command): a held state, solved, to answer later
         self._last_seq: int | None = None
         self._sent: tuple[int, bytes] | None = None  # (state seq, payload) of the last command
@@ -182,8 +181,7 @@ class ControllerNode:
             self._watch_plant(self.plant_zid)
         self._pub = t.publisher(k.cmd)
         self._decls.append(t.subscribe(k.state, self._on_state_sample))
-        self._takes_refs = self.cfg.takes_references(t.authenticated)
-        if not self._takes_refs and self.cfg.bus_references == "auto":
+        if not self._takes_references() and self.cfg.bus_references == "auto":
             log.info("references from the bus are not taken (a plain bus: anyone could send "
                      "one); --bus-references on takes them, --secure authenticates them")
         self._decls.append(t.subscribe(k.reference,
@@ -446,10 +444,16 @@ class ControllerNode:
         self._event.set()
         return st
 
+    def _takes_references(self) -> bool:
+        """Whether this node takes references from its bus (:attr:`ControllerConfig.
+        bus_references`; not before :meth:`open`)."""
+        t = self.transport
+        return self.cfg.takes_references(t is not None and t.authenticated)
+
     def handle_reference(self, payload: bytes) -> dict | None:
         key = self.keys.reference
         try:
-            if not self._takes_refs:
+            if not self._takes_references():
                 raise M.MessageError(M.REFERENCES_OFF, "this controller takes no reference "
                                      "from the bus (--bus-references; a plain bus: anyone "
                                      "could send one)")
