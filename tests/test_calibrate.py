@@ -155,9 +155,12 @@ def test_bad_data_refused_with_one_line():
 
 
 # ---- the command line -------------------------------------------------------------------------
-def write_recording(path: Path, vehicle_dict: dict, data: RunData, ros2: bool = False) -> None:
+def write_recording(path: Path, vehicle_dict: dict, data: RunData, ros2: bool = False,
+                    flush_every: int = 0) -> None:
     """``data`` as the plant process records a lockstep run: each state sent (tx), then the
-    command answering it received (rx), with increasing record times."""
+    command answering it received (rx), with increasing record times; with
+    ``flush_every``, flushed every so many states (a running plant flushes every 0.5 s of
+    wall time, which closes a chunk of the file)."""
     from msagv.bridge import messages as M
     from msagv.bridge.recording import Recorder
 
@@ -174,6 +177,8 @@ def write_recording(path: Path, vehicle_dict: dict, data: RunData, ros2: bool = 
             rec.message("rx", "msagv/agv0/cmd", M.encode_cmd(k, data.t[k], k, data.cmd_w[k],
                                                              data.cmd_s[k]), ts=ts + 0.001)
         ts += T
+        if flush_every and k % flush_every == flush_every - 1:
+            assert rec.flush()
     rec.close()
 
 
@@ -253,6 +258,30 @@ def test_cli_refuses_bad_recordings(tmp_path):
         assert len(lines) == 1 and lines[0].startswith("msagv calibrate: "), (path.name, p.stderr)
         assert why in lines[0] and "Traceback" not in p.stderr
         assert not out.exists()
+
+
+def test_cli_uses_a_recording_cut_after_its_start_and_says_so(tmp_path):
+    """A recording whose writer was killed (no summary, its last chunk cut) is fitted on the
+    states before the cut, with one warning line saying so; the fit still finds the
+    plant's lateral slope."""
+    base, truth = _truth()
+    data = drive(truth, 8.0, noise=0.005)
+    full = tmp_path / "full.mcap"
+    write_recording(full, base.to_dict(), data, flush_every=50)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(full.read_bytes()[:int(full.stat().st_size * 0.6)])
+    r = msagv("calibrate", cut, "--json", timeout=300)
+    assert r.returncode == 0, r.stderr
+    warnings = [ln for ln in r.stderr.splitlines() if "warning" in ln]
+    assert len(warnings) == 1 and "ends without its summary" in warnings[0], r.stderr
+    used = float(warnings[0].split("using the ")[1].split(" s")[0])
+    assert 2.0 < used < 0.8 * (data.t[-1] - data.t[0])
+    doc = json.loads(r.stdout)
+    assert doc["seconds"] <= used + 0.5
+    assert doc["parameters"]["lateral.K"]["value"] == pytest.approx(
+        values_of(truth)["lateral.K"], rel=0.05)
+    full_run = msagv("calibrate", full, "--json", timeout=300)
+    assert full_run.returncode == 0 and "warning" not in full_run.stderr, full_run.stderr
 
 
 def test_maneuver_stays_within_the_vehicle_and_excites(tmp_path):

@@ -67,9 +67,9 @@ def main(argv: list[str]) -> int:
         check_output(a.out, "-o", suffixes=(".toml",))
         check_output(a.plot, "--plot", suffixes=PLOT_SUFFIXES)
         check_distinct(("the recording", a.recording), ("-o", a.out), ("--plot", a.plot))
-        data, recorded = C.read_run(a.recording, a.run)
+        data, recorded, notes = C.read_run(a.recording, a.run)
         base = C.base_vehicle(a.vehicle, recorded)
-        warn(PROG, plausibility_warnings(base))
+        warn(PROG, plausibility_warnings(base) + notes)
         C.check_data(data, base)
         window = max(2, int(round(a.window / data.period)))
     except USAGE_ERRORS as e:

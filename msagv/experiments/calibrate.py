@@ -29,19 +29,21 @@ def is_bag(path: str | Path) -> bool:
                           and p.parent.name + "_0" in p.stem)
 
 
-def read_run(path: str | Path, run_index: int = -1) -> tuple[RunData, dict | None]:
-    """``(data, recorded vehicle dict or None)`` of a recording: an msagv recording (the
-    plant's, ``msagv plant --record``; its states and the commands it received) or a
-    rosbag2 bag (``odom``, ``joint_states`` and the two command topics of docs/ROS2.md)."""
+def read_run(path: str | Path, run_index: int = -1) -> tuple[RunData, dict | None, list[str]]:
+    """``(data, recorded vehicle dict or None, notes)`` of a recording: an msagv recording
+    (the plant's, ``msagv plant --record``; its states and the commands it received) or a
+    rosbag2 bag (``odom``, ``joint_states`` and the two command topics of docs/ROS2.md).
+    ``notes``: what the user should know about the file that does not stop the fit (a
+    recording cut short is used up to its cut, and says so)."""
     p = Path(path)
     if not p.exists():
         raise CalibrationInputError(f"{p}: no such file or directory")
     if is_bag(p):
-        return read_bag(p.parent if p.is_file() else p)
+        return (*read_bag(p.parent if p.is_file() else p), [])
     return read_recording_run(p, run_index)
 
 
-def read_recording_run(path: Path, run_index: int = -1) -> tuple[RunData, dict]:
+def read_recording_run(path: Path, run_index: int = -1) -> tuple[RunData, dict, list[str]]:
     """The states of one run of an msagv recording and, for each step ``k -> k+1``, the
     command in effect: the newest valid command recorded before state ``k+1`` (in lockstep
     the one answering state ``k``; in real time the one the plant's clock found)."""
@@ -49,7 +51,7 @@ def read_recording_run(path: Path, run_index: int = -1) -> tuple[RunData, dict]:
     from msagv.bridge.recording import RecordingError, read_recording, split_runs
 
     try:
-        header, records, _ = read_recording(path)
+        header, records, summary = read_recording(path)
     except (RecordingError, OSError) as e:
         raise CalibrationInputError(str(e)) from None
     try:
@@ -100,7 +102,12 @@ def read_recording_run(path: Path, run_index: int = -1) -> tuple[RunData, dict]:
             continue  # no command yet, or only a stale one
         cw[i], cs[i] = cmds[j][1], cmds[j][2]
         valid[i] = True
-    return RunData(t, body, delta, om, cw, cs, valid), vehicle
+    notes = []
+    if summary is None:
+        notes.append(f"{path}: the recording ends without its summary (its writer was stopped "
+                     f"or its disk filled): using the {t[-1] - t[0]:.1f} s of states before "
+                     f"the cut")
+    return RunData(t, body, delta, om, cw, cs, valid), vehicle, notes
 
 
 def read_bag(bag: Path) -> tuple[RunData, dict | None]:
