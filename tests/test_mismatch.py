@@ -64,6 +64,64 @@ def test_inputs_are_files_every_column_shares(tmp_path):
             load_vehicle(sp.extra["plant_vehicle"]).tire_lateral.B)
 
 
+def _own_plant(tmp_path, vehicle: Path, name: str = "my_plant.toml", **tires) -> Path:
+    """A plant of the user's own: ``vehicle``'s file with its lateral tire's values
+    replaced (a file the experiment must take as it is)."""
+    text = vehicle.read_text()
+    head, lat = text.split("[tire.lateral]", 1)
+    body, rest = (lat.split("\n[", 1) + [""])[:2]
+    rows = [ln for ln in body.splitlines() if ln.split("=")[0].strip() not in tires]
+    rows += [f"{k} = {v!r}" for k, v in tires.items()]
+    out = tmp_path / name
+    out.write_text(head + "[tire.lateral]" + "\n".join(rows) + "\n" + ("[" + rest if rest else ""))
+    return out
+
+
+def test_inputs_for_your_own_vehicle_plant_and_path(tmp_path):
+    """--vehicle, a plant file and --trajectory: the path is the user's (copied, driven
+    whole), the plant file is taken as it is, the factor plants and the manoeuvre are made
+    from the user's vehicle, and the wrong and adapted columns believe the user's vehicle."""
+    vehicle = _own_plant(tmp_path, ROOT / "scenarios" / "vehicles" / "agv-3axle.toml",
+                         "my_agv.toml", mu=0.62)  # a vehicle of the user's own
+    mine = load_vehicle(vehicle)
+    plant = _own_plant(tmp_path, vehicle, B=mine.tire_lateral.B * 1.25, mu=0.55)
+    traj = ROOT / "scenarios" / "paths" / sorted(p.name for p in (ROOT / "scenarios" / "paths")
+                                                 .glob("*.csv"))[0]
+    plants = (str(plant), "tires x1.2")
+    assert mm.parse_plants(",".join(plants)) == plants
+    assert mm.check_vehicles(plants, str(vehicle), str(traj)).name == mine.name
+    out = tmp_path / "out"
+    paths, files, man = mm.write_inputs(out, plants, 10, str(vehicle), str(traj))
+    assert [p.read_bytes() for p in paths] == [traj.read_bytes()]
+    assert files[str(plant)].read_bytes() == plant.read_bytes()
+    assert load_vehicle(files[str(plant)]).tire_lateral.mu == 0.55
+    scaled = load_vehicle(files["tires x1.2"])
+    assert scaled.n_axles == 3
+    assert scaled.tire_lateral.B == pytest.approx(1.2 * mine.tire_lateral.B, rel=1e-12)
+    from msagv.experiments.calibrate import maneuver, maneuver_csv
+
+    assert man.read_text() == maneuver_csv(maneuver(mine))  # the user vehicle's manoeuvre
+    assert man.read_text() != maneuver_csv(maneuver(default_vehicle()))
+    identified = {n: {"vehicle": str(files[n])} for n in files}
+    scen = mm.design(paths, files, identified, seeds=(0,), vehicle=str(vehicle), duration=None)
+    assert len(scen) == 2 * 4 and all(s.duration is None for s in scen)
+    for sp in run_specs(scen, quick=True)[:40]:
+        sc = sp.scenario()
+        believed = sc.resolve_vehicle()
+        if sp.tags["model"] in ("wrong", "adapted"):
+            assert believed.tire_lateral.B == mine.tire_lateral.B and believed.n_axles == 3
+        assert sc.actual_vehicle(believed).tire_lateral.B == pytest.approx(
+            load_vehicle(sp.extra["plant_vehicle"]).tire_lateral.B)
+
+
+def test_your_own_plant_must_have_the_vehicles_axles(tmp_path):
+    plant = _own_plant(tmp_path, ROOT / "scenarios" / "vehicles" / "agv-4axle.toml", mu=0.6)
+    with pytest.raises(ScenarioError, match="has 4 axles, the controller's vehicle .* 3"):
+        mm.check_vehicles((str(plant),), str(ROOT / "scenarios" / "vehicles" / "agv-3axle.toml"))
+    with pytest.raises(ScenarioError, match="named twice"):
+        mm.parse_plants("tires x0.8,tires x0.8")
+
+
 def _items(values: dict[str, list[float]]) -> list[dict]:
     return [{"unit": f"{p}/{i}", "path": p, "ratio": v, "reason": None}
             for p, vs in values.items() for i, v in enumerate(vs)]
@@ -133,6 +191,11 @@ def test_parse_plants():
     (["--paths", "1"], "--paths: at least 2"),
     (["--seeds", "0"], "--seeds: at least 1"),
     (["--speeds", "20"], "--speeds does not apply to the mismatch"),
+    (["--plants", "nowhere.toml"], "--plants: "),
+    (["--vehicle", "nowhere.toml"], "--vehicle: "),
+    (["--trajectory", "nowhere.csv"], "--trajectory: "),
+    (["--trajectory", str(ROOT / "scenarios" / "paths" / "lane-change.csv"), "--paths", "3"],
+     "--paths does not apply with --trajectory"),
 ])
 def test_cli_refuses_bad_options_in_one_line(tmp_path, args, msg):
     r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "mismatch", "-o",

@@ -77,7 +77,9 @@ def _parser() -> argparse.ArgumentParser:
                          f"{', '.join(cases.PARETO_BASELINES)}")
     ap.add_argument("--vehicle", metavar="FILE",
                     help="vehicle TOML (default: built-in paper-2axle); study: the vehicle of "
-                         "your own scenario (a random path at --speeds, or --trajectory)")
+                         "your own scenario (a random path at --speeds, or --trajectory); "
+                         "mismatch: the controller's vehicle (the file's tires), which the "
+                         "factor plants, the random paths and the manoeuvre are made for")
     ap.add_argument("--force", action="store_true", help="redo runs even if finished")
     ap.add_argument("--two-scales", metavar="S,...", help="pareto: factors on TWO's L")
     ap.add_argument("--smooth-scales", metavar="S,...", help="pareto: factors on NTWO's R_dw, R_dd")
@@ -91,13 +93,15 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--trajectory", metavar="FILE",
                     help="study: add your own scenario on this t,x,y,phi CSV, run whole at "
                          "its own timing (with --vehicle: driven by that vehicle; the "
-                         "design's scenarios keep the paper's), summarised on its own")
+                         "design's scenarios keep the paper's), summarised on its own; "
+                         "mismatch: the one path (driven whole) instead of --paths random ones")
     ap.add_argument("--classes", metavar="NAME,...",
                     help="study: run only these classes of the design (case1, case2, lane, "
                          "turn, random, fresh, load, 4-axle, robust; user: your own scenario)")
     ap.add_argument("--plants", metavar="NAME,...",
                     help="mismatch: the plants (default all: tires x0.7-x1.3, B or mu alone "
-                         "x0.8/x1.2, combined-slip, load-transfer+lags)")
+                         "x0.8/x1.2, combined-slip, load-transfer+lags), or vehicle files of "
+                         "plants of your own (*.toml: its tires, mass, lags as they are)")
     ap.add_argument("--paths", type=int, metavar="N",
                     help="mismatch: random paths (default 10; --quick 2)")
     ap.add_argument("--seeds", type=int, metavar="N",
@@ -135,11 +139,14 @@ def _run(a, progress: bool) -> dict:
         from msagv.experiments.mismatch import parse_plants, run_mismatch
 
         for name in ("duration", "masses", "masses_t", "methods", "two_scales",
-                     "smooth_scales", "ridge_scales", "speeds", "vehicle", "trajectory"):
+                     "smooth_scales", "ridge_scales", "speeds"):
             if getattr(a, name) is not None:
                 raise OptionError(f"--{name.replace('_', '-')} does not apply to the mismatch "
                                   f"experiment (its design: --plants, --paths, --seeds, "
-                                  f"--quick, --quick-levels)")
+                                  f"--quick, --quick-levels, --vehicle, --trajectory)")
+        if a.trajectory is not None and a.paths is not None:
+            raise OptionError("--paths does not apply with --trajectory (your path is the "
+                              "one path)")
         if a.paths is not None and a.paths < 2:
             raise OptionError(f"--paths: at least 2 (the interval resamples paths), got {a.paths}")
         if a.seeds is not None and a.seeds < 1:
@@ -149,7 +156,7 @@ def _run(a, progress: bool) -> dict:
                             seeds=None if a.seeds is None else tuple(range(a.seeds)),
                             quick=a.quick, levels_quick=a.quick or a.quick_levels,
                             jobs=a.jobs, scheduler=a.scheduler, force=a.force,
-                            progress=progress)
+                            progress=progress, vehicle=a.vehicle, trajectory=a.trajectory)
     if a.experiment != "study" and (a.quick or a.trajectory):
         raise OptionError("--quick and --trajectory apply to the study")
     if a.experiment == "study":

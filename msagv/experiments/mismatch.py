@@ -82,6 +82,12 @@ def _slug(name: str) -> str:
     return "".join(c if c.isalnum() else "-" for c in name).strip("-")
 
 
+def is_plant_file(name: str) -> bool:
+    """A plant given as a vehicle file of its own (``--plants my_plant.toml``), not a name
+    of :data:`PLANTS`."""
+    return name.endswith(".toml")
+
+
 def plant_vehicle(base, name: str):
     """The plant ``name`` of :data:`PLANTS` made from the vehicle ``base``."""
     from msagv.plant.vehicle import vehicle_from_dict
@@ -97,44 +103,86 @@ def plant_vehicle(base, name: str):
 
 
 def parse_plants(text: str | None) -> tuple[str, ...]:
-    """``--plants``: names of :data:`PLANTS`, comma-separated (``all``: every one)."""
+    """``--plants``: names of :data:`PLANTS` or vehicle files of plants of your own
+    (``*.toml``), comma-separated (``all``: every name of :data:`PLANTS`)."""
     if text is None or text.strip() == "all":
         return tuple(PLANTS)
     names = tuple(n.strip() for n in text.split(",") if n.strip())
-    bad = [n for n in names if n not in PLANTS]
+    bad = [n for n in names if n not in PLANTS and not is_plant_file(n)]
     if bad or not names:
         raise ScenarioError(f"--plants: unknown plant '{bad[0] if bad else text}' (known: "
-                            f"{', '.join(PLANTS)}, or all)")
+                            f"{', '.join(PLANTS)}, or all, or a plant's vehicle file *.toml)")
+    if len(set(names)) != len(names):
+        raise ScenarioError(f"--plants: a plant named twice in '{text}'")
     return names
 
 
+def check_vehicles(plants, vehicle: str | None = None, trajectory: str | None = None):
+    """The controller's vehicle, each plant file and the path load, and every plant has the
+    vehicle's axles (a clear error before anything runs); returns the base vehicle."""
+    from msagv.controller.reference import ReferenceError, from_csv
+    from msagv.plant.vehicle import VehicleError, default_vehicle, load_vehicle
+
+    try:
+        base = load_vehicle(vehicle) if vehicle else default_vehicle()
+    except (VehicleError, OSError) as e:
+        raise ScenarioError(f"--vehicle: {e}") from None
+    for name in plants:
+        if not is_plant_file(name):
+            continue
+        try:
+            own = load_vehicle(name)
+        except (VehicleError, OSError) as e:
+            raise ScenarioError(f"--plants: {e}") from None
+        if own.n_axles != base.n_axles:
+            raise ScenarioError(f"--plants: {name} has {own.n_axles} axles, the controller's "
+                                f"vehicle {base.name} {base.n_axles}")
+    if trajectory is not None:
+        try:
+            from_csv(trajectory)
+        except (ReferenceError, OSError) as e:
+            raise ScenarioError(f"--trajectory: {e}") from None
+    return base
+
+
 # ---- the inputs: paths and plants as files -----------------------------------------------------
-def write_inputs(out: Path, plants, n_paths: int) -> tuple[list[Path], dict[str, Path], Path]:
+def write_inputs(out: Path, plants, n_paths: int, vehicle: str | None = None,
+                 trajectory: str | None = None) -> tuple[list[Path], dict[str, Path], Path]:
     """The path files, the plants' vehicle files and the manoeuvre under ``OUT/inputs/``
-    (written once, deterministic: rewriting them gives the same bytes)."""
+    (written once, deterministic: rewriting them gives the same bytes). ``vehicle``: the
+    controller's vehicle file (default the paper's), which the factor plants, the random
+    paths and the manoeuvre are made for; ``trajectory``: your own path instead of the
+    random ones; a plant given as a file is copied as it is."""
     from msagv.experiments.calibrate import maneuver, maneuver_csv, vehicle_toml
     from msagv.experiments.scenario import Scenario
-    from msagv.plant.vehicle import default_vehicle
+    from msagv.plant.vehicle import default_vehicle, load_vehicle
 
     d = out / "inputs"
     d.mkdir(parents=True, exist_ok=True)
-    base = default_vehicle()
+    base = load_vehicle(vehicle) if vehicle else default_vehicle()
 
-    def put(p: Path, text: str) -> Path:
-        if not p.is_file() or p.read_text() != text:
-            p.write_text(text)
+    def put(p: Path, text: str | bytes) -> Path:
+        data = text if isinstance(text, bytes) else text.encode()
+        if not p.is_file() or p.read_bytes() != data:
+            p.write_bytes(data)
         return p
 
     paths = []
+    if trajectory is not None:
+        paths.append(put(d / Path(trajectory).name, Path(trajectory).read_bytes()))
+        n_paths = 0
     for p in range(1, n_paths + 1):
         v = PATH_SPEEDS[(p - 1) % len(PATH_SPEEDS)]
-        ref, _ = Scenario(case="random", speed=v, path_seed=p, duration=DURATION).reference()
+        ref, _ = Scenario(case="random", speed=v, path_seed=p, duration=DURATION,
+                          vehicle=vehicle).reference()
         f = d / f"random-{p}-{v:g}kmh.csv"
         lines = ["t,x,y,phi"] + [f"{t!r},{x!r},{y!r},{ph!r}" for t, x, y, ph in
                                  zip(ref.t.tolist(), ref.x.tolist(), ref.y.tolist(),
                                      ref.phi.tolist())]
         paths.append(put(f, "\n".join(lines) + "\n"))
-    files = {name: put(d / f"plant-{_slug(name)}.toml",
+    files = {name: put(d / f"plant-{_slug(Path(name).name if is_plant_file(name) else name)}"
+                           f".toml",
+                       Path(name).read_bytes() if is_plant_file(name) else
                        vehicle_toml(plant_vehicle(base, name),
                                     f"msagv experiment mismatch: the plant '{name}'"))
              for name in plants}
@@ -143,16 +191,17 @@ def write_inputs(out: Path, plants, n_paths: int) -> tuple[list[Path], dict[str,
 
 
 # ---- the identified column: one logged run of the plant, then msagv calibrate ----------------
-def logged_run(plant_file: str, maneuver_csv: str):
+def logged_run(plant_file: str, maneuver_csv: str, vehicle: str | None = None):
     """The excitation manoeuvre driven by the default controller that believes the file's
-    vehicle, on the plant of ``plant_file``: its states and commands as
+    vehicle (``vehicle``, default the paper's), on the plant of ``plant_file``: its states
+    and commands as
     :class:`plant.identify.RunData` (what the plant's recording holds, in process)."""
     from msagv.controller.loop import closed_loop
     from msagv.experiments.scenario import Scenario
     from msagv.plant.identify import RunData
 
     sc = Scenario(trajectory=maneuver_csv, plant_vehicle=plant_file, after_end="stop",
-                  settings={"threads": 1})
+                  vehicle=vehicle, settings={"threads": 1})
     b = sc.build()
     rows = []
 
@@ -171,7 +220,7 @@ def logged_run(plant_file: str, maneuver_csv: str):
 
 
 def identify_task(name: str, plant_file: str, maneuver_csv: str, out_toml: str,
-                  digest: str) -> dict:
+                  digest: str, vehicle: str | None = None) -> dict:
     """One plant's identified vehicle (a Dask task): the logged run, ``calibrate`` on it, the
     vehicle file written to ``out_toml``; returns the estimates against the plant's truth."""
     from msagv.experiments.calibrate import vehicle_toml
@@ -179,8 +228,8 @@ def identify_task(name: str, plant_file: str, maneuver_csv: str, out_toml: str,
     from msagv.plant.vehicle import default_vehicle, load_vehicle
 
     t0 = time.perf_counter()
-    base = default_vehicle()
-    data = logged_run(plant_file, maneuver_csv)
+    base = load_vehicle(vehicle) if vehicle else default_vehicle()
+    data = logged_run(plant_file, maneuver_csv, vehicle)
     cal = calibrate(data, base, name=f"{base.name} (identified: {name})")
     Path(out_toml).write_text(vehicle_toml(
         cal.vehicle, f"msagv experiment mismatch: identified from a logged run of '{name}'"))
@@ -192,30 +241,33 @@ def identify_task(name: str, plant_file: str, maneuver_csv: str, out_toml: str,
 
 
 def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, scheduler=None,
-                    force: bool = False, progress: bool = True) -> dict[str, dict]:
+                    force: bool = False, progress: bool = True,
+                    vehicle: str | None = None) -> dict[str, dict]:
     """Every plant's identified vehicle, cached under ``OUT/identified/`` (by the plant's
-    file, the manoeuvre and the code)."""
+    file, the manoeuvre, the controller's vehicle file and the code)."""
     d = out / "identified"
     d.mkdir(parents=True, exist_ok=True)
     digest = code_digest()
     have, todo = {}, []
     for name, f in files.items():
-        key = hashlib.sha256(f.read_bytes() + man.read_bytes() + digest.encode()
+        own = Path(vehicle).read_bytes() if vehicle else b""
+        key = hashlib.sha256(f.read_bytes() + man.read_bytes() + digest.encode() + own
                              ).hexdigest()[:16]
-        js, toml = d / f"{_slug(name)}.json", d / f"{_slug(name)}.toml"
+        slug = _slug(Path(name).name if is_plant_file(name) else name)
+        js, toml = d / f"{slug}.json", d / f"{slug}.toml"
         if not force and js.is_file() and toml.is_file():
             old = json.loads(js.read_text())
             if old.get("key") == key:
                 have[name] = dict(old, vehicle=str(toml))  # where this output keeps it
                 continue
-        todo.append((name, str(f), str(man), str(toml), digest, key, js))
+        todo.append((name, str(f), str(man), str(toml), digest, vehicle, key, js))
     bar = None
     if progress and todo:
         from tqdm import tqdm
 
         bar = tqdm(total=len(todo), desc="identify the plants", unit="plant",
                    file=sys.stderr, dynamic_ncols=True)
-    keys = {t[0]: (t[5], t[6]) for t in todo}
+    keys = {t[0]: (t[6], t[7]) for t in todo}
 
     def done(res):
         key, js = keys[res["plant"]]
@@ -226,7 +278,7 @@ def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, sch
             bar.update(1)
 
     try:
-        args = [t[:5] for t in todo]
+        args = [t[:6] for t in todo]
         if args and jobs == 1 and scheduler is None:
             for a in args:
                 done(identify_task(*a))
@@ -240,17 +292,20 @@ def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, sch
 
 # ---- the design ----------------------------------------------------------------------------
 def design(paths: list[Path], files: dict[str, Path], identified: dict[str, dict],
-           seeds=SEEDS) -> list[StudyScenario]:
-    """Every (path, plant, column, seed) as a study scenario."""
+           seeds=SEEDS, vehicle: str | None = None,
+           duration: float | None = DURATION) -> list[StudyScenario]:
+    """Every (path, plant, column, seed) as a study scenario; ``vehicle``: the
+    controller's file in the wrong and adapted columns (default the paper's);
+    ``duration``: of each run (None: the whole path)."""
     out = []
     for path in paths:
         for name, f in files.items():
-            vehicles = {"wrong": None, "identified": identified[name]["vehicle"],
-                        "adapted": None, "true": str(f)}
+            vehicles = {"wrong": vehicle, "identified": identified[name]["vehicle"],
+                        "adapted": vehicle, "true": str(f)}
             for model in MODELS:
                 for k in seeds:
                     out.append(StudyScenario(
-                        "mismatch", "file", None, plant=name, seed=k, duration=DURATION,
+                        "mismatch", "file", None, plant=name, seed=k, duration=duration,
                         vehicle=vehicles[model], trajectory=str(path),
                         plant_vehicle=str(f), model=model,
                         settings=dict(COLUMN_SETTINGS[model])))
@@ -260,17 +315,24 @@ def design(paths: list[Path], files: dict[str, Path], identified: dict[str, dict
 def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | None = None,
                  seeds=None, quick: bool = False, levels_quick: bool | None = None,
                  jobs: int | None = None, scheduler: str | None = None, force: bool = False,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, vehicle: str | None = None,
+                 trajectory: str | None = None) -> dict:
     """Run (or resume) the experiment; returns its summary (``mismatch.json``).
-    ``quick``: :data:`QUICK`'s plants, paths and seeds and the families' quick levels."""
+    ``quick``: :data:`QUICK`'s plants, paths and seeds and the families' quick levels.
+    ``vehicle``: the controller's vehicle file (default the paper's); ``trajectory``: one
+    path of your own, driven whole, instead of ``n_paths`` random ones (one path: no
+    interval, the bootstrap resamples paths); ``plants`` may name vehicle files."""
     if quick:
         plants = plants or QUICK["plants"]
         n_paths = n_paths or QUICK["paths"]
         seeds = seeds or tuple(range(QUICK["seeds"]))
     plants = tuple(plants or PLANTS)
+    if trajectory is not None and n_paths is not None:
+        raise ScenarioError("--paths: not with --trajectory (your path is the one path)")
     n_paths = PATHS if n_paths is None else int(n_paths)
     seeds = tuple(SEEDS if seeds is None else seeds)
-    if n_paths < 2:
+    check_vehicles(plants, vehicle, trajectory)
+    if n_paths < 2 and trajectory is None:
         raise ScenarioError(f"--paths: at least 2 (the interval resamples paths), got {n_paths}")
     if not seeds or any(k < 0 for k in seeds):
         raise ScenarioError(f"--seeds: at least one annealer seed >= 0, got {seeds}")
@@ -279,9 +341,11 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
                                                             else "mismatch")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    paths, files, man = write_inputs(out, plants, n_paths)
-    identified = identify_plants(files, man, out, jobs, scheduler, force, progress)
-    scenarios = design(paths, files, identified, seeds)
+    vehicle = None if vehicle is None else str(Path(vehicle).resolve())
+    paths, files, man = write_inputs(out, plants, n_paths, vehicle, trajectory)
+    identified = identify_plants(files, man, out, jobs, scheduler, force, progress, vehicle)
+    duration = None if trajectory is not None else DURATION
+    scenarios = design(paths, files, identified, seeds, vehicle, duration)
     specs = run_specs(scenarios, quick=levels_quick)
     results, summ = run_all(specs, out, jobs=jobs, force=force, progress=progress,
                             desc="mismatch", scheduler=scheduler)
@@ -289,7 +353,11 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
     summ["scenarios"] = len(scenarios)
     design_doc = {"plants": list(plants), "paths": [p.name for p in paths],
                   "seeds": list(seeds), "levels": "quick" if levels_quick else "default",
-                  "duration_s": DURATION, "speeds_kmh": list(PATH_SPEEDS)}
+                  "duration_s": duration, "speeds_kmh": list(PATH_SPEEDS)}
+    if vehicle is not None:
+        design_doc["vehicle"] = vehicle
+    if trajectory is not None:
+        design_doc.update(trajectory=str(trajectory), speeds_kmh=None)
     return report(results, scenarios, identified, design_doc, out, summ)
 
 
@@ -429,8 +497,12 @@ def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
     L = ["# Tires the controller does not know: the study's question on plants unlike the "
          "vehicle file", "",
          f"`msagv experiment mismatch`: {runs['runs']} runs ({runs['failed']} failed) on "
-         f"{len(design_doc['paths'])} random paths ({DURATION:g} s at "
-         f"{', '.join(f'{v:g}' for v in PATH_SPEEDS)} km/h in turn) x {len(plants)} plants x "
+         + (f"the path {design_doc['paths'][0]} (whole) " if design_doc.get("trajectory") else
+            f"{len(design_doc['paths'])} random paths ({DURATION:g} s at "
+            f"{', '.join(f'{v:g}' for v in PATH_SPEEDS)} km/h in turn) ")
+         + (f"of the vehicle {Path(design_doc['vehicle']).name} " if design_doc.get("vehicle")
+            else "")
+         + f"x {len(plants)} plants x "
          f"4 columns x {len(design_doc['seeds'])} annealer seed(s), the families' "
          f"{design_doc['levels']} levels, every family with the offset-free disturbance.", "",
          f"**{sentence}**", "",
