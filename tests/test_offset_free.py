@@ -230,6 +230,53 @@ def test_the_adaptation_finds_the_plants_cornering_stiffness(model, solver):
     assert e_adapt < 1.5 * e_true, (e_adapt, e_true)
 
 
+def _lagged_vehicle(tau: float):
+    from msagv.plant.vehicle import vehicle_from_dict
+
+    d = default_vehicle().to_dict()
+    d["plant"]["wheel_lag"] = tau
+    return vehicle_from_dict(d)
+
+
+def test_the_wheel_speeds_in_effect_under_a_known_lag_are_their_mean_over_the_period():
+    """With the vehicle file's wheel lag tau the adaptation predicts the period from the
+    wheels' mean speed under a first-order lag from the measured start (hand-computed:
+    u + (w0 - u) (tau / T) (1 - exp(-T / tau))); without a lag, or without a measured
+    start, from the commands."""
+    from msagv.controller.adaptation import TireAdaptation
+
+    for tau in (0.04, 0.0):
+        v = _lagged_vehicle(tau)
+        ad = TireAdaptation(make_model(v, MPCSettings(method="ntwo")), 0.01)
+        nw = v.n_wheels
+        z = np.r_[np.full(nw, 10.0), np.full(nw, 0.1)]
+        w0 = np.full(nw, 8.0)
+        got = ad._in_effect(z, w0)
+        a = 4.0 * (1.0 - math.exp(-0.25)) if tau else 0.0
+        assert got[:nw] == pytest.approx(10.0 + (8.0 - 10.0) * a, rel=1e-12)
+        assert np.array_equal(got[nw:], z[nw:]) and np.array_equal(ad._in_effect(z, None), z)
+
+
+def test_a_known_wheel_lag_is_not_taken_for_a_softer_longitudinal_tire():
+    """The vehicle file gives the wheels a lag of 0.04 s (plant and controller alike): the
+    prediction has none, and the adaptation took the lag for a softer longitudinal tire
+    (c_lon 0.85 with the file's tires, 0.58 for x0.8 tires whose true factor is 0.64, on
+    this curve). From the wheels' speed in effect it finds 1 and 0.64."""
+    for scale in (1.0, 0.8):
+        sc = Scenario(case="curve", speed=25.0, vehicle=_lagged_vehicle(0.04),
+                      plant_tire_scale=scale, settings={"method": "ntwo", "adapt": True})
+        b = sc.build()
+        try:
+            closed_loop(b.plant, b.controller, b.reference, 8.0, period=0.01, progress=False,
+                        outputs=False)
+        finally:
+            b.close()
+        est = b.controller.adapted_tires()
+        assert est["c_lon_excited"] > 300, est
+        assert est["c_lon"] == pytest.approx(scale ** 2, rel=0.02), (scale, est)
+        assert est["c_lat"] == pytest.approx(scale ** 2, rel=0.02), (scale, est)
+
+
 def test_a_straight_line_does_not_excite_the_lateral_tire(tmp_path):
     """At constant speed on a straight line, started on it, no period informs the cornering
     stiffness or the friction: they are never updated and stay the file's (1), however

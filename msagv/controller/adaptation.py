@@ -123,6 +123,7 @@ class TireAdaptation:
         self._apply(self.theta, self.model.P)
         self.model.S[lay.S_K_ALPHA] = self.k_alpha0
         self.last.clear()
+        self._om = None
         self.updates = 0
         self.excited = np.zeros(3, dtype=np.int64)
 
@@ -138,6 +139,28 @@ class TireAdaptation:
             P[lay.P_DUGOFF_C_S] = P0[lay.P_DUGOFF_C_S] * c_lon
             P[lay.P_DUGOFF_MU] = P0[lay.P_DUGOFF_MU] * f
 
+    def _measured_wheels(self, omega_w):
+        if omega_w is None:
+            return None
+        om = np.asarray(omega_w, dtype=float).reshape(-1)
+        return om.copy() if om.size == self.model.n_wheels and np.all(np.isfinite(om)) else None
+
+    def _in_effect(self, z: np.ndarray, om_start) -> np.ndarray:
+        """The wheel speeds in effect over the last period: the commands themselves, or,
+        where the vehicle file gives the wheels a first-order lag ``tau`` ([plant]
+        wheel_lag) and the state measured the wheels at the period's start, their mean
+        over it, ``u + (omega_0 - u) (tau / T) (1 - exp(-T / tau))``. The prediction model
+        has no lag: without this the adaptation reads the lag as a softer longitudinal
+        tire (``c_lon`` at its lower bound on a vehicle whose tires are the file's)."""
+        tau = float(self.P0[lay.P_WHEEL_LAG])
+        if not tau > 0 or om_start is None:
+            return z
+        nw = self.model.n_wheels
+        a = tau / self.period * -np.expm1(-self.period / tau)
+        z = z.copy()
+        z[:nw] += (om_start - z[:nw]) * a
+        return z
+
     def _velocity(self, theta, x0, z, ref) -> np.ndarray:
         """The body-frame velocity (u, v, r) one period after ``x0`` under the raw command
         ``z`` with the factors ``theta`` (no disturbance; ``ref``: the solve's first two
@@ -146,14 +169,17 @@ class TireAdaptation:
         phi1, vx, vy, r = self.step.predict(x0, z, self._Pk, _NO_DISTURBANCE, ref)
         return body_frame(phi1, vx, vy, r)
 
-    def update(self, t: float, x0: np.ndarray) -> None:
-        """Take the state measured at ``t`` (the MPC's state vector); update the factors from
-        the last period's state and command, and put them into the model's ``P``."""
+    def update(self, t: float, x0: np.ndarray, omega_w=None) -> None:
+        """Take the state measured at ``t`` (the MPC's state vector, and the actual wheel
+        speeds ``omega_w`` where the state carries them); update the factors from the last
+        period's state and command, and put them into the model's ``P``."""
         last = self.last.measured(t, x0)
+        om_start, self._om = self._om, self._measured_wheels(omega_w)
         if last is None:
             return
         xp, z, ref = last
         xp = np.ascontiguousarray(xp)
+        z = self._in_effect(z, om_start)
         g = self._velocity(self.theta, xp, z, ref)
         J = np.empty((3, 3))
         for i in range(3):

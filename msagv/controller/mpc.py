@@ -153,7 +153,7 @@ class MPC:
             ref = self._smoothed(ref)
         t, x0 = self._state_vector(state)
         if self.adaptation is not None:
-            self.adaptation.update(t, x0)
+            self.adaptation.update(t, x0, state.get("omega_w"))
         if self.observer is not None:
             self.observer.update(t, x0)
         s = self.settings
