@@ -887,7 +887,9 @@ def _front_panel(ax, cls: str, fam: list[dict], rows: list[dict]) -> None:
                     lw=1.0, elinewidth=0.7, capsize=2, label=family)
     _clip_outliers(ax, pts, key == "W_over_floor")
     if key == "W_over_floor":
-        ax.axhline(1.0, color="k", lw=0.8, ls=":", label="floor (least wear within 1 cm)")
+        ax.axhline(1.0, color="k", lw=0.8, ls=":",
+                   label=f"floor (least wear within {100 * FLOOR_TOL_M:g} cm, "
+                         f"{FLOOR_TOL_PHI_DEG:g} deg)")
         ax.set_ylabel("W_tw / wear floor [-]")
     else:
         ax.set_ylabel("W_tw [J] (straight path: no floor)")
