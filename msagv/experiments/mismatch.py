@@ -479,12 +479,16 @@ def _mean(v):
     return float(np.mean(v)) if v else None
 
 
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
 def _diff_text(s: dict) -> str:
     if s.get("difference") is None:
         return "n/a"
     lo, hi = s["ci95"]
     ci = "" if lo is None else f" [{lo:+.3f}, {hi:+.3f}]"
-    return f"{s['difference']:+.3f}{ci} ({s['pairs']} pairs)"
+    return f"{s['difference']:+.3f}{ci} ({_count(s['pairs'], 'pair')})"
 
 
 ID_PARAMS = ("lateral.K", "lateral.mu", "longitudinal.K", "longitudinal.mu", "wheel_lag",
@@ -502,8 +506,8 @@ def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
             f"{', '.join(f'{v:g}' for v in PATH_SPEEDS)} km/h in turn) ")
          + (f"of the vehicle {Path(design_doc['vehicle']).name} " if design_doc.get("vehicle")
             else "")
-         + f"x {len(plants)} plants x "
-         f"4 columns x {len(design_doc['seeds'])} annealer seed(s), the families' "
+         + f"x {_count(len(plants), 'plant')} x "
+         f"4 columns x {_count(len(design_doc['seeds']), 'annealer seed')}, the families' "
          f"{design_doc['levels']} levels, every family with the offset-free disturbance.", "",
          f"**{sentence}**", "",
          "Wear-aware / wear-blind tire wear at equal lateral RMS error (the study's rule), "
