@@ -132,11 +132,59 @@ def test_a_cost_terms_files_are_the_ones_listed_here():
 
 def test_the_dugoff_models_files_are_the_ones_listed_here():
     """ARCHITECTURE.md's count of what a prediction model with parameters of its own takes
-    (DH's Dugoff model) is the code's: the modules that name Dugoff's parameter slots, model
-    id, tire law, FMU variables or vehicle-file section are exactly the page's list."""
+    (DH's Dugoff model) is the code's: the modules that name Dugoff's declaration, parameter
+    slots, model id, tire law or vehicle-file section are exactly the page's list; the
+    heading's count is that list without the items the page calls not needed by a model."""
     text, listed = _listed_files_are_the_codes(
         "dugoff", r"`([a-z_/]+\.py)`",
-        r"P_DUGOFF|MODEL_DUGOFF|dugoff_forces|tire_dugoff|[\"']dugoff[\"']")
-    heading = re.search(r"### A prediction model: two files, or (\w+) with", text)
-    words = {"nine": 9, "ten": 10, "eleven": 11, "twelve": 12, "thirteen": 13}
-    assert heading and words.get(heading.group(1)) == len(listed), heading
+        r"DUGOFF|dugoff_forces|tire_dugoff|[\"']dugoff[\"']")
+    m = re.search(r"<!-- files: dugoff -->(.*?)<!-- end files -->", text, re.S)
+    items = re.split(r"^- ", m.group(1), flags=re.M)[1:]
+    needed = [i for i in items if "not needed" not in i]
+    heading = re.search(r"### A prediction model: two files, (\w+) with", text)
+    words = {"three": 3, "four": 4, "five": 5}
+    assert heading and words.get(heading.group(1)) == len(needed), heading
+    assert len(items) == len(listed)
+
+
+def test_a_models_own_parameter_needs_no_file_but_its_declaration(tmp_path, monkeypatch,
+                                                                 capsys):
+    """What ARCHITECTURE.md says a model's own parameters take: one declaration in
+    plant.model_params, read by everything else unedited. A toy section (one parameter, a
+    default, scaled by --adapt's c_lat) is declared here only, and the vehicle file reads
+    and writes it, `msagv vehicle show` prints it, the calibration's file writer and the
+    FMU's variables carry it, a model naming it packs it after the shared P and the
+    adaptation scales it."""
+    from msagv.cli import vehicle_main
+    from msagv.controller.adaptation import TireAdaptation
+    from msagv.controller.models import MagicFormulaModel
+    from msagv.experiments.calibrate import vehicle_toml
+    from msagv.fmu_build.variables import fmu_variables
+    from msagv.plant import dynamics, layout as lay, model_params
+    from msagv.plant.vehicle import load_vehicle, vehicle_from_dict
+
+    toy = model_params.ModelParams("toy", (model_params.Param(
+        "k_toy", "N/rad", "a toy stiffness", default=7.0, adapt="c_lat"),))
+    monkeypatch.setitem(model_params.SECTIONS, "toy", toy)
+    v = default_vehicle()  # the built-in file has no [tire.toy]: the default
+    assert v.to_dict()["tire"]["toy"] == {"k_toy": 7.0}
+    path = tmp_path / "v.toml"
+    path.write_text(vehicle_toml(v).replace("k_toy = 7.0", "k_toy = 9.5"))
+    assert "[tire.toy]" in path.read_text()
+    v9 = load_vehicle(path)
+    assert v9.model_values("toy")["k_toy"] == 9.5 and vehicle_from_dict(v9.to_dict()) == v9
+    assert vehicle_main(["show", "--vehicle", str(path)]) == 0
+    assert "tire.toy: {'k_toy': 9.5}" in capsys.readouterr().out
+    var = {x.name: x for x in fmu_variables(v9)}["tire_toy_k_toy"]
+    assert (var.unit, var.start) == ("N/rad", 9.5) and "a toy stiffness" in var.description
+
+    class Toy(MagicFormulaModel):
+        name = "toy"
+        params = toy
+
+    m = Toy(v9, MPCSettings())
+    np.testing.assert_array_equal(m.P, np.r_[dynamics.pack_params(v9)[0], 9.5])
+    ad = TireAdaptation(m, 0.01)
+    P = m.P.copy()
+    ad._apply(np.array([1.25, 1.0, 1.0]), P)
+    assert P[lay.N_PARAMS] == 9.5 * 1.25

@@ -268,6 +268,7 @@ def test_tct_never_changes_the_longitudinal_speed(case):
 def test_dh_stiffnesses_are_the_tires_and_scale_with_the_load():
     """DH's Dugoff stiffnesses are the Magic Formula's slopes at zero slip at the vehicle's
     load (B C mu F_N), so they scale with the mass; 'file' keeps the file's values."""
+    from msagv.controller import rollout as ro
     from msagv.controller.models import dugoff_stiffness
     from msagv.plant import layout as lay
 
@@ -276,8 +277,8 @@ def test_dh_stiffnesses_are_the_tires_and_scale_with_the_load():
         v = VEH.replace(mass=mass)
         FN = mass * 9.81 / 4
         m = make_model(v, MPCSettings(model="dugoff", method="ntwo"))
-        assert m.P[lay.P_DUGOFF_C_S] == pytest.approx(lo.B * lo.C * lo.mu * FN, rel=1e-12)
-        assert m.P[lay.P_DUGOFF_C_ALPHA] == pytest.approx(la.B * la.C * la.mu * FN, rel=1e-12)
+        assert m.P[ro.P_DUGOFF_C_S] == pytest.approx(lo.B * lo.C * lo.mu * FN, rel=1e-12)
+        assert m.P[ro.P_DUGOFF_C_ALPHA] == pytest.approx(la.B * la.C * la.mu * FN, rel=1e-12)
         # the cornering feed-forward sees the same stiffness: k_alpha = m / (2n C_alpha)
         assert m.S[lay.S_K_ALPHA] == pytest.approx(mass / (4 * la.B * la.C * la.mu * FN))
         f = dugoff_stiffness(v, MPCSettings(dugoff_stiffness="file"))

@@ -51,12 +51,11 @@ def test_pack_params_puts_each_vehicle_value_at_its_name():
     v = n_axle_vehicle(3)
     P, wx, wy = dyn.pack_params(v, v_eps=0.2)
     assert P.shape == (lay.N_PARAMS,) and np.all(np.isfinite(P))
-    lim, dg, lo, la = v.limits, v.tire_dugoff, v.tire_longitudinal, v.tire_lateral
+    lim, lo, la = v.limits, v.tire_longitudinal, v.tire_lateral
     want = {"P_MASS": v.mass, "P_YAW_INERTIA": v.yaw_inertia, "P_WHEEL_RADIUS": v.wheel_radius,
             "P_G": 9.81, "P_K_T": v.steer_loss_kt, "P_V_EPS": 0.2,
             "P_LON_B": lo.B, "P_LON_C": lo.C, "P_LON_MU": lo.mu, "P_LON_E": lo.E,
             "P_LAT_B": la.B, "P_LAT_C": la.C, "P_LAT_MU": la.mu, "P_LAT_E": la.E,
-            "P_DUGOFF_C_S": dg.C_s, "P_DUGOFF_C_ALPHA": dg.C_alpha, "P_DUGOFF_MU": dg.mu,
             "P_OMEGA_W_MAX": lim.omega_w_max, "P_OMEGA_S_MIN": lim.omega_s_min,
             "P_OMEGA_S_MAX": lim.omega_s_max, "P_DELTA_MIN": lim.delta_min,
             "P_DELTA_MAX": lim.delta_max, "P_CG_HEIGHT": v.plant.cg_height,
@@ -65,6 +64,27 @@ def test_pack_params_puts_each_vehicle_value_at_its_name():
     assert set(want) == set(lay.names("P_"))
     for name, value in want.items():
         assert P[getattr(lay, name)] == value, name
+
+
+def test_a_models_own_parameters_follow_the_shared_P_in_declared_order():
+    """A model with parameters of its own (plant.model_params) packs them after the shared
+    P, at N_PARAMS + offset, from the vehicle file's section; a model without keeps P."""
+    from msagv.controller import rollout as ro
+    from msagv.controller.models import MODELS, MPCSettings, make_model
+    from msagv.plant.model_params import DUGOFF
+
+    v = n_axle_vehicle(3)
+    P, _, _ = dyn.pack_params(v)
+    for name, cls in MODELS.items():
+        m = make_model(v, MPCSettings(model=name, dugoff_stiffness="file"))
+        own = () if cls.params is None else cls.params.names
+        assert m.P.shape == (lay.N_PARAMS + len(own),), name
+        np.testing.assert_array_equal(m.P[:lay.N_PARAMS], P)
+    m = make_model(v, MPCSettings(model="dugoff", dugoff_stiffness="file"))
+    dug = v.to_dict()["tire"]["dugoff"]
+    assert DUGOFF.names == ("C_s", "C_alpha", "mu")
+    assert (m.P[ro.P_DUGOFF_C_S], m.P[ro.P_DUGOFF_C_ALPHA], m.P[ro.P_DUGOFF_MU]) == \
+        (dug["C_s"], dug["C_alpha"], dug["mu"])
 
 
 def test_settings_hold_only_mpc_settings():

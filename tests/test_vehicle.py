@@ -40,7 +40,7 @@ def test_builtin_vehicle_has_the_papers_numbers():
 def test_builtin_tire_numbers_are_consistent_with_their_documented_derivation():
     v = default_vehicle()
     FN = 29430.0
-    la, lo, dug = v.tire_lateral, v.tire_longitudinal, v.tire_dugoff
+    la, lo, dug = v.tire_lateral, v.tire_longitudinal, v.model_values("dugoff")
     # cornering stiffness BCD = 7.69 * 1.3 * 0.8 F_N = 7.9976 F_N per rad ~ 8 F_N
     assert la.B * la.C * la.mu == pytest.approx(8.0, rel=1e-3)
     # = 8 * pi / 180 = 0.1396 F_N per degree, inside the 0.1-0.2 /deg truck-tire range
@@ -49,7 +49,7 @@ def test_builtin_tire_numbers_are_consistent_with_their_documented_derivation():
     assert lo.B * lo.C * lo.mu == pytest.approx(12.0, rel=1e-3)
     assert (la.C, lo.C, la.mu, lo.mu) == (1.3, 1.65, 0.8, 0.8)
     # Dugoff stiffnesses at the nominal load: 8 * 29430 = 235440, 12 * 29430 = 353160
-    assert dug.C_alpha == pytest.approx(8 * FN) and dug.C_s == pytest.approx(12 * FN)
+    assert dug["C_alpha"] == pytest.approx(8 * FN) and dug["C_s"] == pytest.approx(12 * FN)
     assert v.steer_loss_kt == 0.03
     lim = v.limits
     assert lim.delta_min == -1.5708 and lim.delta_max == 1.5708
@@ -254,3 +254,41 @@ def test_cli_vehicle_show_bad_file(tmp_path):
     r = _run("vehicle", "show", "--vehicle", str(p), "--json")
     assert r.returncode == 2
     assert "mass" in r.stderr and r.stdout == ""
+
+
+def test_a_models_section_is_read_as_its_declaration_says():
+    """plant.model_params: a declared section's keys, checks and defaults (a key with a
+    default may be left out; a section whose every key has one may be left out)."""
+    from msagv.plant import vehicle as vm
+    from msagv.plant.model_params import ModelParams, Param
+
+    spec = ModelParams("toy", (Param("k", "N", "a stiffness"),
+                               Param("e", None, "an exponent", positive=False, default=-1.0)))
+    assert vm._model_params({"toy": {"k": 2}}, spec).as_dict() == {"k": 2.0, "e": -1.0}
+    assert vm._model_params({"toy": {"k": 2, "e": 3}}, spec)["e"] == 3.0
+    for tire, words in (({}, ["tire.toy", "missing"]), ({"toy": {"e": 1.0}}, ["tire.toy.k"]),
+                        ({"toy": {"k": 0.0}}, ["tire.toy.k", "> 0"]),
+                        ({"toy": {"k": 1.0, "f": 1.0}}, ["tire.toy.f", "unknown"])):
+        with pytest.raises(VehicleError) as e:
+            vm._model_params(tire, spec)
+        assert all(w in str(e.value) for w in words), (tire, e.value)
+    optional = ModelParams("opt", (Param("k", "N", "a stiffness", default=5.0),))
+    assert vm._model_params({}, optional).values == (5.0,)
+    with pytest.raises(ValueError, match="adapt"):
+        Param("k", None, "x", adapt="c_vertical")
+
+
+def test_vehicle_md_lists_each_models_section_as_declared():
+    """docs/VEHICLE.md has a table per declared model section (plant.model_params) with
+    each key and its unit, in the declared order."""
+    import re
+    from pathlib import Path
+
+    from msagv.plant.model_params import SECTIONS
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "VEHICLE.md").read_text()
+    for spec in SECTIONS.values():
+        m = re.search(rf"### `\[tire\.{spec.section}\]`[^\n]*\n(.*?)\n\n###", text, re.S)
+        assert m, spec.section
+        rows = re.findall(r"^\| `(\w+)` \| ([^|]+) \|", m.group(1), re.M)
+        assert rows == [(p.name, p.unit or "-") for p in spec.params], rows

@@ -164,7 +164,7 @@ def vehicle_main(argv: list[str]) -> int:
         print(f"{v.name}: {v.n_axles} axles, {v.mass:g} kg, I_vz {v.yaw_inertia:g} kg m^2, "
               f"r_w {v.wheel_radius:g} m, F_N {v.normal_load:.0f} N per wheel")
         print(f"  axles at x = {list(v.axle_x)} m, wheels at y = +/-{v.half_track:g} m")
-        for part in ("longitudinal", "lateral", "dugoff"):
+        for part in [k for k in d["tire"] if k != "wear"]:  # the models' own too
             print(f"  tire.{part}: {d['tire'][part]}")
         print(f"  limits: {d['limits']}")
         tw = v.tire_wear

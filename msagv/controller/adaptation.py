@@ -39,7 +39,6 @@ import numpy as np
 
 from msagv.plant import layout as lay
 
-from . import rollout as _ro
 from .disturbance import LastPeriod, OnePeriod, body_frame
 from .models import ADAPTABLE, MODELS
 
@@ -105,7 +104,11 @@ class TireAdaptation:
         if model.model_id not in {MODELS[m].model_id for m in ADAPTABLE}:
             raise ValueError(f"tire adaptation needs a tire prediction model: "
                              f"{', '.join(ADAPTABLE)}")
-        self.dugoff = model.model_id == _ro.MODEL_DUGOFF
+        # the model's own parameters that --adapt scales (plant.model_params.Param.adapt):
+        # (slot in P, index of the factor in theta)
+        own = model.params.params if model.params is not None else ()
+        self.own = tuple((lay.N_PARAMS + k, NAMES.index(p.adapt))
+                         for k, p in enumerate(own) if p.adapt is not None)
         self.model = model
         self.period = float(period)
         self.options = options or AdaptOptions()
@@ -134,10 +137,8 @@ class TireAdaptation:
         P[lay.P_LON_B] = P0[lay.P_LON_B] * c_lon / f
         P[lay.P_LAT_MU] = P0[lay.P_LAT_MU] * f
         P[lay.P_LON_MU] = P0[lay.P_LON_MU] * f
-        if self.dugoff:  # Dugoff's own stiffnesses and friction: the same three factors
-            P[lay.P_DUGOFF_C_ALPHA] = P0[lay.P_DUGOFF_C_ALPHA] * c_lat
-            P[lay.P_DUGOFF_C_S] = P0[lay.P_DUGOFF_C_S] * c_lon
-            P[lay.P_DUGOFF_MU] = P0[lay.P_DUGOFF_MU] * f
+        for k, i in self.own:  # the model's own (Dugoff's stiffnesses and friction)
+            P[k] = P0[k] * theta[i]
 
     def _measured_wheels(self, omega_w):
         if omega_w is None:

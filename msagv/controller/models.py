@@ -16,6 +16,7 @@ import numpy as np
 
 from msagv.plant import layout as lay
 from msagv.plant.dynamics import pack_params
+from msagv.plant.model_params import DUGOFF, ModelParams
 from msagv.plant.vehicle import Vehicle
 
 from . import rollout as _ro
@@ -282,7 +283,8 @@ class Rollout(NamedTuple):
 
 def pack_settings(vehicle: Vehicle, s: MPCSettings) -> np.ndarray:
     """The kernels' settings vector ``S`` (layout ``plant.layout.S_*``): the MPC's own
-    settings only; every vehicle value (limits, Dugoff) is in ``P`` (``pack_params``)."""
+    settings only; every vehicle value (limits, a model's own parameters) is in ``P``
+    (:meth:`PredictionModel.pack`)."""
     la = vehicle.tire_lateral
     # cornering stiffness per wheel as each model sees it: MF slope at 0 is B C D
     if s.model == "kinematic" or not s.ff_cornering:
@@ -315,7 +317,8 @@ def dugoff_stiffness(vehicle: Vehicle, s: MPCSettings) -> tuple[float, float]:
     at the vehicle's load (the slopes at zero slip, ``B C mu F_N``; paper-faithful: the
     same tires and load as the plant) or, with ``dugoff_stiffness='file'``, the file's."""
     if s.dugoff_stiffness == "file":
-        return vehicle.tire_dugoff.C_s, vehicle.tire_dugoff.C_alpha
+        own = vehicle.model_values(DUGOFF.section)
+        return own["C_s"], own["C_alpha"]
     lo, la, FN = vehicle.tire_longitudinal, vehicle.tire_lateral, vehicle.normal_load
     return lo.B * lo.C * lo.mu * FN, la.B * la.C * la.mu * FN
 
@@ -326,12 +329,15 @@ class PredictionModel:
     model_id: int = _ro.MODEL_MF
     name: str = "mf"
     summary: str = ""  # one line for the command line's help
+    #: the model's own parameters (plant.model_params: the vehicle file's section, the
+    #: checks, the FMU's variables follow from it), packed after the shared P; None: none
+    params: ModelParams | None = None
 
     def __init__(self, vehicle: Vehicle, settings: MPCSettings):
         self.vehicle = vehicle
         self.settings = settings
-        self.P, self.wx, self.wy = pack_params(vehicle)
-        self.P[[lay.P_DUGOFF_C_S, lay.P_DUGOFF_C_ALPHA]] = dugoff_stiffness(vehicle, settings)
+        P, self.wx, self.wy = pack_params(vehicle)
+        self.P = P if self.params is None else np.r_[P, self.pack(vehicle, settings)]
         self.S = pack_settings(vehicle, settings)
         steps = []
         for b, n in enumerate(settings.blocks):
@@ -344,6 +350,13 @@ class PredictionModel:
         # the first nsplit variables of a block are weighted as wheel speeds (R_dw, R_ow)
         self.nsplit = 3 if settings.policy == "twist" else vehicle.n_wheels
         self.dim = len(settings.blocks) * self.stride
+
+    @classmethod
+    def pack(cls, vehicle: Vehicle, settings: MPCSettings) -> np.ndarray:
+        """The model's own parameters as the kernels read them after the shared ``P``
+        (at ``plant.layout.N_PARAMS + params.offset(name)``): the vehicle's values, in the
+        declared order. A model that derives some of them overrides this."""
+        return np.array(vehicle.model_values(cls.params.section).values, dtype=np.float64)
 
     def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(lower, upper, sigma)`` of the decision vector: its bounds and the annealer's
@@ -431,6 +444,14 @@ class DugoffModel(PredictionModel):
     summary = "the DH baseline: Dugoff tires"
     model_id = _ro.MODEL_DUGOFF
     name = "dugoff"
+    params = DUGOFF
+
+    @classmethod
+    def pack(cls, vehicle: Vehicle, settings: MPCSettings) -> np.ndarray:
+        """The file's ``[tire.dugoff]`` with the stiffnesses of :func:`dugoff_stiffness`."""
+        own = super().pack(vehicle, settings)
+        own[[DUGOFF.offset("C_s"), DUGOFF.offset("C_alpha")]] = dugoff_stiffness(vehicle, settings)
+        return own
 
 
 class KinematicModel(PredictionModel):

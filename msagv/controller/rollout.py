@@ -15,7 +15,9 @@ per wheel k, ``Z[b*4n + k] = d_omega_w`` [rad/s] and ``Z[b*4n + 2n + k] = d_delt
 blocks after N_c repeat the last one (controls held after N_c).
 
 ``P`` is the plant's parameter vector (:func:`plant.dynamics.pack_params`, ``P_*``: every
-vehicle value, limits and Dugoff coefficients included); ``S`` the MPC's settings vector
+vehicle value the plant uses, limits included) followed by the model's own parameters
+(:mod:`plant.model_params`, packed by ``controller.models.PredictionModel.pack``; DH's are
+``P_DUGOFF_*`` below); ``S`` the MPC's settings vector
 (:func:`controller.models.pack_settings`, ``S_*``: dt, gains, feedback limits, the
 cornering feed-forward gain k_alpha, the parametrisation).
 
@@ -87,8 +89,8 @@ from numba import njit, prange
 
 import msagv.plant.tire as _tire
 from msagv.plant import layout as lay
-from msagv.plant.layout import (CMD_S, CMD_W, P_DELTA_MAX,
-                          P_DELTA_MIN, P_DUGOFF_C_ALPHA, P_DUGOFF_C_S, P_DUGOFF_MU, P_G, P_K_T,
+from msagv.plant import model_params as _mp
+from msagv.plant.layout import (CMD_S, CMD_W, P_DELTA_MAX, P_DELTA_MIN, P_G, P_K_T,
                           P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C, P_LON_E,
                           P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN, P_OMEGA_W_MAX,
                           N_L, P_V_EPS, P_WHEEL_RADIUS, P_YAW_INERTIA, POLICY_RAW, POLICY_TWIST,
@@ -114,13 +116,18 @@ from msagv.plant.tire import (dugoff_forces, magic_formula_and_slope, slip_angle
 from .approx import atan2_exact as atan2, cos_exact as cos, sin_exact as sin  # noqa: E402
 
 MODEL_MF, MODEL_DUGOFF, MODEL_KINEMATIC, MODEL_TCT = 0, 1, 2, 3
+# DH's Dugoff parameters (plant.model_params.DUGOFF), after the shared P in its model's P
+P_DUGOFF_C_S = lay.N_PARAMS + _mp.DUGOFF.offset("C_s")
+P_DUGOFF_C_ALPHA = lay.N_PARAMS + _mp.DUGOFF.offset("C_alpha")
+P_DUGOFF_MU = lay.N_PARAMS + _mp.DUGOFF.offset("mu")
 THETA = 0.5  # the trapezoidal rule's weight of the new velocity
 LANES = 8  # candidates per tile (a multiple of the widest SIMD register in doubles)
 L = LANES  # (short, in the kernels' row indices)
 H = LANES // 2  # the wheel loop's iterations (two lanes each)
 
-# stale-cache guard (plant.layout): the layout and the inlined plant.tire, approx, cost_terms
-_STAMP = lay.kernel_stamp(_tire.__file__, _approx.__file__, _cost.__file__)
+# stale-cache guard (plant.layout): the layout, the model parameters' offsets and the inlined
+# plant.tire, approx, cost_terms
+_STAMP = lay.kernel_stamp(_mp.__file__, _tire.__file__, _approx.__file__, _cost.__file__)
 
 
 @njit(cache=True)

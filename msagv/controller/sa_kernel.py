@@ -51,6 +51,7 @@ from numba import njit
 
 import msagv.plant.tire as _tire
 from msagv.plant import layout as lay
+from msagv.plant import model_params as _mp
 
 from . import approx as _approx
 from . import cost_terms as _cost
@@ -61,7 +62,8 @@ CHUNK = 16  # iterations per kernel call under a deadline (the clock is read bet
 SCALE_MIN, SCALE_MAX = 1e-4, 10.0  # bounds of the adaptive per-chain step factors
 
 # stale-cache guard (plant.layout): the layout and the kernels compiled into these
-_STAMP = lay.kernel_stamp(_ro.__file__, _tire.__file__, _approx.__file__, _cost.__file__)
+_STAMP = lay.kernel_stamp(_ro.__file__, _mp.__file__, _tire.__file__, _approx.__file__,
+                          _cost.__file__)
 
 
 @njit(cache=True)

@@ -267,10 +267,9 @@ def vehicle_toml(v: Vehicle, comment: str = "") -> str:
     for k in ("name", "mass", "yaw_inertia", "wheel_radius", "axle_x", "half_track",
               "steer_loss_kt"):
         lines.append(f"{k} = {_toml_value(d[k])}")
-    for part in ("longitudinal", "lateral", "dugoff", "wear"):
-        if part in d["tire"]:
-            lines += ["", f"[tire.{part}]"]
-            lines += [f"{k} = {_toml_value(x)}" for k, x in d["tire"][part].items()]
+    for part, table in d["tire"].items():  # the models' own sections among them
+        lines += ["", f"[tire.{part}]"]
+        lines += [f"{k} = {_toml_value(x)}" for k, x in table.items()]
     for table in ("limits", "plant"):
         lines += ["", f"[{table}]"]
         lines += [f"{k} = {_toml_value(x)}" for k, x in d[table].items()]

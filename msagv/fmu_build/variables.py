@@ -117,12 +117,6 @@ _VEHICLE_PARAMS: list[tuple[str, tuple, str | None, str]] = [
     ("tire_lateral_mu", ("tire", "lateral", "mu"), None,
      "lateral peak friction coefficient (D = mu F_N)"),
     ("tire_lateral_E", ("tire", "lateral", "E"), None, "Magic Formula E over slip angle"),
-    ("tire_dugoff_C_s", ("tire", "dugoff", "C_s"), "N",
-     "Dugoff longitudinal stiffness (controller baseline only; unused by the plant)"),
-    ("tire_dugoff_C_alpha", ("tire", "dugoff", "C_alpha"), "N/rad",
-     "Dugoff cornering stiffness (controller baseline only; unused by the plant)"),
-    ("tire_dugoff_mu", ("tire", "dugoff", "mu"), None,
-     "Dugoff friction coefficient (controller baseline only; unused by the plant)"),
     ("omega_s_min", ("limits", "omega_s_min"), "rad/s", "lowest steering rate"),
     ("omega_s_max", ("limits", "omega_s_max"), "rad/s", "highest steering rate"),
     ("omega_w_max", ("limits", "omega_w_max"), "rad/s", "highest wheel speed"),
@@ -218,6 +212,10 @@ def vehicle_paths(vehicle: Vehicle) -> list[tuple[str, tuple, str | None, str]]:
             for i in range(vehicle.n_axles):
                 rows.append((f"axle_x_{i + 1}", ("axle_x", i), "m",
                              f"x of axle {i + 1} in the body frame (axles front first)"))
+        if name == "tire_lateral_E":  # the prediction models' own (plant.model_params)
+            rows += [(f"tire_{pv.spec.section}_{p.name}", ("tire", pv.spec.section, p.name),
+                      p.unit, f"{p.doc} (controller baseline only; unused by the plant)")
+                     for pv in vehicle.model_params for p in pv.spec.params]
     return rows
 
 

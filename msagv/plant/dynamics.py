@@ -15,9 +15,9 @@ from numba import njit
 from . import layout as lay
 from .layout import (AUX_ALPHA, AUX_DDELTA, AUX_FN, AUX_FX, AUX_FY, AUX_OMEGA_W,  # noqa: F401
                      AUX_PALPHA, AUX_PS, AUX_PT, AUX_S, AUX_VWX, AUX_VWY, N_AUX, N_PARAMS,
-                     P_CG_HEIGHT, P_COMBINED_SLIP, P_DELTA_MAX, P_DELTA_MIN, P_DUGOFF_C_ALPHA, P_DUGOFF_C_S,
-                     P_DUGOFF_MU, P_G, P_K_T, P_LAT_B, P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B,
-                     P_LON_C, P_LON_E, P_LON_MU, P_MASS, P_OMEGA_S_MAX, P_OMEGA_S_MIN,
+                     P_CG_HEIGHT, P_COMBINED_SLIP, P_DELTA_MAX, P_DELTA_MIN, P_G, P_K_T, P_LAT_B,
+                     P_LAT_C, P_LAT_E, P_LAT_MU, P_LON_B, P_LON_C, P_LON_E, P_LON_MU, P_MASS,
+                     P_OMEGA_S_MAX, P_OMEGA_S_MIN,
                      P_OMEGA_W_MAX, P_STEER_LAG, P_V_EPS, P_WHEEL_LAG, P_WHEEL_RADIUS,
                      P_YAW_INERTIA, WEAR_ALPHA, WEAR_S, WEAR_T, Y_DELTA, Y_PHI, Y_R, Y_VX,
                      Y_VY, Y_X, Y_Y, n_error_states, state_size, y_omega_s, y_omega_w,
@@ -41,8 +41,9 @@ lay.drop_stale_cache(_layout_stamp, _STAMP, __file__)
 
 def pack_params(vehicle: Vehicle, v_eps: float = V_EPS_DEFAULT) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(P, wx, wy)`` for the kernels from a :class:`Vehicle` (``P``: every value of the
-    vehicle once, layout ``plant.layout.P_*``)."""
-    lo, la, dg = vehicle.tire_longitudinal, vehicle.tire_lateral, vehicle.tire_dugoff
+    vehicle the plant uses once, layout ``plant.layout.P_*``; a prediction model appends
+    its own parameters, ``controller.models.PredictionModel.pack``)."""
+    lo, la = vehicle.tire_longitudinal, vehicle.tire_lateral
     lim, po = vehicle.limits, vehicle.plant
     P = np.full(N_PARAMS, np.nan)
     P[P_MASS] = vehicle.mass
@@ -53,7 +54,6 @@ def pack_params(vehicle: Vehicle, v_eps: float = V_EPS_DEFAULT) -> tuple[np.ndar
     P[P_V_EPS] = v_eps
     P[[P_LON_B, P_LON_C, P_LON_MU, P_LON_E]] = lo.B, lo.C, lo.mu, lo.E
     P[[P_LAT_B, P_LAT_C, P_LAT_MU, P_LAT_E]] = la.B, la.C, la.mu, la.E
-    P[[P_DUGOFF_C_S, P_DUGOFF_C_ALPHA, P_DUGOFF_MU]] = dg.C_s, dg.C_alpha, dg.mu
     P[P_OMEGA_W_MAX] = lim.omega_w_max
     P[P_OMEGA_S_MIN] = lim.omega_s_min
     P[P_OMEGA_S_MAX] = lim.omega_s_max

@@ -8,9 +8,10 @@ kernels may index these vectors by number. The CasADi mirror
 (``controller/mirrors/rollout_ref.c``) gets them from a header generated from this module
 (:func:`c_header`) when it is built.
 
-Parameter vector ``P`` (:func:`plant.dynamics.pack_params`): every value of the vehicle,
-once - body, tires (Magic Formula and Dugoff), actuator and steering limits, the plant's
-optional realism, and the slip regularisation speed.
+Parameter vector ``P`` (:func:`plant.dynamics.pack_params`): every value of the vehicle
+the plant uses, once - body, Magic Formula tires, actuator and steering limits, the plant's
+optional realism, and the slip regularisation speed. A prediction model's own parameters
+(:mod:`plant.model_params`) follow them in its ``P``.
 
 Settings vector ``S`` (:func:`controller.models.pack_settings`): the MPC's own settings
 only (prediction step, servo and feedback gains, the cornering feed-forward gain).
@@ -71,19 +72,18 @@ P_LAT_B = 10          # lateral Magic Formula B, C, mu, E
 P_LAT_C = 11
 P_LAT_MU = 12
 P_LAT_E = 13
-P_DUGOFF_C_S = 14     # Dugoff C_s [N] (DH baseline's prediction only)
-P_DUGOFF_C_ALPHA = 15  # Dugoff C_alpha [N/rad]
-P_DUGOFF_MU = 16      # Dugoff mu
-P_OMEGA_W_MAX = 17    # largest wheel speed [rad/s] (the smallest is 0)
-P_OMEGA_S_MIN = 18    # steering-rate range [rad/s]
-P_OMEGA_S_MAX = 19
-P_DELTA_MIN = 20      # steering stops [rad]
-P_DELTA_MAX = 21
-P_CG_HEIGHT = 22      # plant only: load transfer (0: off) [m]
-P_WHEEL_LAG = 23      # plant only: wheel-speed lag (0: off) [s]
-P_STEER_LAG = 24      # plant only: steering-rate lag (0: off) [s]
-P_COMBINED_SLIP = 25  # plant only: combined-slip tire forces (0: off, 1: on)
-N_PARAMS = 26
+P_OMEGA_W_MAX = 14    # largest wheel speed [rad/s] (the smallest is 0)
+P_OMEGA_S_MIN = 15    # steering-rate range [rad/s]
+P_OMEGA_S_MAX = 16
+P_DELTA_MIN = 17      # steering stops [rad]
+P_DELTA_MAX = 18
+P_CG_HEIGHT = 19      # plant only: load transfer (0: off) [m]
+P_WHEEL_LAG = 20      # plant only: wheel-speed lag (0: off) [s]
+P_STEER_LAG = 21      # plant only: steering-rate lag (0: off) [s]
+P_COMBINED_SLIP = 22  # plant only: combined-slip tire forces (0: off, 1: on)
+N_PARAMS = 23
+# A prediction model with parameters of its own (plant.model_params) appends them after
+# these: the kernels read them at P[N_PARAMS + ModelParams.offset(name)].
 
 # ---- settings vector S (controller.models.pack_settings) -------------------------------
 S_DT = 0              # prediction step [s]

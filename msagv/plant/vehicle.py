@@ -16,6 +16,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from .model_params import SECTIONS, ModelParams, ParamValues
+
 G_ACCEL = 9.81  # m/s^2, as in DESIGN.md (F_N = m g / (2n))
 
 
@@ -31,15 +33,6 @@ class MagicFormula:
     C: float  # shape factor [-]
     mu: float  # peak friction coefficient [-], D = mu * F_N
     E: float  # curvature factor [-]
-
-
-@dataclass(frozen=True)
-class Dugoff:
-    """Dugoff tire coefficients, for the DH baseline (Du et al. 2024)."""
-
-    C_s: float  # N, longitudinal slip stiffness
-    C_alpha: float  # N/rad, cornering stiffness
-    mu: float  # -, friction coefficient
 
 
 @dataclass(frozen=True)
@@ -135,11 +128,21 @@ class Vehicle:
     steer_loss_kt: float  # m, k_t of eq. 15
     tire_longitudinal: MagicFormula
     tire_lateral: MagicFormula
-    tire_dugoff: Dugoff
+    #: the prediction models' own parameters ([tire.<section>], plant.model_params), in
+    #: the declarations' order
+    model_params: tuple[ParamValues, ...]
     limits: Limits
     plant: PlantOptions = field(default_factory=PlantOptions)
     #: the tires' wear calibration ([tire.wear]); None: the wear is known in joules only
     tire_wear: TireWear | None = None
+
+    def model_values(self, section: str) -> ParamValues:
+        """The vehicle's values of the model parameters ``[tire.<section>]``."""
+        for pv in self.model_params:
+            if pv.spec.section == section:
+                return pv
+        raise KeyError(f"no model parameters '{section}' (known: "
+                       f"{', '.join(pv.spec.section for pv in self.model_params)})")
 
     # ---- derived geometry -------------------------------------------------------------
     @property
@@ -184,7 +187,7 @@ class Vehicle:
             "tire": {
                 "longitudinal": dataclasses.asdict(self.tire_longitudinal),
                 "lateral": dataclasses.asdict(self.tire_lateral),
-                "dugoff": dataclasses.asdict(self.tire_dugoff),
+                **{pv.spec.section: pv.as_dict() for pv in self.model_params},
                 **({"wear": self.tire_wear.to_dict()} if self.tire_wear is not None else {}),
             },
             "limits": dataclasses.asdict(self.limits),
@@ -209,7 +212,6 @@ _TOP_KEYS = {
 }
 _OPTIONAL_TOP = {"plant"}
 _MF_KEYS = ("B", "C", "mu", "E")
-_DUGOFF_KEYS = ("C_s", "C_alpha", "mu")
 _LIMIT_KEYS = ("omega_s_min", "omega_s_max", "omega_w_max", "delta_min", "delta_max")
 _PLANT_KEYS = ("cg_height", "wheel_lag", "steer_lag", "combined_slip")
 _WEAR_KEYS = ("tread_width", "usable_depth", "abradability", "reference_life_km",
@@ -281,7 +283,7 @@ def vehicle_from_dict(d: Mapping[str, Any]) -> Vehicle:
     tire = d["tire"]
     if not isinstance(tire, Mapping):
         raise VehicleError("tire: expected a table")
-    unknown = sorted(set(tire) - {"longitudinal", "lateral", "dugoff", "wear"})
+    unknown = sorted(set(tire) - {"longitudinal", "lateral", "wear", *SECTIONS})
     if unknown:
         raise VehicleError(f"tire.{unknown[0]}: unknown key")
     mfs = {}
@@ -296,10 +298,7 @@ def vehicle_from_dict(d: Mapping[str, Any]) -> Vehicle:
             raise VehicleError(f"{p}E: must be <= 1 (the Magic Formula loses monotonic "
                                f"rise for E > 1), got {E}")
         mfs[part] = MagicFormula(B=B, C=C, mu=mu, E=E)
-    t = _table(tire, "dugoff", "tire.", _DUGOFF_KEYS)
-    dug = Dugoff(C_s=_number(t, "C_s", "tire.dugoff.", positive=True),
-                 C_alpha=_number(t, "C_alpha", "tire.dugoff.", positive=True),
-                 mu=_number(t, "mu", "tire.dugoff.", positive=True))
+    models = tuple(_model_params(tire, spec) for spec in SECTIONS.values())
 
     t = _table(d, "limits", "", _LIMIT_KEYS)
     lim = {k: _number(t, k, "limits.") for k in _LIMIT_KEYS}
@@ -333,8 +332,20 @@ def vehicle_from_dict(d: Mapping[str, Any]) -> Vehicle:
         name=name, mass=mass, yaw_inertia=yaw_inertia, wheel_radius=wheel_radius,
         axle_x=tuple(axle_x), half_track=half_track, steer_loss_kt=kt,
         tire_longitudinal=mfs["longitudinal"], tire_lateral=mfs["lateral"],
-        tire_dugoff=dug, limits=Limits(**lim), plant=po, tire_wear=wear,
+        model_params=models, limits=Limits(**lim), plant=po, tire_wear=wear,
     )
+
+
+def _model_params(tire: Mapping[str, Any], spec: ModelParams) -> ParamValues:
+    """A model's ``[tire.<section>]`` table, checked against its declaration: required
+    unless every parameter has a default; a key with a default may be left out."""
+    sec = spec.section
+    if sec not in tire and all(p.default is not None for p in spec.params):
+        return ParamValues(spec, tuple(float(p.default) for p in spec.params))
+    t = _table(tire, sec, "tire.", spec.names)
+    return ParamValues(spec, tuple(
+        float(p.default) if p.name not in t and p.default is not None
+        else _number(t, p.name, f"tire.{sec}.", positive=p.positive) for p in spec.params))
 
 
 def _tire_wear(tire: Mapping[str, Any], wheel_radius: float) -> TireWear:
