@@ -120,6 +120,8 @@ def test_your_own_plant_must_have_the_vehicles_axles(tmp_path):
         mm.check_vehicles((str(plant),), str(ROOT / "scenarios" / "vehicles" / "agv-3axle.toml"))
     with pytest.raises(ScenarioError, match="named twice"):
         mm.parse_plants("tires x0.8,tires x0.8")
+    with pytest.raises(ScenarioError, match="two plant files of one name"):
+        mm.parse_plants("a/plant.toml,b/plant.toml")
 
 
 def _items(values: dict[str, list[float]]) -> list[dict]:

@@ -114,7 +114,16 @@ def parse_plants(text: str | None) -> tuple[str, ...]:
                             f"{', '.join(PLANTS)}, or all, or a plant's vehicle file *.toml)")
     if len(set(names)) != len(names):
         raise ScenarioError(f"--plants: a plant named twice in '{text}'")
+    slugs = [_plant_slug(n) for n in names]
+    if len(set(slugs)) != len(slugs):
+        raise ScenarioError(f"--plants: two plant files of one name in '{text}' (their "
+                            f"copies and results are kept by file name: rename one)")
     return names
+
+
+def _plant_slug(name: str) -> str:
+    """The name a plant's files take under ``OUT/`` (a plant file's: its file name)."""
+    return _slug(Path(name).name if is_plant_file(name) else name)
 
 
 def check_vehicles(plants, vehicle: str | None = None, trajectory: str | None = None):
@@ -180,8 +189,7 @@ def write_inputs(out: Path, plants, n_paths: int, vehicle: str | None = None,
                                  zip(ref.t.tolist(), ref.x.tolist(), ref.y.tolist(),
                                      ref.phi.tolist())]
         paths.append(put(f, "\n".join(lines) + "\n"))
-    files = {name: put(d / f"plant-{_slug(Path(name).name if is_plant_file(name) else name)}"
-                           f".toml",
+    files = {name: put(d / f"plant-{_plant_slug(name)}.toml",
                        Path(name).read_bytes() if is_plant_file(name) else
                        vehicle_toml(plant_vehicle(base, name),
                                     f"msagv experiment mismatch: the plant '{name}'"))
@@ -253,8 +261,7 @@ def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, sch
         own = Path(vehicle).read_bytes() if vehicle else b""
         key = hashlib.sha256(f.read_bytes() + man.read_bytes() + digest.encode() + own
                              ).hexdigest()[:16]
-        slug = _slug(Path(name).name if is_plant_file(name) else name)
-        js, toml = d / f"{slug}.json", d / f"{slug}.toml"
+        js, toml = d / f"{_plant_slug(name)}.json", d / f"{_plant_slug(name)}.toml"
         if not force and js.is_file() and toml.is_file():
             old = json.loads(js.read_text())
             if old.get("key") == key:
