@@ -7,7 +7,7 @@ parameter's name, unit, description, check, default and the ``--adapt`` factor t
 it. Everything else reads the declaration: the vehicle file's parser and writer
 (:mod:`plant.vehicle`, ``experiments.calibrate``), ``msagv vehicle``, the FMU's parameter
 variables (``fmu_build.variables``), the packing for the prediction kernels (the model's
-values after the shared vector ``P``: :meth:`ModelParams.slot`), the online adaptation.
+values after the shared vector ``P``: :meth:`ModelParams.offset`), the online adaptation.
 
 The declarations live in the plant package, not beside the model classes, because the
 vehicle file is read by the plant, which the FMU bundles alone (it cannot import the
@@ -44,7 +44,7 @@ class Param:
 @dataclass(frozen=True)
 class ModelParams:
     """The parameters of one prediction model: the vehicle file's ``[tire.<section>]``
-    table and the values the kernels read at ``P[slot(name)]`` (after the shared ``P``)."""
+    table and the values the kernels read at ``P[N_PARAMS + offset(name)]``."""
 
     section: str
     params: tuple[Param, ...]
