@@ -144,9 +144,6 @@ def _run(a, progress: bool) -> dict:
                 raise OptionError(f"--{name.replace('_', '-')} does not apply to the mismatch "
                                   f"experiment (its design: --plants, --paths, --seeds, "
                                   f"--quick, --quick-levels, --vehicle, --trajectory)")
-        if a.trajectory is not None and a.paths is not None:
-            raise OptionError("--paths does not apply with --trajectory (your path is the "
-                              "one path)")
         if a.paths is not None and a.paths < 2:
             raise OptionError(f"--paths: at least 2 (the interval resamples paths), got {a.paths}")
         if a.seeds is not None and a.seeds < 1:

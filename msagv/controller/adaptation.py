@@ -126,7 +126,6 @@ class TireAdaptation:
         self._apply(self.theta, self.model.P)
         self.model.S[lay.S_K_ALPHA] = self.k_alpha0
         self.last.clear()
-        self._om = None
         self.updates = 0
         self.excited = np.zeros(3, dtype=np.int64)
 
@@ -140,12 +139,6 @@ class TireAdaptation:
         for k, i in self.own:  # the model's own (Dugoff's stiffnesses and friction)
             P[k] = P0[k] * theta[i]
 
-    def _measured_wheels(self, omega_w):
-        if omega_w is None:
-            return None
-        om = np.asarray(omega_w, dtype=float).reshape(-1)
-        return om.copy() if om.size == self.model.n_wheels and np.all(np.isfinite(om)) else None
-
     def _in_effect(self, z: np.ndarray, om_start) -> np.ndarray:
         """The wheel speeds in effect over the last period: the commands themselves, or,
         where the vehicle file gives the wheels a first-order lag ``tau`` ([plant]
@@ -154,9 +147,10 @@ class TireAdaptation:
         has no lag: without this the adaptation reads the lag as a softer longitudinal
         tire (``c_lon`` at its lower bound on a vehicle whose tires are the file's)."""
         tau = float(self.P0[lay.P_WHEEL_LAG])
-        if not tau > 0 or om_start is None:
-            return z
         nw = self.model.n_wheels
+        if not (tau > 0 and om_start is not None and om_start.size == nw
+                and np.all(np.isfinite(om_start))):
+            return z
         a = tau / self.period * -np.expm1(-self.period / tau)
         z = z.copy()
         z[:nw] += (om_start - z[:nw]) * a
@@ -174,11 +168,10 @@ class TireAdaptation:
         """Take the state measured at ``t`` (the MPC's state vector, and the actual wheel
         speeds ``omega_w`` where the state carries them); update the factors from the last
         period's state and command, and put them into the model's ``P``."""
-        last = self.last.measured(t, x0)
-        om_start, self._om = self._om, self._measured_wheels(omega_w)
+        last = self.last.measured(t, x0, omega_w)
         if last is None:
             return
-        xp, z, ref = last
+        xp, z, ref, om_start = last
         xp = np.ascontiguousarray(xp)
         z = self._in_effect(z, om_start)
         g = self._velocity(self.theta, xp, z, ref)

@@ -90,23 +90,26 @@ class OnePeriod:
 
 
 class LastPeriod:
-    """The last control period as an estimator sees it: the state measured at ``t``, then
-    the raw command sent for it (omega_w, then omega_s) and that solve's first two reference
-    rows. The disturbance observer and the online adaptation each keep one."""
+    """The last control period as an estimator sees it: the state measured at ``t`` (and
+    the actual wheel speeds measured with it, where the state carries them), then the raw
+    command sent for it (omega_w, then omega_s) and that solve's first two reference rows.
+    The disturbance observer and the online adaptation each keep one."""
 
     def __init__(self, period: float):
         self.period = float(period)
         self.clear()
 
     def clear(self) -> None:
-        self.t = self.x0 = self.z = self.ref = None
+        self.t = self.x0 = self.omega_w = self.z = self.ref = None
 
-    def measured(self, t: float, x0: np.ndarray):
-        """Take the state measured at ``t``: the last period's ``(x0, z, ref)`` if it was
-        commanded and ended one period (within a quarter) before ``t``, else None."""
+    def measured(self, t: float, x0: np.ndarray, omega_w=None):
+        """Take the state measured at ``t`` (``omega_w``: the actual wheel speeds, or None):
+        the last period's ``(x0, z, ref, omega_w)`` if it was commanded and ended one period
+        (within a quarter) before ``t``, else None."""
         done = (self.z is not None and abs((t - self.t) - self.period) <= 0.25 * self.period)
-        out = (self.x0, self.z, self.ref) if done else None
+        out = (self.x0, self.z, self.ref, self.omega_w) if done else None
         self.t, self.x0, self.z, self.ref = t, x0.copy(), None, None
+        self.omega_w = None if omega_w is None else np.array(omega_w, dtype=float).reshape(-1)
         return out
 
     def commanded(self, om_w: np.ndarray, om_s: np.ndarray, ref: np.ndarray | None) -> None:
@@ -163,7 +166,7 @@ class DisturbanceObserver:
         the model's ``S``. Returns ``d``."""
         last = self.last.measured(t, x0)
         if last is not None:
-            xp, z, ref = last
+            xp, z, ref, _ = last
             _, vx, vy, r = self.step.predict(xp, z, self.model.P, self.d, ref)
             e = body_frame(x0[lay.X0_PHI], x0[lay.X0_VX] - vx, x0[lay.X0_VY] - vy,
                            x0[lay.X0_R] - r)

@@ -176,19 +176,17 @@ def write_inputs(out: Path, plants, n_paths: int, vehicle: str | None = None,
             p.write_bytes(data)
         return p
 
-    paths = []
-    if trajectory is not None:
-        paths.append(put(d / Path(trajectory).name, Path(trajectory).read_bytes()))
-        n_paths = 0
-    for p in range(1, n_paths + 1):
+    def random_path(p: int) -> Path:
         v = PATH_SPEEDS[(p - 1) % len(PATH_SPEEDS)]
         ref, _ = Scenario(case="random", speed=v, path_seed=p, duration=DURATION,
                           vehicle=vehicle).reference()
-        f = d / f"random-{p}-{v:g}kmh.csv"
         lines = ["t,x,y,phi"] + [f"{t!r},{x!r},{y!r},{ph!r}" for t, x, y, ph in
                                  zip(ref.t.tolist(), ref.x.tolist(), ref.y.tolist(),
                                      ref.phi.tolist())]
-        paths.append(put(f, "\n".join(lines) + "\n"))
+        return put(d / f"random-{p}-{v:g}kmh.csv", "\n".join(lines) + "\n")
+
+    paths = ([put(d / Path(trajectory).name, Path(trajectory).read_bytes())]
+             if trajectory is not None else [random_path(p) for p in range(1, n_paths + 1)])
     files = {name: put(d / f"plant-{_plant_slug(name)}.toml",
                        Path(name).read_bytes() if is_plant_file(name) else
                        vehicle_toml(plant_vehicle(base, name),
@@ -335,7 +333,8 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
         seeds = seeds or tuple(range(QUICK["seeds"]))
     plants = tuple(plants or PLANTS)
     if trajectory is not None and n_paths is not None:
-        raise ScenarioError("--paths: not with --trajectory (your path is the one path)")
+        raise ScenarioError("--paths does not apply with --trajectory (your path is the one "
+                            "path)")
     n_paths = PATHS if n_paths is None else int(n_paths)
     seeds = tuple(SEEDS if seeds is None else seeds)
     check_vehicles(plants, vehicle, trajectory)
