@@ -32,9 +32,11 @@ VARIANTS = ("wrong", "offset-free", "adapted", "true")
 
 def run_one(case: str, speed: float, scale: float, variant: str, method: str,
             duration: float, path_seed: int = 0, extra: dict | None = None,
-            solver: str = "sa") -> dict:
+            solver: str = "sa", noise: dict | None = None) -> dict:
     """One closed loop: the metrics and the controller's estimates. ``extra``: MPC
-    settings every variant gets (``--set``); ``solver``: the horizon solver."""
+    settings every variant gets (``--set``); ``solver``: the horizon solver; ``noise``:
+    the controller's measurement noise (``Scenario.measurement_noise``, the same draws in
+    every variant)."""
     from msagv.controller.loop import closed_loop
     from msagv.experiments.scenario import Scenario
 
@@ -46,7 +48,7 @@ def run_one(case: str, speed: float, scale: float, variant: str, method: str,
     elif variant == "adapted":
         settings["adapt"] = True
     sc = Scenario(case=case, speed=speed, path_seed=path_seed, settings=settings,
-                  plant_tire_scale=scale, solver=solver)
+                  plant_tire_scale=scale, solver=solver, measurement_noise=dict(noise or {}))
     b = sc.build()
     if variant == "true":
         # the controller given the plant's own tires, on the same path (a random path is
@@ -54,7 +56,7 @@ def run_one(case: str, speed: float, scale: float, variant: str, method: str,
         b.controller = sc.make_controller(sc.actual_vehicle(b.vehicle), b.reference)
     try:
         log = closed_loop(b.plant, b.controller, b.reference, min(duration, b.duration),
-                          period=sc.period, progress=False, outputs=False)
+                          period=sc.period, progress=False, outputs=False, measure=b.measure)
     finally:
         b.close()
     m = log.metrics()
@@ -87,8 +89,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="an MPCSettings field for every variant, e.g. --set "
                          "disturbance_tau=0.02 (the variants' own switches stay theirs)")
+    ap.add_argument("--noise", metavar="V,R[,POS,PHI]",
+                    help="measurement noise of the controller's state (m/s, rad/s, m, rad; "
+                         "msagv run --measurement-noise), the same draws in every run")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     a = ap.parse_args(argv)
+    from msagv.plant.sensors import MeasurementNoise
+
+    try:
+        noise = None if a.noise is None else MeasurementNoise.parse(a.noise)
+    except ValueError as e:
+        ap.error(f"--noise: {e}")
+    noise = None if noise is None else noise.as_dict()
     from msagv.controller.interface import ControllerError
     from msagv.controller.models import ADAPTABLE, MPCSettings
     from msagv.controller.solvers import SOLVERS, check_supported
@@ -117,12 +129,13 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     t0 = time.time()
     for c, v, s, p, var in tqdm(jobs, file=sys.stderr, disable=a.json or not sys.stderr.isatty()):
-        rows.append(run_one(c, v, s, var, a.method, a.duration, p, extra, a.solver))
+        rows.append(run_one(c, v, s, var, a.method, a.duration, p, extra, a.solver, noise))
     if a.json:
         print(json.dumps({"rows": rows, "wall_s": time.time() - t0}, indent=1))
         return 0
     print(f"lateral RMS [cm] (ratio to the true model) and W_tw [J]; {a.method}, solver "
-          f"{a.solver}, {a.duration:g} s per run" + (f"; {' '.join(a.set)}" if a.set else ""))
+          f"{a.solver}, {a.duration:g} s per run" + (f"; {' '.join(a.set)}" if a.set else "")
+          + (f"; measurement noise {a.noise}" if noise else ""))
     print(f"{'path':<16}{'tires':>6}" + "".join(f"{v:>22}" for v in VARIANTS))
     for c, v, p in _paths(a.paths):
         for s in scales:

@@ -422,6 +422,14 @@ def scenario_from_args(a, default_case: str = "curve") -> Scenario:
     merged["case"] = has("case") or merged.get("case")
     if merged["trajectory"] is None and merged["case"] is None:
         merged["case"] = default_case
+    if has("measurement_noise") is not None:
+        from msagv.plant.sensors import MeasurementNoise
+
+        try:
+            noise = MeasurementNoise.parse(has("measurement_noise"), seed=has("seed") or 0)
+        except ValueError as e:
+            raise OptionError(f"--measurement-noise: {e}") from None
+        merged["measurement_noise"] = {} if noise is None else noise.as_dict()
     pv = has("plant_vehicle")
     if pv is not None and not Path(pv).is_file():
         raise OptionError(f"--plant-vehicle: no such file {pv}")

@@ -39,6 +39,11 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
                              "below override its values")
     add_case_args(ap)
     add_plant_vehicle_arg(ap)
+    ap.add_argument("--measurement-noise", metavar="V,R[,POS,PHI]",
+                    help="noise on what the controller measures, as a real vehicle's odometry "
+                         "has: standard deviations of vx and vy [m/s], the yaw rate [rad/s], "
+                         "x and y [m], the heading [rad] (white, Gaussian, seeded by --seed; "
+                         "the plant and the metrics keep the true state); e.g. 0.01,0.002")
     add_mpc_args(ap)
     ap.add_argument("--json", action="store_true",
                     help="print the result as one JSON object (docs/SCENARIOS.md#results)")
@@ -201,7 +206,7 @@ def _run(a, scenario, built, view, fox=None):
     try:
         closed_loop(built.plant, built.controller, built.reference, built.duration,
                     period=scenario.period, progress=False if a.quiet else a.progress, log=log,
-                    on_step=_on_step(view, fox, built))
+                    on_step=_on_step(view, fox, built), measure=built.measure)
     except KeyboardInterrupt:
         interrupted = True
         log.cut_short()

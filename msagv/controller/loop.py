@@ -185,7 +185,7 @@ class RunLog:
 
 def closed_loop(plant, mpc: Controller, reference: Reference, duration: float, period: float = CONTROL_PERIOD,
                 progress: bool | None = None, on_step=None, log: RunLog | None = None,
-                outputs: bool = True) -> RunLog:
+                outputs: bool = True, measure=None) -> RunLog:
     """Run the MPC on ``plant`` for ``duration`` seconds of vehicle time.
 
     The MPC is warmed up (kernels compiled) on the initial state first, so the first solve
@@ -194,6 +194,9 @@ def closed_loop(plant, mpc: Controller, reference: Reference, duration: float, p
     cmd)`` is called after each command (for recording). ``log``: a :class:`RunLog` to fill
     (so a caller interrupted mid-run keeps the rows so far). ``outputs``: also log the
     plant's outputs under each command (slips, forces, powers: ``PlantInterface.outputs``).
+    ``measure``: what the controller receives of each state message (e.g.
+    :class:`plant.sensors.MeasurementNoise`; default the state itself); the log keeps the
+    true state.
     """
     n = int(round(duration / period))
     if n < 1:
@@ -216,7 +219,7 @@ def closed_loop(plant, mpc: Controller, reference: Reference, duration: float, p
         t = t0 + k * period
         st = plant.state_message()
         st["t"] = t
-        cmd = mpc.step(st, reference)
+        cmd = mpc.step(st if measure is None else measure(st), reference)
         plant.set_inputs(cmd.omega_w, cmd.omega_s)
         log.append(st, reference.sample(t), cmd,
                    plant_outputs() if plant_outputs is not None else None)

@@ -175,7 +175,7 @@ def execute(spec_d: dict, key: str) -> dict:
         # the state, commands and references only: the plant's outputs would triple the
         # stored logs (msagv run --log has them)
         log = closed_loop(plant, mpc, ref, duration, period=PERIOD, progress=False,
-                          outputs=False)
+                          outputs=False, measure=built.measure)
         with tempfile.TemporaryDirectory() as td:
             log.to_csv(Path(td) / "log.csv")
             res["log_csv"] = (Path(td) / "log.csv").read_text()

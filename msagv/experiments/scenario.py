@@ -46,6 +46,7 @@ class Built:
     initial: dict  # the plant's initial state by signal name
     duration: float  # s of vehicle time to run
     warnings: list = field(default_factory=list)  # one line each (experiments.checks)
+    measure: Any = None  # plant.sensors.MeasurementNoise: what the controller measures
 
     def close(self) -> None:
         """Free what the plant holds (an FMU instance); a no-op for the native plant."""
@@ -95,6 +96,10 @@ class Scenario:
         its tires, mass, inertia, lags and geometry, while the controller keeps ``vehicle``
         (its belief). ``plant_options`` and ``plant_tire_scale`` apply on top of it. It must
         have as many wheels as the controller's vehicle.
+    measurement_noise : the noise of the controller's measurements, as a real vehicle's
+        odometry has (:class:`plant.sensors.MeasurementNoise`: standard deviations ``v``
+        [m/s] of vx and vy, ``r`` [rad/s], ``pos`` [m] of x and y, ``phi`` [rad], and
+        ``seed``); the plant and the metrics keep the true state. Default none.
     """
 
     vehicle: Any = None
@@ -117,6 +122,7 @@ class Scenario:
     plant_options: dict = field(default_factory=dict)
     plant_tire_scale: float = 1.0
     plant_vehicle: Any = None
+    measurement_noise: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.trajectory is not None and self.case is not None:
@@ -152,10 +158,21 @@ class Scenario:
             raise ScenarioError("plant_vehicle, plant_options and plant_tire_scale apply to the "
                                 "built-in plant, not to an FMU (set the FMU's parameters "
                                 "instead)")
+        try:
+            self.measurement()
+        except ValueError as e:
+            raise ScenarioError(str(e)) from None
         if self.fmu_map is not None and self.fmu is None:
             raise ScenarioError("--map applies to --fmu: a name mapping needs an FMU plant")
 
     # ---- the parts -----------------------------------------------------------------------
+    def measurement(self):
+        """What the controller measures: a fresh :class:`plant.sensors.MeasurementNoise`
+        of ``measurement_noise`` (its stream from its seed), or None without noise."""
+        from msagv.plant.sensors import MeasurementNoise
+
+        return MeasurementNoise.from_mapping(self.measurement_noise or None)
+
     def resolve_vehicle(self, given=None):
         """The vehicle: ``given`` (e.g. the one a plant serves as its params, or the FMU's),
         else the scenario's, with ``mass_kg`` applied."""
@@ -350,7 +367,8 @@ class Scenario:
         except BaseException:
             plant.close()
             raise
-        return Built(plant, ctl, ref, vehicle, initial, self.run_duration(ref), warnings)
+        return Built(plant, ctl, ref, vehicle, initial, self.run_duration(ref), warnings,
+                     measure=self.measurement())
 
     # ---- as data -------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -364,6 +382,8 @@ class Scenario:
             d["plant_vehicle"] = self.plant_vehicle.to_dict()
         d["settings"] = {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in self.settings.items()}
+        if not d["measurement_noise"]:  # (none: the files of runs without it stay as they were)
+            del d["measurement_noise"]
         return d
 
     @classmethod
@@ -381,7 +401,7 @@ class Scenario:
         if unknown:
             raise ScenarioError(f"{unknown[0]}: unknown key (known: {', '.join(sorted(known))})")
         kw = {k: v for k, v in d.items() if k not in SETTING_KEYS}
-        for k in ("initial", "settings", "fmu_params"):
+        for k in ("initial", "settings", "fmu_params", "measurement_noise"):
             if k in kw and not isinstance(kw[k], Mapping):
                 raise ScenarioError(f"{k}: expected a table, got {kw[k]!r}")
             if k in kw:
