@@ -241,8 +241,9 @@ def _lagged_vehicle(tau: float):
 def test_the_wheel_speeds_in_effect_under_a_known_lag_are_their_mean_over_the_period():
     """With the vehicle file's wheel lag tau the adaptation predicts the period from the
     wheels' mean speed under a first-order lag from the measured start (hand-computed:
-    u + (w0 - u) (tau / T) (1 - exp(-T / tau))); without a lag, or without a measured
-    start, from the commands."""
+    u + (w0 - u) (tau / T) (1 - exp(-T / tau))); in a window's second period from the speed
+    the lag reached at its end, w1 = u + (w0 - u) exp(-T / tau); without a lag, or without a
+    measured start, from the commands."""
     from msagv.controller.adaptation import TireAdaptation
 
     for tau in (0.04, 0.0):
@@ -250,11 +251,15 @@ def test_the_wheel_speeds_in_effect_under_a_known_lag_are_their_mean_over_the_pe
         ad = TireAdaptation(make_model(v, MPCSettings(method="ntwo")), 0.01)
         nw = v.n_wheels
         z = np.r_[np.full(nw, 10.0), np.full(nw, 0.1)]
+        z2 = np.r_[np.full(nw, 12.0), np.full(nw, -0.1)]
         w0 = np.full(nw, 8.0)
-        got = ad._in_effect(z, w0)
+        got, got2 = ad._in_effect([z, z2], w0)
         a = 4.0 * (1.0 - math.exp(-0.25)) if tau else 0.0
+        w1 = 10.0 + (8.0 - 10.0) * math.exp(-0.25) if tau else 10.0
         assert got[:nw] == pytest.approx(10.0 + (8.0 - 10.0) * a, rel=1e-12)
-        assert np.array_equal(got[nw:], z[nw:]) and np.array_equal(ad._in_effect(z, None), z)
+        assert got2[:nw] == pytest.approx(12.0 + (w1 - 12.0) * a, rel=1e-12)
+        assert np.array_equal(got[nw:], z[nw:]) and np.array_equal(got2[nw:], z2[nw:])
+        assert all(np.array_equal(g, e) for g, e in zip(ad._in_effect([z, z2], None), [z, z2]))
 
 
 def test_a_known_wheel_lag_is_not_taken_for_a_softer_longitudinal_tire():

@@ -39,7 +39,8 @@ import numpy as np
 
 from msagv.plant import layout as lay
 
-from .disturbance import LastPeriod, OnePeriod, body_frame
+from . import rollout as _ro
+from .disturbance import LastPeriod, body_frame
 from .models import ADAPTABLE, MODELS
 
 NAMES = ("c_lat", "c_lon", "f")
@@ -65,7 +66,6 @@ def symbolic(P, S, sym):
     for i, k in enumerate(TIRE_S):
         S[k] = sym[len(TIRE_P) + i]
     return P, S
-_NO_DISTURBANCE = np.zeros(3)  # the adaptation explains the motion with the tires alone
 
 
 @dataclass(frozen=True)
@@ -82,12 +82,56 @@ class AdaptOptions:
     drift: float = 0.02
     sigma0: float = 0.3
     bounds: tuple[float, float] = (0.5, 2.0)
+    window: int = 1
 
     def __post_init__(self):
         if not (self.sigma_v > 0 and self.drift >= 0 and self.sigma0 > 0
                 and 0 < self.bounds[0] < 1 < self.bounds[1]):
             raise ValueError("AdaptOptions: sigma_v, sigma0 > 0, drift >= 0, "
                              "0 < bounds[0] < 1 < bounds[1]")
+        if not (isinstance(self.window, int) and self.window >= 1):
+            raise ValueError(f"AdaptOptions: window must be a whole number of periods >= 1, "
+                             f"got {self.window!r}")
+
+
+class Window:
+    """The prediction model over ``steps`` control periods from a measured state under the
+    commands sent in each (the kernels' raw-command policy, one block a period), without
+    the disturbance: the body-frame velocity at the window's end."""
+
+    def __init__(self, model, period: float, steps: int):
+        nw = model.n_wheels
+        self.model = model
+        self.period = float(period)
+        self.steps = int(steps)
+        self.S = model.S.copy()
+        self.S[lay.S_DT] = self.period
+        self.S[lay.S_POLICY] = lay.POLICY_RAW
+        self.S[lay.S_STRIDE] = 2 * nw
+        self.S[[lay.S_DIST_U, lay.S_DIST_V, lay.S_DIST_R]] = 0.0
+        self._block = np.arange(self.steps, dtype=np.int64)
+        self.poses = np.empty((1, self.steps, lay.N_POSE))
+        self._wear = np.empty((1, self.steps, lay.N_WEAR))
+        self._cmds = np.empty((1, 2, nw))
+        self.ref = np.zeros((self.steps + 1, lay.N_REF))
+
+    def velocity(self, x0: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """``(u, v, r)`` in the body frame after the window, from ``x0`` under ``Z`` (1,
+        steps * 2n: each period's omega_w then omega_s) with the parameters ``P`` (the
+        reference rows :attr:`ref` set by the caller, for TCT). The velocity is read off the
+        predicted poses by inverting the trapezoidal update step by step."""
+        self.S[lay.S_K_ALPHA] = self.model.S[lay.S_K_ALPHA]
+        _ro.EXACT.rollout_batch(self.model.model_id, x0, self.ref, Z, self._block, P, self.S,
+                                self.model.wx, self.model.wy, self.poses, self._wear,
+                                self._cmds)
+        T = self.period
+        px, py, pphi = x0[lay.X0_X], x0[lay.X0_Y], x0[lay.X0_PHI]
+        vx, vy, r = x0[lay.X0_VX], x0[lay.X0_VY], x0[lay.X0_R]
+        for k in range(self.steps):
+            x1, y1, phi1 = self.poses[0, k]
+            vx, vy, r = 2.0 * (x1 - px) / T - vx, 2.0 * (y1 - py) / T - vy, 2.0 * (phi1 - pphi) / T - r
+            px, py, pphi = x1, y1, phi1
+        return body_frame(pphi, vx, vy, r)
 
 
 class TireAdaptation:
@@ -114,8 +158,9 @@ class TireAdaptation:
         self.options = options or AdaptOptions()
         self.P0 = model.P.copy()  # the file's tires
         self.k_alpha0 = float(model.S[lay.S_K_ALPHA])  # the feed-forward's m / (n C_alpha)
-        self.step = OnePeriod(model, period)
+        self.window = Window(model, period, self.options.window)
         self.last = LastPeriod(period)
+        self.hist: list = []  # the window's periods so far: (x0, z, ref, omega_w at start)
         self._Pk = model.P.copy()
         self.reset()
 
@@ -126,6 +171,7 @@ class TireAdaptation:
         self._apply(self.theta, self.model.P)
         self.model.S[lay.S_K_ALPHA] = self.k_alpha0
         self.last.clear()
+        self.hist = []
         self.updates = 0
         self.excited = np.zeros(3, dtype=np.int64)
 
@@ -139,30 +185,36 @@ class TireAdaptation:
         for k, i in self.own:  # the model's own (Dugoff's stiffnesses and friction)
             P[k] = P0[k] * theta[i]
 
-    def _in_effect(self, z: np.ndarray, om_start) -> np.ndarray:
-        """The wheel speeds in effect over the last period: the commands themselves, or,
-        where the vehicle file gives the wheels a first-order lag ``tau`` ([plant]
-        wheel_lag) and the state measured the wheels at the period's start, their mean
-        over it, ``u + (omega_0 - u) (tau / T) (1 - exp(-T / tau))``. The prediction model
-        has no lag: without this the adaptation reads the lag as a softer longitudinal
-        tire (``c_lon`` at its lower bound on a vehicle whose tires are the file's)."""
+    def _in_effect(self, zs: list, om_start) -> list:
+        """The wheel speeds in effect over each period of the window: the commands
+        themselves, or, where the vehicle file gives the wheels a first-order lag ``tau``
+        ([plant] wheel_lag) and the state measured the wheels at the window's start, their
+        mean over each period, ``u + (omega_k - u) (tau / T) (1 - exp(-T / tau))``, with
+        ``omega_{k+1} = u + (omega_k - u) exp(-T / tau)``. The prediction model has no lag:
+        without this the adaptation reads the lag as a softer longitudinal tire (``c_lon``
+        at its lower bound on a vehicle whose tires are the file's)."""
         tau = float(self.P0[lay.P_WHEEL_LAG])
         nw = self.model.n_wheels
         if not (tau > 0 and om_start is not None and om_start.size == nw
                 and np.all(np.isfinite(om_start))):
-            return z
+            return zs
         a = tau / self.period * -np.expm1(-self.period / tau)
-        z = z.copy()
-        z[:nw] += (om_start - z[:nw]) * a
-        return z
+        decay = np.exp(-self.period / tau)
+        om = om_start.copy()
+        out = []
+        for z in zs:
+            u = z[:nw]
+            z = z.copy()
+            z[:nw] = u + (om - u) * a
+            om = u + (om - u) * decay
+            out.append(z)
+        return out
 
-    def _velocity(self, theta, x0, z, ref) -> np.ndarray:
-        """The body-frame velocity (u, v, r) one period after ``x0`` under the raw command
-        ``z`` with the factors ``theta`` (no disturbance; ``ref``: the solve's first two
-        reference rows, for TCT, which holds the forward speed at the reference's)."""
+    def _velocity(self, theta, x0, Z) -> np.ndarray:
+        """The body-frame velocity (u, v, r) a window after ``x0`` under the raw commands
+        ``Z`` with the factors ``theta`` (no disturbance; :class:`Window`)."""
         self._apply(theta, self._Pk)
-        phi1, vx, vy, r = self.step.predict(x0, z, self._Pk, _NO_DISTURBANCE, ref)
-        return body_frame(phi1, vx, vy, r)
+        return self.window.velocity(x0, Z, self._Pk)
 
     def update(self, t: float, x0: np.ndarray, omega_w=None) -> None:
         """Take the state measured at ``t`` (the MPC's state vector, and the actual wheel
@@ -170,18 +222,27 @@ class TireAdaptation:
         period's state and command, and put them into the model's ``P``."""
         last = self.last.measured(t, x0, omega_w)
         if last is None:
+            self.hist = []
             return
-        xp, z, ref, om_start = last
-        xp = np.ascontiguousarray(xp)
-        z = self._in_effect(z, om_start)
-        g = self._velocity(self.theta, xp, z, ref)
+        self.hist.append(last)
+        if len(self.hist) < self.options.window:
+            return
+        hist, self.hist = self.hist, []
+        xp = np.ascontiguousarray(hist[0][0])
+        zs = self._in_effect([h[1] for h in hist], hist[0][3])
+        Z = np.concatenate(zs).reshape(1, -1)
+        for k, h in enumerate(hist):  # TCT holds the reference's forward speed
+            if h[2] is not None:
+                self.window.ref[k] = h[2][0]
+                self.window.ref[k + 1] = h[2][1]
+        g = self._velocity(self.theta, xp, Z)
         J = np.empty((3, 3))
         for i in range(3):
             h = 1e-4 * self.theta[i]
             tp, tm = self.theta.copy(), self.theta.copy()
             tp[i] += h
             tm[i] -= h
-            J[:, i] = (self._velocity(tp, xp, z, ref) - self._velocity(tm, xp, z, ref)) / (2 * h)
+            J[:, i] = (self._velocity(tp, xp, Z) - self._velocity(tm, xp, Z)) / (2 * h)
         e = body_frame(x0[lay.X0_PHI], x0[lay.X0_VX], x0[lay.X0_VY], x0[lay.X0_R]) - g
         o = self.options
         Rn = o.sigma_v ** 2
@@ -191,7 +252,8 @@ class TireAdaptation:
             return
         idx = np.flatnonzero(live)
         Jl = J[:, idx]
-        P = self.cov[np.ix_(idx, idx)] + np.eye(len(idx)) * o.drift ** 2 * self.period
+        P = (self.cov[np.ix_(idx, idx)]
+             + np.eye(len(idx)) * o.drift ** 2 * self.period * o.window)
         S = Jl @ P @ Jl.T + np.eye(3) * Rn
         K = P @ Jl.T @ np.linalg.inv(S)
         th = self.theta.copy()

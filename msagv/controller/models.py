@@ -110,11 +110,16 @@ class MPCSettings:
       disturbance_tau [s]: its filter's time constant.
     adapt: re-estimate the prediction's tire factors (cornering and longitudinal stiffness,
       friction) online (:mod:`controller.adaptation`); the 'mf', 'dugoff' and 'tct'
-      models with the annealer or feed-forward solvers only (IPOPT and acados build the
-      tires into their code).
+      models (IPOPT and acados take the adapted entries as parameters of their generated
+      problems, docs/CONTROLLER.md).
       adapt_sigma_v [m/s]: the standard deviation of a measured body velocity, the
       adaptation's measurement noise (raise it for noisy odometry: the factors then move
       more slowly and less on noise).
+      adapt_window [periods]: the adaptation compares the velocity measured at the end of
+      this many control periods with the prediction from the state measured at their start
+      (one update per window). 1 reads one period; with noisy odometry a longer window
+      (10: 0.1 s) keeps the noise of the start state from biasing the factors
+      (docs/CONTROLLER.md).
     """
 
     method: str = "two-energy"
@@ -155,6 +160,7 @@ class MPCSettings:
     disturbance_tau: float = 0.05
     adapt: bool = False
     adapt_sigma_v: float = 1e-3
+    adapt_window: int = 1
 
     def __post_init__(self):
         bad = None
@@ -200,6 +206,9 @@ class MPCSettings:
             bad = f"offset_free: expected true or false, got {self.offset_free!r}"
         elif not (math.isfinite(self.adapt_sigma_v) and self.adapt_sigma_v > 0):
             bad = f"adapt_sigma_v: must be a finite speed > 0 m/s, got {self.adapt_sigma_v}"
+        elif (isinstance(self.adapt_window, bool) or not isinstance(self.adapt_window, int)
+              or not 1 <= self.adapt_window <= 1000):
+            bad = f"adapt_window: must be a whole number of periods in 1..1000, got {self.adapt_window!r}"
         elif self.adapt and self.model not in ADAPTABLE:
             bad = (f"adapt: the online tire adaptation needs a tire model "
                    f"({', '.join(repr(m) for m in ADAPTABLE)}), not {self.model!r}")

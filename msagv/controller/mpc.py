@@ -97,7 +97,8 @@ class MPC:
         self.adaptation = None  # the online tire factors (settings.adapt)
         if self.settings.adapt:
             self.adaptation = TireAdaptation(
-                self.model, self.period, AdaptOptions(sigma_v=self.settings.adapt_sigma_v))
+                self.model, self.period, AdaptOptions(sigma_v=self.settings.adapt_sigma_v,
+                                                       window=self.settings.adapt_window))
         self.warmup_solve_ms: list[float] = []
         self._smooth: tuple[Reference, Reference] | None = None  # (given, smoothed)
         self.budget_warnings: list[str] = []
