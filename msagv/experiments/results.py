@@ -76,7 +76,14 @@ def scenario_info(scenario, vehicle, reference, settings=None,
             "plant": f"fmu {Path(scenario.fmu).name}" if scenario.fmu else "native",
             "plant_vehicle": _plant_vehicle_info(scenario, vehicle),
             "offset_free": getattr(settings, "offset_free_on", None),
+            "measurement_noise": _noise_info(scenario),
             "initial": "rest" if scenario.from_rest else "reference"}
+
+
+def _noise_info(scenario) -> dict | None:
+    """The controller's measurement noise (``measurement_noise``), or None without."""
+    m = scenario.measurement() if hasattr(scenario, "measurement") else None
+    return None if m is None else m.as_dict()
 
 
 def _plant_vehicle_info(scenario, vehicle) -> dict | None:

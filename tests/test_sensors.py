@@ -1,0 +1,129 @@
+"""Measurement noise (plant.sensors): what a simulated controller measures of the plant's state,
+as a real vehicle's odometry would give it."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from msagv.experiments.scenario import Scenario, ScenarioError
+from msagv.plant.sensors import MeasurementNoise
+
+STATE = {"t": 1.0, "x": 3.0, "y": -2.0, "phi": 0.3, "vx": 5.0, "vy": 0.1, "r": 0.05,
+         "delta": [0.0] * 4, "omega_w": [10.0] * 4, "W_s": 7.0}
+
+
+def test_the_noise_has_the_given_deviations_and_leaves_the_state_alone():
+    noise = MeasurementNoise(v=0.01, r=0.002, pos=0.02, phi=0.001, seed=3)
+    before = json.dumps(STATE)
+    draws = [noise(STATE) for _ in range(20000)]
+    assert json.dumps(STATE) == before  # a copy is perturbed, not the plant's message
+    for key, sd in (("vx", 0.01), ("vy", 0.01), ("r", 0.002), ("x", 0.02), ("y", 0.02),
+                    ("phi", 0.001)):
+        d = np.array([m[key] for m in draws]) - STATE[key]
+        # 20000 draws: the sample deviation within 3 %, the mean within 4 standard errors
+        assert np.std(d) == pytest.approx(sd, rel=0.03), key
+        assert abs(np.mean(d)) < 4 * sd / math.sqrt(len(d)), key
+    assert all(m["omega_w"] == STATE["omega_w"] and m["W_s"] == 7.0 and m["t"] == 1.0
+               for m in draws[:10])
+    # independent channels: vx's and vy's draws uncorrelated
+    dx = np.array([m["vx"] for m in draws]) - 5.0
+    dy = np.array([m["vy"] for m in draws]) - 0.1
+    assert abs(np.corrcoef(dx, dy)[0, 1]) < 0.03
+
+
+def test_the_same_seed_gives_the_same_noise_and_none_gives_none():
+    a = MeasurementNoise(v=0.01, r=0.002, seed=1)
+    b = MeasurementNoise(v=0.01, r=0.002, seed=1)
+    c = MeasurementNoise(v=0.01, r=0.002, seed=2)
+    sa, sb, sc = ([n(STATE)["vx"] for _ in range(5)] for n in (a, b, c))
+    assert sa == sb and sa != sc
+    assert MeasurementNoise.from_mapping({}) is None
+    assert MeasurementNoise.from_mapping({"v": 0.0, "seed": 4}) is None
+    assert MeasurementNoise.parse("0,0") is None
+    assert MeasurementNoise.parse("0.01,0.002,0.03", seed=5).as_dict() == {
+        "v": 0.01, "r": 0.002, "pos": 0.03, "phi": 0.0, "seed": 5}
+
+
+@pytest.mark.parametrize("bad,words", [
+    ({"v": -0.01}, "measurement_noise.v"), ({"r": float("nan")}, "measurement_noise.r"),
+    ({"pos": True}, "measurement_noise.pos"), ({"phi": "small"}, "measurement_noise.phi"),
+    ({"seed": -1}, "measurement_noise.seed"), ({"seed": 1.5}, "measurement_noise.seed"),
+    ({"vel": 0.01}, "unknown vel"), ([0.01], "expected a table")])
+def test_bad_noise_is_refused_by_name(bad, words):
+    with pytest.raises(ValueError, match=words):
+        MeasurementNoise.from_mapping(bad)
+    with pytest.raises(ScenarioError, match=words):
+        Scenario(case="curve", measurement_noise=bad)
+
+
+@pytest.mark.parametrize("text", ["0.01", "0.01,0.002,0,0,9", "a,b", "-1,0"])
+def test_bad_command_line_noise_is_refused(text):
+    with pytest.raises(ValueError):
+        MeasurementNoise.parse(text)
+
+
+def test_a_scenario_file_takes_the_table_and_refuses_a_bad_one(tmp_path):
+    good = tmp_path / "noisy.toml"
+    good.write_text('case = "curve"\n[measurement_noise]\nv = 0.01\nr = 0.002\nseed = 7\n')
+    sc = Scenario.from_file(good)
+    m = sc.measurement()
+    assert m is not None and (m.v, m.r, m.pos, m.seed) == (0.01, 0.002, 0.0, 7)
+    assert Scenario.from_dict(sc.to_dict()).measurement_noise == sc.measurement_noise
+    # a scenario without noise writes no such key (files of earlier runs stay as they were)
+    assert "measurement_noise" not in Scenario(case="curve").to_dict()
+    bad = tmp_path / "bad.toml"
+    bad.write_text('case = "curve"\nmeasurement_noise = 0.01\n')
+    with pytest.raises(ScenarioError, match="measurement_noise: expected a table"):
+        Scenario.from_file(bad)
+
+
+def test_the_controller_gets_the_measurement_and_the_log_keeps_the_truth():
+    from msagv.controller.loop import closed_loop
+
+    b = Scenario(case="curve", speed=15.0, settings={"method": "ntwo"},
+                 measurement_noise={"pos": 0.01, "seed": 2}).build()
+    assert isinstance(b.measure, MeasurementNoise)
+    got = []
+    step = b.controller.step
+
+    def spy(state, reference):
+        got.append(dict(state))
+        return step(state, reference)
+
+    b.controller.step = spy
+    measure = b.measure
+    sent = []
+
+    def recording_measure(st):
+        m = measure(st)
+        sent.append((dict(st), m))
+        return m
+
+    log = closed_loop(b.plant, b.controller, b.reference, 0.2, period=0.01, progress=False,
+                      outputs=False, measure=recording_measure)
+    got = got[-len(sent):]  # (before them: the warm-up's solves on the initial state)
+    assert len(sent) == 20
+    for k, (true, m) in enumerate(sent):
+        assert got[k]["x"] == m["x"] != true["x"]  # the controller saw the measurement
+        assert log.pose[k][:2] == (true["x"], true["y"])  # the log keeps the plant's state
+
+
+def test_run_takes_measurement_noise_and_refuses_a_bad_one():
+    cmd = [sys.executable, "-m", "msagv", "run", "--case", "curve", "--duration", "0.3",
+           "--method", "ntwo", "--measurement-noise", "0.01,0.002", "--json", "--no-floor"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = json.loads(p.stdout)
+    assert out["scenario"]["measurement_noise"] == {"v": 0.01, "r": 0.002, "pos": 0.0,
+                                                   "phi": 0.0, "seed": 0}
+    for bad in ("-0.01,0", "fast,0", "0.01"):
+        p = subprocess.run(cmd[:-4] + [f"--measurement-noise={bad}", "--json"],
+                           capture_output=True, text=True, timeout=300)
+        assert p.returncode == 2 and "--measurement-noise" in p.stderr, p.stderr
+        assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
