@@ -281,6 +281,8 @@ def _report(a, prog: str, fmu: bool, scenario, built, log, interrupted: bool) ->
     doc["disturbance"] = dist() if dist is not None else None  # offset-free estimate at the end
     tires = getattr(built.controller, "adapted_tires", None)
     doc["adapted_tires"] = tires() if tires is not None else None  # --adapt's factors
+    if doc["adapted_tires"] and doc["adapted_tires"].get("warning"):  # (on stderr when given)
+        doc["warnings"].append(doc["adapted_tires"]["warning"])
     doc["floors"] = floors  # the wear floor over the run (controller.floors)
     # the floors the run wears less than 0.995 x of: within their 1 cm of the path (broken),
     # and further off it (below them without breaking them)

@@ -33,6 +33,7 @@ disturbance then removes what the three factors cannot explain.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,12 @@ from .disturbance import LastPeriod, body_frame
 from .models import ADAPTABLE, MODELS
 
 NAMES = ("c_lat", "c_lon", "f")
+# The velocity noise the measurements carry, estimated from their second differences over
+# consecutive periods (white noise of deviation s gives them deviation s sqrt(6); a vehicle's
+# own motion changes its velocity smoothly, by ~1e-3 m/s in the second difference at 1 m/s^3
+# of jerk): the median of the last NOISE_SAMPLES, once NOISE_MIN of them are in; warned about
+# (once) when above NOISE_WARN times adapt_sigma_v.
+NOISE_SAMPLES, NOISE_MIN, NOISE_WARN = 400, 200, 3.0
 # The prediction's entries the adaptation writes with the Magic Formula tires (``_apply`` and
 # the feed-forward's gain): a solver that builds the prediction into its own code (IPOPT,
 # acados) takes them as parameters of each solve when ``--adapt`` is on (:func:`values`).
@@ -172,6 +179,11 @@ class TireAdaptation:
         self.model.S[lay.S_K_ALPHA] = self.k_alpha0
         self.last.clear()
         self.hist = []
+        self._v = deque(maxlen=2)  # the last measured body velocities (u, v), consecutive
+        self._d2 = deque(maxlen=NOISE_SAMPLES)  # |second differences| of u and v
+        self._n_d2 = 0
+        self._t_noise = None
+        self.warning = None  # (once) the measurements are noisier than adapt_sigma_v
         self.updates = 0
         self.excited = np.zeros(3, dtype=np.int64)
 
@@ -220,6 +232,7 @@ class TireAdaptation:
         """Take the state measured at ``t`` (the MPC's state vector, and the actual wheel
         speeds ``omega_w`` where the state carries them); update the factors from the last
         period's state and command, and put them into the model's ``P``."""
+        self._noise(t, x0)
         last = self.last.measured(t, x0, omega_w)
         if last is None:
             self.hist = []
@@ -266,6 +279,34 @@ class TireAdaptation:
         # the feed-forward's steady cornering slip angle follows the cornering stiffness
         self.model.S[lay.S_K_ALPHA] = self.k_alpha0 / self.theta[0]
 
+    def _noise(self, t: float, x0: np.ndarray) -> None:
+        """Take the body velocity measured at ``t`` into the noise estimate
+        (:data:`NOISE_SAMPLES`); a gap in the periods restarts the differences."""
+        v = body_frame(x0[lay.X0_PHI], x0[lay.X0_VX], x0[lay.X0_VY], x0[lay.X0_R])[:2]
+        if self._t_noise is None or abs((t - self._t_noise) - self.period) > 0.25 * self.period:
+            self._v.clear()
+        self._t_noise = t
+        if len(self._v) == 2:
+            self._d2.extend(np.abs(v - 2.0 * self._v[1] + self._v[0]))
+            self._n_d2 += 1
+        self._v.append(v)
+        if self.warning is not None or self._n_d2 % 50:  # (a median every 50 periods)
+            return
+        s = self.velocity_noise()
+        if s is not None and s > NOISE_WARN * self.options.sigma_v:
+            self.warning = (
+                f"--adapt: the measured velocities carry about {s:.3g} m/s of noise, "
+                f"{s / self.options.sigma_v:.0f}x adapt_sigma_v ({self.options.sigma_v:g} "
+                f"m/s): the tire factors follow the noise (docs/CONTROLLER.md); set "
+                f"adapt_sigma_v={s:.2g} and adapt_window=10")
+
+    def velocity_noise(self) -> float | None:
+        """The measured velocities' noise [m/s] (:data:`NOISE_SAMPLES`), None before
+        :data:`NOISE_MIN` samples."""
+        if len(self._d2) < NOISE_MIN:
+            return None
+        return float(1.4826 * np.median(self._d2) / np.sqrt(6.0))
+
     def commanded(self, om_w: np.ndarray, om_s: np.ndarray, ref: np.ndarray | None = None
                   ) -> None:
         """The command sent for the state of the last :meth:`update` (``ref``: that
@@ -280,4 +321,7 @@ class TireAdaptation:
         out.update({f"{n}_sd": float(v) for n, v in zip(NAMES, sd)})
         out.update({f"{n}_excited": int(v) for n, v in zip(NAMES, self.excited)})
         out["updates"] = int(self.updates)
+        out["window"] = int(self.options.window)
+        out["velocity_noise"] = self.velocity_noise()
+        out["warning"] = self.warning
         return out

@@ -154,7 +154,10 @@ class MPC:
             ref = self._smoothed(ref)
         t, x0 = self._state_vector(state)
         if self.adaptation is not None:
+            warned = self.adaptation.warning
             self.adaptation.update(t, x0, state.get("omega_w"))
+            if self.adaptation.warning is not None and warned is None:
+                _log.warning("%s", self.adaptation.warning)
         if self.observer is not None:
             self.observer.update(t, x0)
         s = self.settings

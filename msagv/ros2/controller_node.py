@@ -1039,7 +1039,8 @@ class RosController:
         tires = self.mpc.adapted_tires() if self.mpc is not None else None
         v["adapt"] = "off" if tires is None else "on"
         for k, x in (tires or {}).items():
-            v[f"tires_{k}"] = f"{x:.6g}" if isinstance(x, float) else str(x)
+            v[f"tires_{k}"] = (f"{x:.6g}" if isinstance(x, float) else
+                               "" if x is None else str(x))
         if not self.active:
             return WARN, self.state_label(), v
         if self._safe:
