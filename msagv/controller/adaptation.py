@@ -14,19 +14,25 @@ so that the cornering stiffness ``B C D`` of each curve scales with ``c`` alone 
 identifies ``c`` and leaves ``f`` where it was). With the Dugoff model (DH) the same three
 factors scale its own cornering and longitudinal stiffnesses and its friction
 (``C_alpha c_lat``, ``C_s c_lon``, ``mu f``); TCT's lateral Magic Formula as ``mf``'s (it
-holds the reference's forward speed, so nothing informs ``c_lon``). Each control period, from the state measured
-at ``t - T``, the command sent then and the state measured at ``t``, a Kalman filter on
-``theta`` (a random walk, :class:`AdaptOptions`) takes the one-period velocity prediction
-error of the prediction model *without* the offset-free disturbance,
+holds the reference's forward speed, so nothing informs ``c_lon``). Every ``W`` control
+periods (``AdaptOptions.window``, default 1), from the state measured at ``t - W T``, the
+commands sent in each period since and the state measured at ``t``, a Kalman filter on
+``theta`` (a random walk, :class:`AdaptOptions`) takes the velocity prediction error of the
+prediction model *without* the offset-free disturbance over the window,
 
-    e = v_meas(t) - g(x(t - T), u(t - T); theta),   J = dg/dtheta (central differences),
-    P <- P + Q T;  K = P J^T (J P J^T + R)^-1;  theta <- theta + K e;  P <- (I - K J) P,
+    e = v_meas(t) - g(x(t - W T), u(t - W T), ..., u(t - T); theta),
+    J = dg/dtheta (central differences),
+    P <- P + Q W T;  K = P J^T (J P J^T + R)^-1;  theta <- theta + K e;  P <- (I - K J) P,
 
 (body frame; ``R`` the velocity measurement's variance), bounded to
 ``[theta_min, theta_max]``; a parameter whose column of ``J`` carries less information than
 ``R`` in a period (``|J_i|^2 < R``: a straight line at constant speed for ``c_lat``, a run far
 from the friction limit for ``f``) is not updated in that period (frozen; its covariance
-kept). The estimate goes into the model's parameters (and the feed-forward's cornering
+kept). With noisy measurements the prediction's start carries the noise into ``g``
+through the tires' response, correlated with ``J``: a window of about the tires' relaxation
+time (10 periods) keeps it from biasing the factors (docs/CONTROLLER.md, "Noisy odometry");
+:meth:`TireAdaptation.velocity_noise` measures the noise and warns when it exceeds
+``sigma_v``. The estimate goes into the model's parameters (and the feed-forward's cornering
 slip gain ``m / (n C_alpha)``), so every solve after it predicts with the adapted tires; the
 disturbance then removes what the three factors cannot explain.
 """
@@ -83,6 +89,7 @@ class AdaptOptions:
     drift [1/sqrt(s)]: how fast the true factors may wander (the random walk's Q = drift^2).
     sigma0: the factors' initial standard deviation (their prior: 1, the file's tires).
     bounds: the factors stay in [bounds[0], bounds[1]].
+    window: the control periods one update compares (the module docstring).
     """
 
     sigma_v: float = 1e-3
