@@ -127,3 +127,45 @@ def test_run_takes_measurement_noise_and_refuses_a_bad_one():
                            capture_output=True, text=True, timeout=300)
         assert p.returncode == 2 and "--measurement-noise" in p.stderr, p.stderr
         assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_a_plant_process_publishes_the_measured_state_and_sends_it_again_unchanged():
+    """msagv plant and msagv ros2 plant (their run, bridge.run_core.PlantRun): the states
+    published carry the measurement noise, a state sent again is the same message, the
+    next state has fresh noise, and the run's final state is the plant's own."""
+    from msagv.bridge.run_core import PlantRun, RunConfig
+
+    sc = Scenario(case="curve", speed=15.0, measurement_noise={"v": 0.01, "pos": 0.02, "seed": 1})
+    plant, _, _, _ = sc.make_plant()
+
+    class Port:  # the run's port, as far as publishing goes
+        def __init__(self):
+            self.sent = []
+
+        def send_state(self, k, st, end):
+            self.sent.append((k, dict(st)))
+
+    port = Port()
+    run = PlantRun(plant, RunConfig(steps=3), port, measure=sc.measurement())
+    true = plant.state_message()
+    run.publish_state(0)
+    run.publish_state(0)  # (a re-send: lockstep's, or state 0 while no controller answers)
+    (_, a), (_, b) = port.sent
+    assert a == b
+    assert a["vx"] != true["vx"] and a["x"] != true["x"] and a["y"] != true["y"]
+    assert a["W_s"] == true["W_s"] and list(a["delta"]) == list(true["delta"])
+    run.publish_state(1, end=True)
+    c = port.sent[-1][1]
+    assert c["vx"] != a["vx"] and c["vx"] != true["vx"]
+    assert run.final_state["vx"] == true["vx"] and run.final_state["x"] == true["x"]
+
+
+@pytest.mark.parametrize("cmd", [["plant"], ["ros2", "plant"]])
+def test_the_plant_processes_take_measurement_noise_and_refuse_a_bad_one(cmd):
+    p = subprocess.run([sys.executable, "-m", "msagv", *cmd, "--help"], capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0 and "--measurement-noise" in p.stdout, p.stderr[-2000:]
+    p = subprocess.run([sys.executable, "-m", "msagv", *cmd, "--measurement-noise=0.01,-2",
+                        "--duration", "1"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "--measurement-noise" in p.stderr, p.stderr[-2000:]
+    assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr

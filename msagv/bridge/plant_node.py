@@ -105,7 +105,7 @@ class PlantNode:
     goes through that :class:`bridge.transport.Transport`; it is the run's
     :class:`bridge.run_core.PlantPort`: ownership, claims, liveliness, re-sends."""
 
-    def __init__(self, plant, keys: Keys, cfg: PlantConfig, recorder=None):
+    def __init__(self, plant, keys: Keys, cfg: PlantConfig, recorder=None, measure=None):
         self.plant = plant
         self.vehicle = plant.vehicle
         self.nw = self.vehicle.n_wheels
@@ -114,7 +114,7 @@ class PlantNode:
         self.transport: Transport | None = None  # open()
         self.recording = recorder is not None
         self.core = PlantRun(plant, cfg, self, clock=WallClock(), recorder=recorder, log=log,
-                             stats=ZenohPlantStats())
+                             stats=ZenohPlantStats(), measure=measure)
         self.rec = self.core.rec
         self.stats = self.core.stats
         self.watch = self.core.watch
@@ -642,7 +642,8 @@ class PlantNode:
 
 # ---- the process ------------------------------------------------------------------------
 def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport | None = None,
-          recorder=None, signals: StopOnSignal | None = None) -> tuple[dict, int]:
+          recorder=None, signals: StopOnSignal | None = None,
+          measure=None) -> tuple[dict, int]:
     """Run the plant process: open the Zenoh session, serve one run, close everything.
 
     ``plant``: any object with the plant interface (:class:`plant.interface.PlantInterface`),
@@ -650,11 +651,12 @@ def serve(plant, cfg: PlantConfig, opts: SessionOptions, *, transport: Transport
     an open transport to run on instead of the Zenoh session of ``opts`` (the caller
     closes it); ``recorder``: an open :class:`bridge.recording.Recorder` or None
     (closed here, with the summary); ``signals``: the installed SIGINT/SIGTERM handler
-    whose event ends the run (the summary then names the signal).
+    whose event ends the run (the summary then names the signal); ``measure``: what the
+    published states carry of the plant's (:class:`plant.sensors.MeasurementNoise`).
     Returns ``(summary, exit code)``: 0 done or stopped, 2 the session could not open,
     3 the run could not go on (:class:`PlantRunError`).
     """
-    node = PlantNode(plant, Keys(opts.id), cfg, recorder=recorder)
+    node = PlantNode(plant, Keys(opts.id), cfg, recorder=recorder, measure=measure)
     if signals is not None:
         node.stop = signals.event
     rc = EXIT_OK

@@ -284,8 +284,13 @@ class PlantRun:
 
     def __init__(self, plant, cfg: RunConfig, port: PlantPort, *, clock: Clock | None = None,
                  recorder=None, log: logging.Logger | None = None,
-                 stop: threading.Event | None = None, stats: PlantStats | None = None):
+                 stop: threading.Event | None = None, stats: PlantStats | None = None,
+                 measure=None):
         self.plant = plant
+        # what the published states carry of the plant's (plant.sensors.MeasurementNoise):
+        # state k's measurement, drawn once, so that a state sent again is the same message
+        self.measure = measure
+        self._measured: tuple[tuple, dict] | None = None
         self.cfg = cfg
         self.port = port
         self.nw = plant.vehicle.n_wheels
@@ -327,7 +332,14 @@ class PlantRun:
             self.pub_perf[k] = time.perf_counter()
             while len(self.pub_perf) > 4096:
                 self.pub_perf.popitem(last=False)
-        self.port.send_state(k, st, end)
+        if self.measure is not None:
+            key = (k, st["x"], st["y"], st["phi"], st["vx"], st["vy"], st["r"])
+            if self._measured is None or self._measured[0] != key:
+                self._measured = (key, self.measure(st))
+            sent = dict(self._measured[1])
+        else:
+            sent = st
+        self.port.send_state(k, sent, end)
         if end:
             self.final_state = st
 

@@ -312,6 +312,17 @@ def add_plant_vehicle_arg(ap: argparse.ArgumentParser) -> None:
                          "controller keeps --vehicle as its belief (default: the same vehicle)")
 
 
+def add_measurement_noise_arg(ap: argparse.ArgumentParser) -> None:
+    """``--measurement-noise V,R[,POS,PHI]``: where a plant is simulated, the noise of what
+    the controller measures (``Scenario.measurement_noise``)."""
+    ap.add_argument("--measurement-noise", metavar="V,R[,POS,PHI]",
+                    help="noise on the state the controller receives, as a real vehicle's "
+                         "odometry has: standard deviations of vx and vy [m/s], the yaw rate "
+                         "[rad/s], x and y [m], the heading [rad] (white, Gaussian, seeded by "
+                         "--seed where there is one; the plant's own state and metrics stay "
+                         "true); e.g. 0.01,0.002")
+
+
 def _choices_help(table: dict, default: str, lead: str = "") -> str:
     """``lead``, then ``name: what it is`` for each entry of a table, the default marked."""
     items = [f"{k}: {v}{' (default)' if k == default else ''}" for k, v in table.items()]

@@ -25,6 +25,7 @@ from msagv.bridge.process import (EXIT_OK, EXIT_USAGE, StopOnSignal, set_realtim
 
 from msagv.plant.signals import CONTROL_PERIOD
 from .args import (OptionError, add_case_args, add_common_args, add_fmu_args, add_mpc_args,
+                   add_measurement_noise_arg,
                    add_session_args, check_output, options_from_args, scenario_from_args)
 from .errors import USAGE_ERRORS
 from .foxglove_cli import add_foxglove_args, check_foxglove_args, open_foxglove
@@ -106,6 +107,7 @@ def add_run_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--safe-decel", type=float, default=d.safe_decel, metavar="M/S2",
                     help="realtime safe behaviour: wheel ramp-down at the rim "
                          f"(default {d.safe_decel:g})")
+    add_measurement_noise_arg(ap)  # the states published are the measured ones
 
 
 def run_options(a, duration: float) -> dict:
@@ -199,7 +201,8 @@ def plant_main(argv: list[str]) -> int:
         return EXIT_USAGE
     summary = None
     try:
-        summary, rc = serve(plant, cfg, opts, recorder=rec, signals=sig)
+        summary, rc = serve(plant, cfg, opts, recorder=rec, signals=sig,
+                            measure=scenario.measurement())
     finally:
         # a loop left behind may still step the plant (an FMU): not freed under it, the
         # process leaves with os._exit below

@@ -305,7 +305,8 @@ def plant_main(argv: list[str]) -> int:
     try:
         # the node first: its parameters (-p, --params-file) are the run's settings, and a
         # bad one is refused before a recording is opened (an existing file left as it was)
-        node = RosPlant(plant, cfg, ros_args, stop=sig.event, managed=a.managed)
+        node = RosPlant(plant, cfg, ros_args, stop=sig.event, managed=a.managed,
+                        measure=scenario.measurement())
         cfg = node.cfg
         header = {"role": "plant", "id": "ros2", "vehicle": vehicle.to_dict(),
                   "period": cfg.period, "run_mode": cfg.run_mode, "steps": cfg.steps,

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from .args import (PLOT_SUFFIXES, OptionError, add_case_args, add_common_args, add_fmu_args,
-                   add_plant_vehicle_arg,
+                   add_measurement_noise_arg, add_plant_vehicle_arg,
                    add_mpc_args, add_tire_price_arg, check_distinct, check_output,
                    check_tire_price, fail, scenario_from_args, tire_price, warn)
 from .foxglove_cli import add_foxglove_args, check_foxglove_args
@@ -39,11 +39,7 @@ def build_parser(prog: str = "msagv run", fmu: bool = False) -> argparse.Argumen
                              "below override its values")
     add_case_args(ap)
     add_plant_vehicle_arg(ap)
-    ap.add_argument("--measurement-noise", metavar="V,R[,POS,PHI]",
-                    help="noise on what the controller measures, as a real vehicle's odometry "
-                         "has: standard deviations of vx and vy [m/s], the yaw rate [rad/s], "
-                         "x and y [m], the heading [rad] (white, Gaussian, seeded by --seed; "
-                         "the plant and the metrics keep the true state); e.g. 0.01,0.002")
+    add_measurement_noise_arg(ap)
     add_mpc_args(ap)
     ap.add_argument("--json", action="store_true",
                     help="print the result as one JSON object (docs/SCENARIOS.md#results)")

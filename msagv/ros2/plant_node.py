@@ -162,7 +162,7 @@ class RosPlant:
     declared at once."""
 
     def __init__(self, plant, cfg: RosPlantConfig, ros_args: list[str], recorder=None,
-                 stop: threading.Event | None = None, managed: bool = False):
+                 stop: threading.Event | None = None, managed: bool = False, measure=None):
         self.plant = plant
         self.vehicle = plant.vehicle
         self.nw = self.vehicle.n_wheels
@@ -200,7 +200,7 @@ class RosPlant:
             clock = PausableClock(clock, paused=True)
         self.clock = clock
         self.core = PlantRun(plant, cfg, self, recorder=recorder, log=log, stop=stop,
-                             clock=clock)
+                             clock=clock, measure=measure)
         self.rec, self.stop, self.stats = self.core.rec, self.core.stop, self.core.stats
         self.pubs: dict = {}
         self._subs: list = []
