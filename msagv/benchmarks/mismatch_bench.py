@@ -131,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     for c, v, s, p, var in tqdm(jobs, file=sys.stderr, disable=a.json or not sys.stderr.isatty()):
         rows.append(run_one(c, v, s, var, a.method, a.duration, p, extra, a.solver, noise))
     if a.json:
-        print(json.dumps({"rows": rows, "wall_s": time.time() - t0}, indent=1))
+        print(json.dumps({"rows": rows, "wall_s": time.time() - t0, "noise": noise},
+                         indent=1))
         return 0
     print(f"lateral RMS [cm] (ratio to the true model) and W_tw [J]; {a.method}, solver "
           f"{a.solver}, {a.duration:g} s per run" + (f"; {' '.join(a.set)}" if a.set else "")

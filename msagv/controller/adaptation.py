@@ -53,10 +53,13 @@ from .models import ADAPTABLE, MODELS
 NAMES = ("c_lat", "c_lon", "f")
 # The velocity noise the measurements carry, estimated from their second differences over
 # consecutive periods (white noise of deviation s gives them deviation s sqrt(6); a vehicle's
-# own motion changes its velocity smoothly, by ~1e-3 m/s in the second difference at 1 m/s^3
-# of jerk): the median of the last NOISE_SAMPLES, once NOISE_MIN of them are in; warned about
-# (once) when above NOISE_WARN times adapt_sigma_v.
+# own motion changes its velocity smoothly, by jerk T^2 = 1e-4 m/s in the second difference
+# at 1 m/s^3 of jerk): the median of the last NOISE_SAMPLES (u's and v's: half as many
+# periods), once NOISE_MIN of them are in; warned about (once) when above NOISE_WARN times
+# adapt_sigma_v.
 NOISE_SAMPLES, NOISE_MIN, NOISE_WARN = 400, 200, 3.0
+# the longest window: its update predicts it seven times within one control period's solve
+WINDOW_MAX = 100
 # The prediction's entries the adaptation writes with the Magic Formula tires (``_apply`` and
 # the feed-forward's gain): a solver that builds the prediction into its own code (IPOPT,
 # acados) takes them as parameters of each solve when ``--adapt`` is on (:func:`values`).
@@ -103,9 +106,9 @@ class AdaptOptions:
                 and 0 < self.bounds[0] < 1 < self.bounds[1]):
             raise ValueError("AdaptOptions: sigma_v, sigma0 > 0, drift >= 0, "
                              "0 < bounds[0] < 1 < bounds[1]")
-        if not (isinstance(self.window, int) and self.window >= 1):
-            raise ValueError(f"AdaptOptions: window must be a whole number of periods >= 1, "
-                             f"got {self.window!r}")
+        if not (isinstance(self.window, int) and 1 <= self.window <= WINDOW_MAX):
+            raise ValueError(f"AdaptOptions: window must be a whole number of periods in "
+                             f"1..{WINDOW_MAX}, got {self.window!r}")
 
 
 class Window:
@@ -114,6 +117,8 @@ class Window:
     the disturbance: the body-frame velocity at the window's end."""
 
     def __init__(self, model, period: float, steps: int):
+        if model.model_id == _ro.MODEL_KINEMATIC:  # (its pose update is forward Euler)
+            raise ValueError("the adaptation's window needs a dynamic model (mf, dugoff, tct)")
         nw = model.n_wheels
         self.model = model
         self.period = float(period)
@@ -211,7 +216,10 @@ class TireAdaptation:
         mean over each period, ``u + (omega_k - u) (tau / T) (1 - exp(-T / tau))``, with
         ``omega_{k+1} = u + (omega_k - u) exp(-T / tau)``. The prediction model has no lag:
         without this the adaptation reads the lag as a softer longitudinal tire (``c_lon``
-        at its lower bound on a vehicle whose tires are the file's)."""
+        at its lower bound on a vehicle whose tires are the file's). Like the body's state,
+        the wheels are taken as measured at the window's start only and predicted from
+        there (the speeds measured inside it would bring their noise back into the
+        prediction)."""
         tau = float(self.P0[lay.P_WHEEL_LAG])
         nw = self.model.n_wheels
         if not (tau > 0 and om_start is not None and om_start.size == nw

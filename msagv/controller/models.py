@@ -9,6 +9,7 @@ the optimiser are shared, which is the paper's "unified framework" for its basel
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass, field, fields, replace
 from typing import NamedTuple
 
@@ -206,9 +207,8 @@ class MPCSettings:
             bad = f"offset_free: expected true or false, got {self.offset_free!r}"
         elif not (math.isfinite(self.adapt_sigma_v) and self.adapt_sigma_v > 0):
             bad = f"adapt_sigma_v: must be a finite speed > 0 m/s, got {self.adapt_sigma_v}"
-        elif (isinstance(self.adapt_window, bool) or not isinstance(self.adapt_window, int)
-              or not 1 <= self.adapt_window <= 1000):
-            bad = f"adapt_window: must be a whole number of periods in 1..1000, got {self.adapt_window!r}"
+        elif not _whole(self.adapt_window, 1, 100):
+            bad = f"adapt_window: must be a whole number of periods in 1..100, got {self.adapt_window!r}"
         elif self.adapt and self.model not in ADAPTABLE:
             bad = (f"adapt: the online tire adaptation needs a tire model "
                    f"({', '.join(repr(m) for m in ADAPTABLE)}), not {self.model!r}")
@@ -224,6 +224,7 @@ class MPCSettings:
         if bad:
             raise ValueError(f"MPCSettings.{bad}")
         object.__setattr__(self, "blocks", tuple(int(b) for b in self.blocks))
+        object.__setattr__(self, "adapt_window", int(self.adapt_window))
 
     @property
     def offset_free_on(self) -> bool:
@@ -288,6 +289,16 @@ class Rollout(NamedTuple):
     poses: np.ndarray  # (B, N_p, 3) x, y, phi at steps 1..N_p
     wear: np.ndarray  # (B, N_p, 3) P_s, P_alpha, P_t over steps 0..N_p-1 [W]
     first_commands: np.ndarray  # (B, 2, 2n) omega_w, omega_s of step 0
+
+
+def _whole(v, lo: int, hi: int) -> bool:
+    """``v`` is a whole number (an int or a numpy integer, not a bool) in ``lo..hi``."""
+    if isinstance(v, bool):
+        return False
+    try:
+        return lo <= operator.index(v) <= hi
+    except TypeError:
+        return False
 
 
 def pack_settings(vehicle: Vehicle, s: MPCSettings) -> np.ndarray:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 # name in a scenario's [measurement_noise] table: (what it perturbs, unit)
-FIELDS = {"v": ("the body's velocity vx and vy, each", "m/s"),
+FIELDS = {"v": ("the body's velocity, along and across the body, each", "m/s"),
           "r": ("the yaw rate", "rad/s"),
           "pos": ("the position x and y, each", "m"),
           "phi": ("the heading", "rad")}
@@ -86,13 +86,22 @@ class MeasurementNoise:
         return {k: getattr(self, k) for k in (*FIELDS, "seed")}
 
     def __call__(self, state: dict) -> dict:
-        """A copy of the state message with the noise added (the next draws of the stream)."""
+        """A copy of the state message with the noise added (the next draws of the stream).
+        The velocity's noise is the body frame's (wheel odometry and an IMU measure the
+        twist in the body): added to the body-frame velocity of the true heading, then
+        turned into the message's frame with the measured heading, so that the heading's
+        noise does not reach the body velocity a reader recovers with it."""
         e = self._rng.standard_normal(6)
         out = dict(state)
-        out["vx"] = state["vx"] + self.v * e[0]
-        out["vy"] = state["vy"] + self.v * e[1]
+        phi = state["phi"]
+        c, s = math.cos(phi), math.sin(phi)
+        u = c * state["vx"] + s * state["vy"] + self.v * e[0]
+        w = -s * state["vx"] + c * state["vy"] + self.v * e[1]
+        out["phi"] = phi + self.phi * e[5]
+        cm, sm = math.cos(out["phi"]), math.sin(out["phi"])
+        out["vx"] = cm * u - sm * w
+        out["vy"] = sm * u + cm * w
         out["r"] = state["r"] + self.r * e[2]
         out["x"] = state["x"] + self.pos * e[3]
         out["y"] = state["y"] + self.pos * e[4]
-        out["phi"] = state["phi"] + self.phi * e[5]
         return out
