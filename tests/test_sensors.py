@@ -202,3 +202,25 @@ def test_the_plant_processes_take_measurement_noise_and_refuse_a_bad_one(cmd):
                         "--duration", "1"], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and "--measurement-noise" in p.stderr, p.stderr[-2000:]
     assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_the_ros_odometry_carries_the_noise_as_its_covariance():
+    """msagv ros2 plant with measurement noise: its nav_msgs/Odometry's pose and twist
+    covariances carry the noise's variances on their diagonals (x, y, yaw; vx, vy, wz), as
+    a consumer such as robot_localization reads them, through the CDR encoding; zero
+    without noise."""
+    from msagv.bridge import ros_msgs as R
+    from msagv.plant import default_vehicle
+
+    st = dict(STATE, delta=[0.0] * 4, omega_w=[10.0] * 4)
+    noise = MeasurementNoise(v=0.01, r=0.002, pos=0.02, phi=0.001)
+    for n, pose_diag, twist_diag in ((noise, (4e-4, 4e-4, 1e-6), (1e-4, 1e-4, 4e-6)),
+                                     (None, (0, 0, 0), (0, 0, 0))):
+        msg = R.RunMessages(default_vehicle(), noise=n).odom(st)
+        back = R.decode(R.encode(msg, R.TYPES[R.ODOM]), R.TYPES[R.ODOM])
+        pc = np.asarray(back.pose.covariance).reshape(6, 6)
+        tc = np.asarray(back.twist.covariance).reshape(6, 6)
+        assert np.diag(pc)[[0, 1, 5]] == pytest.approx(pose_diag, abs=1e-15)
+        assert np.diag(tc)[[0, 1, 5]] == pytest.approx(twist_diag, abs=1e-15)
+        assert np.count_nonzero(pc - np.diag(np.diag(pc))) == 0 and pc[2, 2] == pc[3, 3] == 0
+        assert np.count_nonzero(tc - np.diag(np.diag(tc))) == 0

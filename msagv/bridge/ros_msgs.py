@@ -305,11 +305,20 @@ class RunMessages:
     """The ROS 2 messages of one run's states (see the module docstring), with the little
     state they need: the wheels' integrated angles (JointState positions of ``wheel_ij``),
     the previous per-wheel wear work (for the wear power) and the peak wear power (the
-    wheels' colour scale). ``vehicle``: a :class:`plant.vehicle.Vehicle`."""
+    wheels' colour scale). ``vehicle``: a :class:`plant.vehicle.Vehicle`; ``noise``: the
+    measurement noise of the states (:class:`plant.sensors.MeasurementNoise`), whose
+    variances the odometry's covariances then carry (zero without: the state is exact)."""
 
-    def __init__(self, vehicle, period: float = CONTROL_PERIOD):
+    def __init__(self, vehicle, period: float = CONTROL_PERIOD, noise=None):
         self.vehicle = vehicle
         self.period = float(period)
+        # the odometry's covariances (6 x 6, row-major: x, y, z, roll, pitch, yaw; the
+        # twist's in base_link), their diagonal the noise's variances
+        self._pose_cov = np.zeros(36)
+        self._twist_cov = np.zeros(36)
+        if noise is not None:
+            self._pose_cov[[0, 7, 35]] = (noise.pos ** 2, noise.pos ** 2, noise.phi ** 2)
+            self._twist_cov[[0, 7, 35]] = (noise.v ** 2, noise.v ** 2, noise.r ** 2)
         self.nw = vehicle.n_wheels
         self.steer_names = steer_joints(self.nw)
         self.wheel_names = wheel_joints(self.nw)
@@ -374,8 +383,10 @@ class RunMessages:
                     angular=new("geometry_msgs/msg/Vector3", x=0.0, y=0.0, z=float(st["r"])))
         return new("nav_msgs/msg/Odometry", header=header(st["t"], FRAME_ODOM),
                    child_frame_id=FRAME_BASE,
-                   pose=new("geometry_msgs/msg/PoseWithCovariance", pose=pose),
-                   twist=new("geometry_msgs/msg/TwistWithCovariance", twist=twist))
+                   pose=new("geometry_msgs/msg/PoseWithCovariance", pose=pose,
+                            covariance=self._pose_cov),
+                   twist=new("geometry_msgs/msg/TwistWithCovariance", twist=twist,
+                             covariance=self._twist_cov))
 
     def tf(self, st: Mapping):
         tr = new("geometry_msgs/msg/Transform",

@@ -179,7 +179,7 @@ class RosPlant:
             self.ctx.close()
             raise
         self.cfg = cfg
-        self.msgs = R.RunMessages(self.vehicle, cfg.period)
+        self.msgs = R.RunMessages(self.vehicle, cfg.period, noise=measure)
         self.rej = M.Rejections("ros2 plant", log)
         self.key_state = f"msagv/{cfg.vehicle_id}/state"
         self.key_cmd = f"msagv/{cfg.vehicle_id}/cmd"
