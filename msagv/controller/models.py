@@ -118,7 +118,7 @@ class MPCSettings:
       more slowly and less on noise).
       adapt_window [periods]: the adaptation compares the velocity measured at the end of
       this many control periods with the prediction from the state measured at their start
-      (one update per window). 1 reads one period; with noisy odometry a longer window
+      (one update per window; 1..100). 1 reads one period; with noisy odometry a longer window
       (10: 0.1 s) keeps the noise of the start state from biasing the factors
       (docs/CONTROLLER.md).
     """
