@@ -317,10 +317,11 @@ def add_measurement_noise_arg(ap: argparse.ArgumentParser) -> None:
     the controller measures (``Scenario.measurement_noise``)."""
     ap.add_argument("--measurement-noise", metavar="V,R[,POS,PHI]",
                     help="noise on the state the controller receives, as a real vehicle's "
-                         "odometry has: standard deviations of vx and vy [m/s], the yaw rate "
-                         "[rad/s], x and y [m], the heading [rad] (white, Gaussian, seeded by "
-                         "--seed where there is one; the plant's own state and metrics stay "
-                         "true); e.g. 0.01,0.002")
+                         "odometry has: standard deviations of the body's velocity along "
+                         "and across it [m/s], the yaw rate [rad/s], x and y [m], the "
+                         "heading [rad] (white, Gaussian, seeded by --seed where there is "
+                         "one; the plant itself stays exact; docs/SCENARIOS.md); e.g. "
+                         "0.01,0.002")
 
 
 def _choices_help(table: dict, default: str, lead: str = "") -> str:
