@@ -98,8 +98,9 @@ class Scenario:
         have as many wheels as the controller's vehicle.
     measurement_noise : the noise of the controller's measurements, as a real vehicle's
         odometry has (:class:`plant.sensors.MeasurementNoise`: standard deviations ``v``
-        [m/s] of vx and vy, ``r`` [rad/s], ``pos`` [m] of x and y, ``phi`` [rad], and
-        ``seed``); the plant and the metrics keep the true state. Default none.
+        [m/s] of the body's velocity along and across it, ``r`` [rad/s], ``pos`` [m] of x
+        and y, ``phi`` [rad], and ``seed``); the plant and the metrics keep the true state.
+        Default none.
     """
 
     vehicle: Any = None
