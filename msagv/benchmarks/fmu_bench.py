@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from msagv.plant.signals import CONTROL_PERIOD
+
 WARMUP_STEPS = 20
 
 
@@ -74,7 +76,7 @@ def _host(fmu_path: Path, U: np.ndarray, h: float) -> list[float]:
 
 
 def bench_fmu(seconds: float = 10.0, repeats: int = 3, fmu_path: str | Path | None = None,
-              h: float = 0.01) -> dict:
+              h: float = CONTROL_PERIOD) -> dict:
     """Per-step wall time (p50/p99/mean in microseconds) of the FMU under fmpy and the
     native plant, and their ratios (FMU / native, by p50 and by mean)."""
     from msagv.fmu_build.build import build_fmu
