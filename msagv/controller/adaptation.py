@@ -139,7 +139,6 @@ class Window:
         steps * 2n: each period's omega_w then omega_s) with the parameters ``P`` (the
         reference rows :attr:`ref` set by the caller, for TCT). The velocity is read off the
         predicted poses by inverting the trapezoidal update step by step."""
-        self.S[lay.S_K_ALPHA] = self.model.S[lay.S_K_ALPHA]
         _ro.EXACT.rollout_batch(self.model.model_id, x0, self.ref, Z, self._block, P, self.S,
                                 self.model.wx, self.model.wy, self.poses, self._wear,
                                 self._cmds)
