@@ -156,19 +156,22 @@ def check_vehicles(plants, vehicle: str | None = None, trajectory: str | None = 
 
 # ---- the inputs: paths and plants as files -----------------------------------------------------
 def write_inputs(out: Path, plants, n_paths: int, vehicle: str | None = None,
-                 trajectory: str | None = None) -> tuple[list[Path], dict[str, Path], Path]:
+                 trajectory: str | None = None, base=None
+                 ) -> tuple[list[Path], dict[str, Path], Path]:
     """The path files, the plants' vehicle files and the manoeuvre under ``OUT/inputs/``
     (written once, deterministic: rewriting them gives the same bytes). ``vehicle``: the
     controller's vehicle file (default the paper's), which the factor plants, the random
     paths and the manoeuvre are made for; ``trajectory``: your own path instead of the
-    random ones; a plant given as a file is copied as it is."""
+    random ones; a plant given as a file is copied as it is. ``base``: that vehicle, where
+    the caller has loaded it (:func:`check_vehicles`)."""
     from msagv.experiments.calibrate import maneuver, maneuver_csv, vehicle_toml
     from msagv.experiments.scenario import Scenario
     from msagv.plant.vehicle import default_vehicle, load_vehicle
 
     d = out / "inputs"
     d.mkdir(parents=True, exist_ok=True)
-    base = load_vehicle(vehicle) if vehicle else default_vehicle()
+    if base is None:
+        base = load_vehicle(vehicle) if vehicle else default_vehicle()
 
     def put(p: Path, text: str | bytes) -> Path:
         data = text if isinstance(text, bytes) else text.encode()
@@ -254,9 +257,9 @@ def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, sch
     d = out / "identified"
     d.mkdir(parents=True, exist_ok=True)
     digest = code_digest()
+    own = Path(vehicle).read_bytes() if vehicle else b""
     have, todo = {}, []
     for name, f in files.items():
-        own = Path(vehicle).read_bytes() if vehicle else b""
         key = hashlib.sha256(f.read_bytes() + man.read_bytes() + digest.encode() + own
                              ).hexdigest()[:16]
         js, toml = d / f"{_plant_slug(name)}.json", d / f"{_plant_slug(name)}.toml"
@@ -337,7 +340,7 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
                             "path)")
     n_paths = PATHS if n_paths is None else int(n_paths)
     seeds = tuple(SEEDS if seeds is None else seeds)
-    check_vehicles(plants, vehicle, trajectory)
+    base = check_vehicles(plants, vehicle, trajectory)
     if n_paths < 2 and trajectory is None:
         raise ScenarioError(f"--paths: at least 2 (the interval resamples paths), got {n_paths}")
     if not seeds or any(k < 0 for k in seeds):
@@ -348,7 +351,7 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     vehicle = None if vehicle is None else str(Path(vehicle).resolve())
-    paths, files, man = write_inputs(out, plants, n_paths, vehicle, trajectory)
+    paths, files, man = write_inputs(out, plants, n_paths, vehicle, trajectory, base)
     identified = identify_plants(files, man, out, jobs, scheduler, force, progress, vehicle)
     duration = None if trajectory is not None else DURATION
     scenarios = design(paths, files, identified, seeds, vehicle, duration)
