@@ -396,3 +396,22 @@ def test_experiment_progress_only_on_a_terminal_and_json_rows(tmp_path, capsys):
     assert row["scenario"]["method"] == "two" and set(row["metrics"]) >= {"W_tw", "e_bar"}
     rc, out, err = run(capsys, "experiment", "case3", "--masses", "8", "--out", tmp_path)
     assert rc == 2 and "--masses: in kg" in err
+
+
+def test_a_row_cut_by_ctrl_c_inside_append_is_dropped_whole(tmp_path):
+    """A Ctrl-C that lands inside RunLog.append (its time and pose appended, its commands
+    not: seen on a loaded machine, the CSV then failed with a reshape error and msagv run
+    exited 1 instead of 130): cut_short drops the partial row, and the log writes."""
+    from msagv.controller.loop import RunLog, closed_loop
+    from msagv.experiments.scenario import Scenario
+
+    b = Scenario(case="curve", speed=15.0, settings={"method": "ntwo"}).build()
+    log = closed_loop(b.plant, b.controller, b.reference, 0.05, period=0.01, progress=False)
+    st = b.plant.state_message()
+    log.t.append(0.05)  # the interrupted row: its first lists only
+    log.pose.append((st["x"], st["y"], st["phi"]))
+    log.cut_short()
+    assert log.interrupted and len(log.t) == len(log.omega_w) == len(log.signals) == 5
+    log.to_csv(tmp_path / "log.csv")
+    assert len((tmp_path / "log.csv").read_text().splitlines()) == 6
+    assert isinstance(log, RunLog)

@@ -120,8 +120,15 @@ class RunLog:
 
     def cut_short(self) -> None:
         """Mark the run as interrupted: the metrics cover the rows logged so far (the wear
-        work up to the last row's state)."""
+        work up to the last row's state). A row that a Ctrl-C cut in the middle of
+        :meth:`append` (some of its lists appended, not the rest) is dropped whole, so every
+        list keeps the same rows."""
         self.interrupted = True
+        rows = ("t", "pose", "ref", "omega_w", "omega_s", "W", "solve_ms", "cost", "signals",
+                "W_ij")
+        n = min(len(getattr(self, k)) for k in rows)
+        for k in rows:
+            del getattr(self, k)[n:]
         if self.W:
             self.W_final = tuple(self.W[-1])
 
