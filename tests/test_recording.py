@@ -375,3 +375,17 @@ def test_an_event_may_carry_a_field_called_name(tmp_path):
     stats = rec.close({})
     assert stats["errors"] == 0 and stats["dropped"] == 0, stats
     NullRecorder().event("reference", t=1.0, name="case1-curve")
+
+
+def test_a_detached_bag_writer_finishes_quietly_when_its_reader_is_gone():
+    """The ROS 2 bag's writer process, detached by a plant stopped by a signal, finds no one
+    reading its account at the end: it exits 0 without a traceback (a loaded clean clone's
+    full-disk test saw 'BrokenPipeError' in the plant's stderr)."""
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-m", "msagv.bridge.ros_bag"], stdin=subprocess.PIPE,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()  # the reader is gone before the account is written
+    _, err = p.communicate(b"", timeout=120)
+    assert p.returncode == 0 and b"Traceback" not in err and b"BrokenPipe" not in err, err

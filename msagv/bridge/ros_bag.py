@@ -393,8 +393,13 @@ def main() -> int:
             bag.close()
         except Exception as e:  # noqa: BLE001
             error = f"{type(e).__name__}: {e}"
-    print(json.dumps({"messages": bag.messages if bag is not None else 0, "error": error}),
-          flush=True)
+    try:
+        print(json.dumps({"messages": bag.messages if bag is not None else 0, "error": error}),
+              flush=True)
+    except BrokenPipeError:
+        # the recording process detached (RosBagWriter.detach: a run stopped by a signal)
+        # and is gone: nobody reads the account; the bag is finished all the same
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
 
 
