@@ -221,6 +221,8 @@ def test_the_adaptation_finds_the_plants_cornering_stiffness(model, solver):
     e_adapt, est = _adapted_run(1.2, model=model, solver=solver)
     assert est["c_lat"] == pytest.approx(1.2 ** 2, rel=0.03), est
     assert est["c_lat_excited"] > 500
+    # exact measurements: adapt_noise=auto never took them for noisy
+    assert est["noise_switch"] is None and est["window"] == 1 and est["sigma_v"] == 1e-3, est
     base = Scenario(case="curve", plant_tire_scale=1.2)
     truth = Scenario(case="curve", speed=25.0, vehicle=base.actual_vehicle(base.resolve_vehicle()),
                      settings={"method": "ntwo", "model": model}, solver=solver).build()
@@ -364,6 +366,45 @@ def test_with_noisy_odometry_a_window_keeps_the_cornering_factor_unbiased(noise_
     assert 0.0075 < est["velocity_noise"] < 0.0125 and est["warning"] is None, est
 
 
+@pytest.mark.parametrize("noise_seed", [0, 1])
+def test_with_noisy_odometry_the_default_adaptation_follows_the_noise(noise_seed):
+    """The same noisy curve with the adaptation's defaults (adapt_sigma_v 1 mm/s, one
+    period, adapt_noise=auto): with adapt_noise=fixed the noise drove the factors to their
+    bounds (c_lat 1.70, c_lon and f at 2.0 for x1.2 tires, docs/CONTROLLER.md); auto
+    notices the noise within the first 0.3 s, restarts from the file's tires with the
+    measured noise as R and a window of ten periods, and finds the cornering factor as the
+    hand-set recipe does, with no warning."""
+    sc = Scenario(case="curve", speed=25.0, plant_tire_scale=1.2,
+                  settings={"method": "ntwo", "adapt": True},
+                  measurement_noise={"v": 0.01, "r": 0.002, "seed": noise_seed})
+    b = sc.build()
+    closed_loop(b.plant, b.controller, b.reference, 8.0, period=0.01, progress=False,
+                outputs=False, measure=b.measure)
+    est = b.controller.adapted_tires()
+    sw = est["noise_switch"]
+    assert sw is not None and sw["t"] < 0.3 and sw["window"] == 10, est
+    assert est["window"] == 10 and 0.0075 < est["sigma_v"] < 0.0125, est
+    assert est["c_lat"] == pytest.approx(1.2 ** 2, rel=0.03), est
+    assert est["warning"] is None and est["c_lat_excited"] > 50, est
+
+
+def test_without_noise_auto_is_the_fixed_filter_to_the_bit():
+    """adapt_noise=auto changes nothing where the measurements are exact: the same commands
+    and factors as adapt_noise=fixed, bit for bit (x0.8 tires on the Case 1 curve)."""
+    out = []
+    for mode in ("auto", "fixed"):
+        b = Scenario(case="curve", speed=25.0, plant_tire_scale=0.8,
+                     settings={"method": "ntwo", "adapt": True, "adapt_noise": mode}).build()
+        log = closed_loop(b.plant, b.controller, b.reference, 3.0, period=0.01,
+                          progress=False, outputs=False)
+        est = b.controller.adapted_tires()
+        out.append((np.asarray(log.omega_w), np.asarray(log.omega_s),
+                    [est[k] for k in ("c_lat", "c_lon", "f")], est["updates"]))
+    (w0, s0, th0, n0), (w1, s1, th1, n1) = out
+    assert n0 == n1 > 0 and th0 == th1 and th0 != [1.0, 1.0, 1.0]
+    assert np.array_equal(w0, w1) and np.array_equal(s0, s1)
+
+
 def test_the_adaptation_measures_the_velocity_noise():
     """A vehicle accelerating at 2 m/s^2, its velocity measured with white noise of
     deviation s: the second differences of consecutive measurements estimate s (within
@@ -371,12 +412,13 @@ def test_the_adaptation_measures_the_velocity_noise():
     a difference across it would see the acceleration (2 a T = 0.04 m/s), and two in three
     would, so the estimate is right only if a gap restarts the differences. Above 3x
     adapt_sigma_v the estimate carries a warning naming the settings to use."""
-    from msagv.controller.adaptation import NOISE_MIN, TireAdaptation
+    from msagv.controller.adaptation import NOISE_MIN, AdaptOptions, TireAdaptation
     from msagv.plant.sensors import MeasurementNoise
 
     v = default_vehicle()
     for s in (0.0, 0.002, 0.01):
-        ad = TireAdaptation(make_model(v, MPCSettings(method="ntwo")), 0.01)
+        ad = TireAdaptation(make_model(v, MPCSettings(method="ntwo")), 0.01,
+                            AdaptOptions(noise="fixed"))
         noise = MeasurementNoise(v=s, seed=4)
         x0 = np.zeros(lay.X0_DELTA + v.n_wheels)
         t = 0.0
@@ -399,22 +441,36 @@ def test_the_adaptation_measures_the_velocity_noise():
             assert est["warning"] is None, est  # 2 mm/s: 2x the default 1 mm/s, no warning
 
 
-def test_noisy_measurements_are_warned_about_once(caplog):
+@pytest.mark.parametrize("mode", ["fixed", "auto"])
+def test_noisy_measurements_are_warned_about_or_noted_once(caplog, mode):
     """A closed loop whose velocities are measured with 1 cm/s of noise, the adaptation
-    told 1 mm/s (the default): one warning in the controller's log, however long it runs;
-    none without noise."""
+    told 1 mm/s (the default): with adapt_noise=fixed one warning in the controller's log
+    naming the settings to use, however long it runs; with auto no warning and one note
+    (INFO) that it follows the noise; neither without noise."""
     import logging
 
-    for noise, n_warn in (({"v": 0.01, "r": 0.002}, 1), ({}, 0)):
+    for noise, n in (({"v": 0.01, "r": 0.002}, 1), ({}, 0)):
         caplog.clear()
-        sc = Scenario(case="curve", speed=25.0, settings={"method": "ntwo", "adapt": True},
-                      measurement_noise=noise)
+        sc = Scenario(case="curve", speed=25.0, measurement_noise=noise,
+                      settings={"method": "ntwo", "adapt": True, "adapt_noise": mode})
         b = sc.build()
-        with caplog.at_level(logging.WARNING, logger="msagv.controller"):
+        with caplog.at_level(logging.INFO, logger="msagv.controller"):
             closed_loop(b.plant, b.controller, b.reference, 4.0, period=0.01,
                         progress=False, outputs=False, measure=b.measure)
         got = [r for r in caplog.records if "measured velocities carry" in r.getMessage()]
-        assert len(got) == n_warn, [r.getMessage() for r in got]
+        want = logging.WARNING if mode == "fixed" else logging.INFO
+        assert [r.levelno for r in got] == [want] * n, [r.getMessage() for r in got]
+        if n and mode == "fixed":
+            assert "adapt_window=10" in got[0].getMessage()
+        est = b.controller.adapted_tires()
+        assert (est["noise_switch"] is not None) == (n == 1 and mode == "auto"), est
+
+
+def test_adapt_noise_is_checked():
+    for bad in ("Auto", "", "on", None, 1):
+        with pytest.raises(ValueError, match="adapt_noise"):
+            MPCSettings(adapt_noise=bad)
+    assert MPCSettings.parse_assignments(["adapt_noise=fixed"]) == {"adapt_noise": "fixed"}
 
 
 def test_adapt_window_is_checked():

@@ -1170,6 +1170,9 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         from msagv.controller.adaptation import NAMES
         assert all(f"tires_{k}" in d and f"tires_{k}_sd" in d for k in NAMES), d
         assert d["tires_updates"].isdigit()
+        # exact odometry: adapt_noise=auto has not switched (its keys there, empty)
+        assert d["tires_noise"] == "auto" and d["tires_window"] == "1", d
+        assert d["tires_noise_switch_t"] == d["tires_noise_switch_window"] == "", d
         # at run time: weights and the speed (an integer for a double) taken; a structural
         # parameter and a bad value refused with the reason; the node commands on
         res = set_params(Parameter("Q", value=[100.0, 100.0, 500.0]),

@@ -141,9 +141,10 @@ def test_the_controller_gets_the_measurement_and_the_log_keeps_the_truth():
 
 
 def test_run_takes_measurement_noise_and_refuses_a_bad_one():
-    """The noise reaches the controller (its adaptation measures it, 1 cm/s within 25 %,
-    and warns, the warning in the JSON and once on stderr) and is named in the scenario
-    block; bad values are refused in one line."""
+    """The noise reaches the controller (its adaptation measures it, 1 cm/s within 25 %, and
+    follows it, the switch in the JSON; with adapt_noise=fixed it warns instead, the warning
+    in the JSON and once on stderr) and is named in the scenario block; bad values are
+    refused in one line."""
     cmd = [sys.executable, "-m", "msagv", "run", "--case", "curve", "--speed", "25",
            "--duration", "2.5", "--method", "ntwo", "--adapt", "--no-floor",
            "--measurement-noise", "0.01,0.002", "--json"]
@@ -153,6 +154,14 @@ def test_run_takes_measurement_noise_and_refuses_a_bad_one():
     assert out["scenario"]["measurement_noise"] == {"v": 0.01, "r": 0.002, "pos": 0.0,
                                                    "phi": 0.0, "seed": 0}
     assert out["adapted_tires"]["velocity_noise"] == pytest.approx(0.01, rel=0.25), out
+    sw = out["adapted_tires"]["noise_switch"]
+    assert sw["window"] == 10 and out["adapted_tires"]["window"] == 10, out["adapted_tires"]
+    assert not [w for w in out["warnings"] if "measured velocities carry" in w], out["warnings"]
+    p = subprocess.run(cmd + ["--set", "adapt_noise=fixed"], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = json.loads(p.stdout)
+    assert out["adapted_tires"]["noise_switch"] is None and out["adapted_tires"]["window"] == 1
     warned = [w for w in out["warnings"] if "measured velocities carry" in w]
     assert len(warned) == 1 and p.stderr.count("measured velocities carry") == 1, p.stderr
     for bad in ("-0.01,0", "fast,0", "0.01"):

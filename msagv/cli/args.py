@@ -354,7 +354,9 @@ def add_mpc_args(ap: argparse.ArgumentParser) -> None:
                     help="re-estimate the prediction's tires (cornering and longitudinal "
                          "stiffness, friction) while driving: for a vehicle whose tires are "
                          "not known to 10 %% (the mf, dugoff or tct model with the annealer; "
-                         "mf with ipopt or acados; docs/CONTROLLER.md)")
+                         "mf with ipopt or acados; on noisy odometry it measures the noise "
+                         "and follows it, --set adapt_noise=fixed to keep adapt_sigma_v and "
+                         "adapt_window; docs/CONTROLLER.md)")
     ap.add_argument("--seed", type=int, default=None, help=f"annealer seed (default {d.seed})")
     ap.add_argument("--iterations", type=int, help="annealing iterations per solve")
     ap.add_argument("--chains", type=int, help="annealing chains")

@@ -31,8 +31,9 @@ from the friction limit for ``f``) is not updated in that period (frozen; its co
 kept). With noisy measurements the prediction's start carries the noise into ``g``
 through the tires' response, correlated with ``J``: a window of about the tires' relaxation
 time (10 periods) keeps it from biasing the factors (docs/CONTROLLER.md, "Noisy odometry");
-:meth:`TireAdaptation.velocity_noise` measures the noise and warns when it exceeds
-``sigma_v``. The estimate goes into the model's parameters (and the feed-forward's cornering
+:meth:`TireAdaptation.velocity_noise` measures the noise; when it exceeds ``sigma_v``
+the filter restarts with it as ``R`` and a window of ten periods (``noise="auto"``, the
+default), or warns (``"fixed"``). The estimate goes into the model's parameters (and the feed-forward's cornering
 slip gain ``m / (n C_alpha)``), so every solve after it predicts with the adapted tires; the
 disturbance then removes what the three factors cannot explain.
 """
@@ -58,6 +59,15 @@ NAMES = ("c_lat", "c_lon", "f")
 # periods), once NOISE_MIN of them are in; warned about (once) when above NOISE_WARN times
 # adapt_sigma_v.
 NOISE_SAMPLES, NOISE_MIN, NOISE_WARN = 400, 200, 3.0
+# ``noise="auto"`` (the default): from NOISE_AUTO_MIN samples on (20 periods, 0.2 s), checked
+# every NOISE_AUTO_EVERY periods, measurements noisier than NOISE_WARN times sigma_v switch the
+# filter to the measured noise (R = s^2, followed from then on) and to a window of at least
+# NOISE_AUTO_WINDOW periods, the factors restarted from the prior (what they learnt from the
+# noise with the wrong R is dropped). A noise-free run never switches (its estimate is ~1e-6
+# m/s): its factors are the fixed filter's to the bit.
+NOISE_AUTO_MIN, NOISE_AUTO_EVERY, NOISE_AUTO_WINDOW = 40, 10, 10
+NOISE_MODES = ("auto", "fixed")
+SWITCH_KEYS = ("t", "velocity_noise", "window")  # as_dict()["noise_switch"] once it switched
 # the longest window: its update predicts it seven times within one control period's solve
 WINDOW_MAX = 100
 # The prediction's entries the adaptation writes with the Magic Formula tires (``_apply`` and
@@ -93,6 +103,9 @@ class AdaptOptions:
     sigma0: the factors' initial standard deviation (their prior: 1, the file's tires).
     bounds: the factors stay in [bounds[0], bounds[1]].
     window: the control periods one update compares (the module docstring).
+    noise: ``"auto"``: follow the measured velocity noise when it is over NOISE_WARN times
+      ``sigma_v`` (:data:`NOISE_AUTO_MIN`); ``"fixed"``: keep ``sigma_v`` and ``window``,
+      and warn once.
     """
 
     sigma_v: float = 1e-3
@@ -100,6 +113,7 @@ class AdaptOptions:
     sigma0: float = 0.3
     bounds: tuple[float, float] = (0.5, 2.0)
     window: int = 1
+    noise: str = "auto"
 
     def __post_init__(self):
         if not (self.sigma_v > 0 and self.drift >= 0 and self.sigma0 > 0
@@ -109,6 +123,9 @@ class AdaptOptions:
         if not (isinstance(self.window, int) and 1 <= self.window <= WINDOW_MAX):
             raise ValueError(f"AdaptOptions: window must be a whole number of periods in "
                              f"1..{WINDOW_MAX}, got {self.window!r}")
+        if self.noise not in NOISE_MODES:
+            raise ValueError(f"AdaptOptions: noise must be one of {NOISE_MODES}, "
+                             f"got {self.noise!r}")
 
 
 class Window:
@@ -195,6 +212,11 @@ class TireAdaptation:
         self._n_d2 = 0
         self._t_noise = None
         self.warning = None  # (once) the measurements are noisier than adapt_sigma_v
+        self.sigma_v = self.options.sigma_v  # the filter's sqrt(R) now
+        self.noisy = None  # noise="auto": {t, velocity_noise, window} once it switched
+        self.notice = None  # ... and what it says of it (logged once)
+        if self.window.steps != self.options.window:
+            self.window = Window(self.model, self.period, self.options.window)
         self.updates = 0
         self.excited = np.zeros(3, dtype=np.int64)
 
@@ -252,7 +274,7 @@ class TireAdaptation:
             self.hist = []
             return
         self.hist.append(last)
-        if len(self.hist) < self.options.window:
+        if len(self.hist) < self.window.steps:
             return
         hist, self.hist = self.hist, []
         xp = np.ascontiguousarray(hist[0][0])
@@ -272,7 +294,7 @@ class TireAdaptation:
             J[:, i] = (self._velocity(tp, xp, Z) - self._velocity(tm, xp, Z)) / (2 * h)
         e = body_frame(x0[lay.X0_PHI], x0[lay.X0_VX], x0[lay.X0_VY], x0[lay.X0_R]) - g
         o = self.options
-        Rn = o.sigma_v ** 2
+        Rn = self.sigma_v ** 2
         live = np.sum(J * J, axis=0) > Rn  # the parameters this period informs
         self.excited += live
         if not live.any():
@@ -280,7 +302,7 @@ class TireAdaptation:
         idx = np.flatnonzero(live)
         Jl = J[:, idx]
         P = (self.cov[np.ix_(idx, idx)]
-             + np.eye(len(idx)) * o.drift ** 2 * self.period * o.window)
+             + np.eye(len(idx)) * o.drift ** 2 * self.period * self.window.steps)
         S = Jl @ P @ Jl.T + np.eye(3) * Rn
         K = P @ Jl.T @ np.linalg.inv(S)
         th = self.theta.copy()
@@ -304,6 +326,10 @@ class TireAdaptation:
             self._d2.extend(np.abs(v - 2.0 * self._v[1] + self._v[0]))
             self._n_d2 += 1
         self._v.append(v)
+        o = self.options
+        if o.noise == "auto":
+            self._follow_noise(t)
+            return
         if self.warning is not None or self._n_d2 % 50:  # (a median every 50 periods)
             return
         s = self.velocity_noise()
@@ -314,10 +340,43 @@ class TireAdaptation:
                 f"m/s): the tire factors follow the noise (docs/CONTROLLER.md); set "
                 f"adapt_sigma_v={s:.2g} and adapt_window=10")
 
-    def velocity_noise(self) -> float | None:
+    def _follow_noise(self, t: float) -> None:
+        """``noise="auto"``: switch to the measured noise once it is over NOISE_WARN times
+        ``sigma_v`` (checked every NOISE_AUTO_EVERY periods from NOISE_AUTO_MIN samples on),
+        and follow it from then on (every 50 periods)."""
+        if self._n_d2 % (50 if self.noisy is not None else NOISE_AUTO_EVERY):
+            return
+        s = self.velocity_noise(NOISE_AUTO_MIN)
+        if s is None:
+            return
+        o = self.options
+        if self.noisy is not None:
+            self.sigma_v = max(o.sigma_v, s)
+            self.noisy["velocity_noise"] = s
+            return
+        if s <= NOISE_WARN * o.sigma_v:
+            return
+        # the factors so far followed the noise with R far too small: back to the prior
+        self.theta = np.ones(3)
+        self.cov = np.eye(3) * o.sigma0 ** 2
+        self._apply(self.theta, self.model.P)
+        self.model.S[lay.S_K_ALPHA] = self.k_alpha0
+        self.excited[:] = 0
+        self.updates = 0
+        self.sigma_v = s
+        w = max(o.window, NOISE_AUTO_WINDOW)
+        self.window = Window(self.model, self.period, w)
+        self.hist = []
+        self.noisy = dict(zip(SWITCH_KEYS, (float(t), s, w)))
+        self.notice = (f"--adapt: the measured velocities carry about {s:.3g} m/s of noise "
+                       f"(over {NOISE_WARN:g}x adapt_sigma_v {o.sigma_v:g} m/s): the tire "
+                       f"factors restart from the file's, the filter takes that noise and a "
+                       f"window of {w} periods (adapt_noise=auto; docs/CONTROLLER.md)")
+
+    def velocity_noise(self, min_samples: int = NOISE_MIN) -> float | None:
         """The measured velocities' noise [m/s] (:data:`NOISE_SAMPLES`), None before
-        :data:`NOISE_MIN` samples."""
-        if len(self._d2) < NOISE_MIN:
+        ``min_samples`` samples."""
+        if len(self._d2) < min_samples:
             return None
         return float(1.4826 * np.median(self._d2) / np.sqrt(6.0))
 
@@ -335,7 +394,10 @@ class TireAdaptation:
         out.update({f"{n}_sd": float(v) for n, v in zip(NAMES, sd)})
         out.update({f"{n}_excited": int(v) for n, v in zip(NAMES, self.excited)})
         out["updates"] = int(self.updates)
-        out["window"] = int(self.options.window)
+        out["window"] = int(self.window.steps)
+        out["sigma_v"] = float(self.sigma_v)
+        out["noise"] = self.options.noise
+        out["noise_switch"] = None if self.noisy is None else dict(self.noisy)
         out["velocity_noise"] = self.velocity_noise()
         out["warning"] = self.warning
         return out

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import operator
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, fields, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -121,6 +121,11 @@ class MPCSettings:
       (one update per window; 1..100). 1 reads one period; with noisy odometry a longer window
       (10: 0.1 s) keeps the noise of the start state from biasing the factors
       (docs/CONTROLLER.md).
+      adapt_noise: 'auto' (default): when the measured velocities' noise (estimated from
+      their second differences) is over 3x adapt_sigma_v, the adaptation restarts from the
+      file's tires with that noise as its R (followed from then on) and a window of at
+      least 10 periods; a noise-free run never switches. 'fixed': adapt_sigma_v and
+      adapt_window as given, and a warning when the noise is over 3x adapt_sigma_v.
     """
 
     method: str = "two-energy"
@@ -162,6 +167,7 @@ class MPCSettings:
     adapt: bool = False
     adapt_sigma_v: float = 1e-3
     adapt_window: int = 1
+    adapt_noise: str = "auto"
 
     def __post_init__(self):
         bad = None
@@ -209,6 +215,8 @@ class MPCSettings:
             bad = f"adapt_sigma_v: must be a finite speed > 0 m/s, got {self.adapt_sigma_v}"
         elif not _whole(self.adapt_window, 1, 100):
             bad = f"adapt_window: must be a whole number of periods in 1..100, got {self.adapt_window!r}"
+        elif self.adapt_noise not in ("auto", "fixed"):
+            bad = f"adapt_noise: expected 'auto' or 'fixed', got {self.adapt_noise!r}"
         elif self.adapt and self.model not in ADAPTABLE:
             bad = (f"adapt: the online tire adaptation needs a tire model "
                    f"({', '.join(repr(m) for m in ADAPTABLE)}), not {self.model!r}")

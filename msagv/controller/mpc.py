@@ -98,7 +98,8 @@ class MPC:
         if self.settings.adapt:
             self.adaptation = TireAdaptation(
                 self.model, self.period, AdaptOptions(sigma_v=self.settings.adapt_sigma_v,
-                                                       window=self.settings.adapt_window))
+                                                       window=self.settings.adapt_window,
+                                                       noise=self.settings.adapt_noise))
         self.warmup_solve_ms: list[float] = []
         self._smooth: tuple[Reference, Reference] | None = None  # (given, smoothed)
         self.budget_warnings: list[str] = []
@@ -154,10 +155,12 @@ class MPC:
             ref = self._smoothed(ref)
         t, x0 = self._state_vector(state)
         if self.adaptation is not None:
-            warned = self.adaptation.warning
+            warned, noted = self.adaptation.warning, self.adaptation.notice
             self.adaptation.update(t, x0, state.get("omega_w"))
             if self.adaptation.warning is not None and warned is None:
                 _log.warning("%s", self.adaptation.warning)
+            if self.adaptation.notice is not None and noted is None:
+                _log.info("%s", self.adaptation.notice)
         if self.observer is not None:
             self.observer.update(t, x0)
         s = self.settings

@@ -56,6 +56,7 @@ from msagv.bridge.controller_run import ControllerRun
 from msagv.bridge.loss import RESUME_PERIODS, SAFE, SAFE_DECEL, STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
 from msagv.bridge.recording import NullRecorder
+from msagv.controller.adaptation import SWITCH_KEYS
 from msagv.controller.reference import Reference, from_samples
 
 from msagv.plant.signals import CONTROL_PERIOD
@@ -1038,7 +1039,13 @@ class RosController:
             v[f"disturbance_{k}"] = "off" if dist is None else f"{dist[k]:.6g}"
         tires = self.mpc.adapted_tires() if self.mpc is not None else None
         v["adapt"] = "off" if tires is None else "on"
+        flat = {}
         for k, x in (tires or {}).items():
+            if k == "noise_switch":  # (None until it switched: the same keys, empty)
+                flat.update({f"{k}_{kk}": (x or {}).get(kk) for kk in SWITCH_KEYS})
+            else:
+                flat[k] = x
+        for k, x in flat.items():
             v[f"tires_{k}"] = (f"{x:.6g}" if isinstance(x, float) else
                                "" if x is None else str(x))
         if not self.active:
