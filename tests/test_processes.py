@@ -619,8 +619,7 @@ def _realtime_flood(procs, bus, what: str, flood, hold_periods: int):
     P = free_port()
     procs.start("plant", msagv("plant", "--run-mode", "realtime", "--duration", 600,
                                "--listen", ep(P), "--connect", ep(bus.port), "--json"))
-    procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port),
-                             "-q"))
+    procs.start("ctl", msagv("controller", "--connect", ep(P), "--connect", ep(bus.port)))
     bus.wait_for(lambda st: st and st[-1][1]["seq"] >= 100, 180, "1 s of realtime steps")
     undo = None
     try:
@@ -644,8 +643,11 @@ def _realtime_flood(procs, bus, what: str, flood, hold_periods: int):
     s = procs.json("plant")
     assert s["stopped_by"] == "SIGTERM"
     # the live owner was never taken for lost: no latch, no loss
-    assert s["ownership"]["latches"] == 0 and s["controller_losses"] == 0, \
-        (s["ownership"], procs.err("plant")[-3000:])
+    # (the message a plain string: pytest shortens a tuple's long members, which hid why a
+    # loaded clean clone once latched here)
+    assert s["ownership"]["latches"] == 0 and s["controller_losses"] == 0, (
+        f"{s['ownership']}\npresence {s.get('presence')}\nplant:\n{procs.err('plant')[-4000:]}"
+        f"\ncontroller:\n{procs.err('ctl')[-3000:]}")
     return s, stop_s
 
 
