@@ -64,6 +64,31 @@ def test_inputs_are_files_every_column_shares(tmp_path):
             load_vehicle(sp.extra["plant_vehicle"]).tire_lateral.B)
 
 
+def test_a_design_under_measurement_noise(tmp_path):
+    """--measurement-noise: every run's controller measures with it, its stream seeded by
+    the annealer's seed (the four columns of a path, plant and seed read the same noise);
+    the runs are not the exact design's (their keys differ); the identified column's logged
+    run holds the measured states (their second differences show the noise)."""
+    from msagv.experiments.runs import run_key
+    from msagv.plant.sensors import MeasurementNoise
+
+    paths, files, man = mm.write_inputs(tmp_path, ("tires x1.2",), 2)
+    identified = {n: {"vehicle": str(files[n])} for n in files}
+    noise = {"v": 0.01, "r": 0.002, "pos": 0.0, "phi": 0.0}
+    exact = mm.design(paths, files, identified, seeds=(0, 1))
+    noisy = mm.design(paths, files, identified, seeds=(0, 1), noise=noise)
+    assert all(s.measurement_noise is None for s in exact)
+    assert all(s.measurement_noise == dict(noise, seed=s.seed) for s in noisy)
+    for a, b in zip(run_specs(exact, quick=True), run_specs(noisy, quick=True)):
+        assert b.extra["measurement_noise"] == dict(noise, seed=b.tags["seed"])
+        assert isinstance(b.scenario().measurement(), MeasurementNoise)
+        assert run_key(a) != run_key(b)
+    data = mm.logged_run(str(files["tires x1.2"]), str(man), noise=noise)
+    u = data.body[:, 3]  # vx (G frame; the noise is isotropic, so its deviation holds)
+    d2 = np.diff(u[:400], 2)
+    assert 1.4826 * np.median(np.abs(d2)) / np.sqrt(6) == pytest.approx(0.01, rel=0.3)
+
+
 def _own_plant(tmp_path, vehicle: Path, name: str = "my_plant.toml", **tires) -> Path:
     """A plant of the user's own: ``vehicle``'s file with its lateral tire's values
     replaced (a file the experiment must take as it is)."""
@@ -198,6 +223,8 @@ def test_parse_plants():
     (["--trajectory", "nowhere.csv"], "--trajectory: "),
     (["--trajectory", str(ROOT / "scenarios" / "paths" / "lane-change.csv"), "--paths", "3"],
      "--paths does not apply with --trajectory"),
+    (["--measurement-noise", "fast,0"], "--measurement-noise: "),
+    (["--measurement-noise=-0.01,0"], "--measurement-noise: "),
 ])
 def test_cli_refuses_bad_options_in_one_line(tmp_path, args, msg):
     r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "mismatch", "-o",
@@ -214,6 +241,10 @@ def test_study_options_refused_elsewhere(tmp_path):
                         "-o", str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT,
                        timeout=120)
     assert r.returncode == 2 and "--paths applies to the mismatch experiment" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "study",
+                        "--measurement-noise", "0.01,0.002", "-o", str(tmp_path / "o")],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and "--measurement-noise applies to the mismatch" in r.stderr
 
 
 def _result(sc, label, aware, e_cm, w, k):

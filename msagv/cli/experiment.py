@@ -106,6 +106,13 @@ def _parser() -> argparse.ArgumentParser:
                     help="mismatch: random paths (default 10; --quick 2)")
     ap.add_argument("--seeds", type=int, metavar="N",
                     help="mismatch: annealer seeds per scenario (default 3; --quick 1)")
+    ap.add_argument("--measurement-noise", metavar="V,R[,POS,PHI]",
+                    help="mismatch: the controller measures the states with this noise, as "
+                         "a real vehicle's odometry has (standard deviations of the body's "
+                         "velocity along and across it [m/s], the yaw rate [rad/s], x and y "
+                         "[m], the heading [rad]; seeded by the annealer's seed; the "
+                         "identified column's logged run measured so too; default output "
+                         "runs/mismatch-noise), e.g. 0.01,0.002")
     ap.add_argument("--quick-levels", action="store_true",
                     help="mismatch: each family at its --quick levels (12 runs a scenario "
                          "instead of 25)")
@@ -130,9 +137,10 @@ def _run(a, progress: bool) -> dict:
     if a.experiment != "study" and a.classes is not None:
         raise OptionError("--classes applies to the study")
     if a.experiment != "mismatch":
-        for name in ("plants", "paths", "seeds"):
+        for name in ("plants", "paths", "seeds", "measurement_noise"):
             if getattr(a, name) is not None:
-                raise OptionError(f"--{name} applies to the mismatch experiment")
+                raise OptionError(f"--{name.replace('_', '-')} applies to the mismatch "
+                                  f"experiment")
         if a.quick_levels:
             raise OptionError("--quick-levels applies to the mismatch experiment")
     if a.experiment == "mismatch":
@@ -143,17 +151,31 @@ def _run(a, progress: bool) -> dict:
             if getattr(a, name) is not None:
                 raise OptionError(f"--{name.replace('_', '-')} does not apply to the mismatch "
                                   f"experiment (its design: --plants, --paths, --seeds, "
-                                  f"--quick, --quick-levels, --vehicle, --trajectory)")
+                                  f"--quick, --quick-levels, --vehicle, --trajectory, "
+                                  f"--measurement-noise)")
         if a.paths is not None and a.paths < 2:
             raise OptionError(f"--paths: at least 2 (the interval resamples paths), got {a.paths}")
         if a.seeds is not None and a.seeds < 1:
             raise OptionError(f"--seeds: at least 1, got {a.seeds}")
+        noise = None
+        if a.measurement_noise is not None:
+            from msagv.experiments.mismatch import default_out
+            from msagv.plant.sensors import MeasurementNoise
+
+            try:
+                m = MeasurementNoise.parse(a.measurement_noise)
+            except ValueError as e:
+                raise OptionError(f"--measurement-noise: {e}") from None
+            noise = None if m is None else {k: v for k, v in m.as_dict().items()
+                                            if k != "seed"}
+            check_output(a.out or default_out(a.quick, noise), "--out", directory=True)
         return run_mismatch(a.out, plants=parse_plants(a.plants) if a.plants else None,
                             n_paths=a.paths,
                             seeds=None if a.seeds is None else tuple(range(a.seeds)),
                             quick=a.quick, levels_quick=a.quick or a.quick_levels,
                             jobs=a.jobs, scheduler=a.scheduler, force=a.force,
-                            progress=progress, vehicle=a.vehicle, trajectory=a.trajectory)
+                            progress=progress, vehicle=a.vehicle, trajectory=a.trajectory,
+                            noise=noise)
     if a.experiment != "study" and (a.quick or a.trajectory):
         raise OptionError("--quick and --trajectory apply to the study")
     if a.experiment == "study":

@@ -78,6 +78,13 @@ SEEDS = (0, 1, 2)
 QUICK = {"plants": ("tires x0.8", "tires x1.2"), "paths": 2, "seeds": 1}
 
 
+def default_out(quick: bool = False, noise: dict | None = None) -> Path:
+    """``runs/mismatch[-noise][-quick]``: a design under measurement noise keeps its own
+    summary beside the exact one's."""
+    return Path("runs") / ("mismatch" + ("-noise" if noise else "") + ("-quick" if quick
+                                                                        else ""))
+
+
 def _slug(name: str) -> str:
     return "".join(c if c.isalnum() else "-" for c in name).strip("-")
 
@@ -200,28 +207,37 @@ def write_inputs(out: Path, plants, n_paths: int, vehicle: str | None = None,
 
 
 # ---- the identified column: one logged run of the plant, then msagv calibrate ----------------
-def logged_run(plant_file: str, maneuver_csv: str, vehicle: str | None = None):
+def logged_run(plant_file: str, maneuver_csv: str, vehicle: str | None = None,
+               noise: dict | None = None):
     """The excitation manoeuvre driven by the default controller that believes the file's
     vehicle (``vehicle``, default the paper's), on the plant of ``plant_file``: its states
     and commands as
-    :class:`plant.identify.RunData` (what the plant's recording holds, in process)."""
+    :class:`plant.identify.RunData` (what the plant's recording holds, in process). With
+    ``noise`` (``Scenario.measurement_noise``) the body's states are the measured ones, as
+    a real vehicle's log holds them and as the controller received them."""
     from msagv.controller.loop import closed_loop
     from msagv.experiments.scenario import Scenario
     from msagv.plant.identify import RunData
 
     sc = Scenario(trajectory=maneuver_csv, plant_vehicle=plant_file, after_end="stop",
-                  vehicle=vehicle, settings={"threads": 1})
+                  vehicle=vehicle, settings={"threads": 1}, measurement_noise=noise)
     b = sc.build()
     rows = []
+    seen = {}
+
+    def measure(st):  # what the controller receives is what the log keeps
+        seen["st"] = st if b.measure is None else b.measure(st)
+        return seen["st"]
 
     def on_step(k, st, cmd):
-        rows.append((st["t"], [st[f] for f in ("x", "y", "phi", "vx", "vy", "r")],
+        m = seen["st"]
+        rows.append((st["t"], [m[f] for f in ("x", "y", "phi", "vx", "vy", "r")],
                      list(st["delta"]), list(st["omega_w"]), list(cmd.omega_w),
                      list(cmd.omega_s)))
 
     try:
         closed_loop(b.plant, b.controller, b.reference, b.duration, period=PERIOD,
-                    on_step=on_step, progress=False, outputs=False)
+                    on_step=on_step, progress=False, outputs=False, measure=measure)
     finally:
         b.close()
     cols = list(zip(*rows))
@@ -229,16 +245,17 @@ def logged_run(plant_file: str, maneuver_csv: str, vehicle: str | None = None):
 
 
 def identify_task(name: str, plant_file: str, maneuver_csv: str, out_toml: str,
-                  digest: str, vehicle: str | None = None) -> dict:
-    """One plant's identified vehicle (a Dask task): the logged run, ``calibrate`` on it, the
-    vehicle file written to ``out_toml``; returns the estimates against the plant's truth."""
+                  digest: str, vehicle: str | None = None, noise: dict | None = None) -> dict:
+    """One plant's identified vehicle (a Dask task): the logged run (measured with
+    ``noise``), ``calibrate`` on it, the vehicle file written to ``out_toml``; returns the
+    estimates against the plant's truth."""
     from msagv.experiments.calibrate import vehicle_toml
     from msagv.plant.identify import calibrate, values_of
     from msagv.plant.vehicle import default_vehicle, load_vehicle
 
     t0 = time.perf_counter()
     base = load_vehicle(vehicle) if vehicle else default_vehicle()
-    data = logged_run(plant_file, maneuver_csv, vehicle)
+    data = logged_run(plant_file, maneuver_csv, vehicle, noise)
     cal = calibrate(data, base, name=f"{base.name} (identified: {name})")
     Path(out_toml).write_text(vehicle_toml(
         cal.vehicle, f"msagv experiment mismatch: identified from a logged run of '{name}'"))
@@ -251,13 +268,17 @@ def identify_task(name: str, plant_file: str, maneuver_csv: str, out_toml: str,
 
 def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, scheduler=None,
                     force: bool = False, progress: bool = True,
-                    vehicle: str | None = None) -> dict[str, dict]:
+                    vehicle: str | None = None, noise: dict | None = None
+                    ) -> dict[str, dict]:
     """Every plant's identified vehicle, cached under ``OUT/identified/`` (by the plant's
-    file, the manoeuvre, the controller's vehicle file and the code)."""
+    file, the manoeuvre, the controller's vehicle file, the measurement noise and the
+    code)."""
     d = out / "identified"
     d.mkdir(parents=True, exist_ok=True)
     digest = code_digest()
     own = Path(vehicle).read_bytes() if vehicle else b""
+    if noise:
+        own += json.dumps(noise, sort_keys=True).encode()
     have, todo = {}, []
     for name, f in files.items():
         key = hashlib.sha256(f.read_bytes() + man.read_bytes() + digest.encode() + own
@@ -268,14 +289,14 @@ def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, sch
             if old.get("key") == key:
                 have[name] = dict(old, vehicle=str(toml))  # where this output keeps it
                 continue
-        todo.append((name, str(f), str(man), str(toml), digest, vehicle, key, js))
+        todo.append((name, str(f), str(man), str(toml), digest, vehicle, noise, key, js))
     bar = None
     if progress and todo:
         from tqdm import tqdm
 
         bar = tqdm(total=len(todo), desc="identify the plants", unit="plant",
                    file=sys.stderr, dynamic_ncols=True)
-    keys = {t[0]: (t[6], t[7]) for t in todo}
+    keys = {t[0]: (t[7], t[8]) for t in todo}
 
     def done(res):
         key, js = keys[res["plant"]]
@@ -286,7 +307,7 @@ def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, sch
             bar.update(1)
 
     try:
-        args = [t[:6] for t in todo]
+        args = [t[:7] for t in todo]
         if args and jobs == 1 and scheduler is None:
             for a in args:
                 done(identify_task(*a))
@@ -301,10 +322,13 @@ def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, sch
 # ---- the design ----------------------------------------------------------------------------
 def design(paths: list[Path], files: dict[str, Path], identified: dict[str, dict],
            seeds=SEEDS, vehicle: str | None = None,
-           duration: float | None = DURATION) -> list[StudyScenario]:
+           duration: float | None = DURATION, noise: dict | None = None
+           ) -> list[StudyScenario]:
     """Every (path, plant, column, seed) as a study scenario; ``vehicle``: the
     controller's file in the wrong and adapted columns (default the paper's);
-    ``duration``: of each run (None: the whole path)."""
+    ``duration``: of each run (None: the whole path); ``noise``: what the controller
+    measures (``Scenario.measurement_noise``; its stream seeded by the annealer's seed, so
+    the four columns of a path, plant and seed read the same noise)."""
     out = []
     for path in paths:
         for name, f in files.items():
@@ -316,7 +340,8 @@ def design(paths: list[Path], files: dict[str, Path], identified: dict[str, dict
                         "mismatch", "file", None, plant=name, seed=k, duration=duration,
                         vehicle=vehicles[model], trajectory=str(path),
                         plant_vehicle=str(f), model=model,
-                        settings=dict(COLUMN_SETTINGS[model])))
+                        settings=dict(COLUMN_SETTINGS[model]),
+                        measurement_noise=dict(noise, seed=k) if noise else None))
     return out
 
 
@@ -324,12 +349,14 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
                  seeds=None, quick: bool = False, levels_quick: bool | None = None,
                  jobs: int | None = None, scheduler: str | None = None, force: bool = False,
                  progress: bool = True, vehicle: str | None = None,
-                 trajectory: str | None = None) -> dict:
+                 trajectory: str | None = None, noise: dict | None = None) -> dict:
     """Run (or resume) the experiment; returns its summary (``mismatch.json``).
     ``quick``: :data:`QUICK`'s plants, paths and seeds and the families' quick levels.
     ``vehicle``: the controller's vehicle file (default the paper's); ``trajectory``: one
     path of your own, driven whole, instead of ``n_paths`` random ones (one path: no
-    interval, the bootstrap resamples paths); ``plants`` may name vehicle files."""
+    interval, the bootstrap resamples paths); ``plants`` may name vehicle files;
+    ``noise``: the controller measures the states with this noise (``{v, r, pos, phi}`` of
+    ``Scenario.measurement_noise``), the identified column's logged run too."""
     if quick:
         plants = plants or QUICK["plants"]
         n_paths = n_paths or QUICK["paths"]
@@ -346,15 +373,23 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
     if not seeds or any(k < 0 for k in seeds):
         raise ScenarioError(f"--seeds: at least one annealer seed >= 0, got {seeds}")
     levels_quick = quick if levels_quick is None else levels_quick
-    out = Path(out) if out is not None else Path("runs") / ("mismatch-quick" if quick
-                                                            else "mismatch")
+    if noise is not None:
+        from msagv.plant.sensors import MeasurementNoise
+
+        try:
+            m = MeasurementNoise.from_mapping(dict(noise))
+        except (ValueError, TypeError) as e:
+            raise ScenarioError(f"--measurement-noise: {e}") from None
+        noise = None if m is None else {k: v for k, v in m.as_dict().items() if k != "seed"}
+    out = Path(out) if out is not None else default_out(quick, noise)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     vehicle = None if vehicle is None else str(Path(vehicle).resolve())
     paths, files, man = write_inputs(out, plants, n_paths, vehicle, trajectory, base)
-    identified = identify_plants(files, man, out, jobs, scheduler, force, progress, vehicle)
+    identified = identify_plants(files, man, out, jobs, scheduler, force, progress, vehicle,
+                                 noise)
     duration = None if trajectory is not None else DURATION
-    scenarios = design(paths, files, identified, seeds, vehicle, duration)
+    scenarios = design(paths, files, identified, seeds, vehicle, duration, noise)
     specs = run_specs(scenarios, quick=levels_quick)
     results, summ = run_all(specs, out, jobs=jobs, force=force, progress=progress,
                             desc="mismatch", scheduler=scheduler)
@@ -365,6 +400,8 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
                   "duration_s": duration, "speeds_kmh": list(PATH_SPEEDS)}
     if vehicle is not None:
         design_doc["vehicle"] = vehicle
+    if noise is not None:
+        design_doc["measurement_noise"] = noise
     if trajectory is not None:
         design_doc.update(trajectory=str(trajectory), speeds_kmh=None)
     return report(results, scenarios, identified, design_doc, out, summ)
@@ -517,7 +554,11 @@ def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
             else "")
          + f"x {_count(len(plants), 'plant')} x "
          f"4 columns x {_count(len(design_doc['seeds']), 'annealer seed')}, the families' "
-         f"{design_doc['levels']} levels, every family with the offset-free disturbance.", "",
+         f"{design_doc['levels']} levels, every family with the offset-free disturbance"
+         + (", the states measured with noise (" + ", ".join(
+             f"{k} {v:g}" for k, v in design_doc["measurement_noise"].items() if v)
+            + "; SI units), the identified column's logged run too"
+            if design_doc.get("measurement_noise") else "") + ".", "",
          f"**{sentence}**", "",
          "Wear-aware / wear-blind tire wear at equal lateral RMS error (the study's rule), "
          "geometric mean over paths and plants, 95 % percentile bootstrap resampling paths as "

@@ -97,6 +97,9 @@ class StudyScenario:
     plant_vehicle: str | None = None
     model: str | None = None
     settings: dict = field(default_factory=dict)
+    # what the controller measures (Scenario.measurement_noise: {v, r, pos, phi, seed});
+    # None: the exact state
+    measurement_noise: dict | None = None
 
     @property
     def name(self) -> str:
@@ -180,6 +183,8 @@ class StudyScenario:
             ex["trajectory"] = self.trajectory
         if self.initial():
             ex["initial"] = self.initial()
+        if self.measurement_noise:
+            ex["measurement_noise"] = dict(self.measurement_noise)
         return ex
 
     def scenario(self, settings=None, solver="sa"):
