@@ -84,9 +84,22 @@ def test_a_design_under_measurement_noise(tmp_path):
         assert isinstance(b.scenario().measurement(), MeasurementNoise)
         assert run_key(a) != run_key(b)
     data = mm.logged_run(str(files["tires x1.2"]), str(man), noise=noise)
-    u = data.body[:, 3]  # vx (G frame; the noise is isotropic, so its deviation holds)
-    d2 = np.diff(u[:400], 2)
-    assert 1.4826 * np.median(np.abs(d2)) / np.sqrt(6) == pytest.approx(0.01, rel=0.3)
+
+    def noise_of(x):  # the deviation of white noise on x, from its second differences
+        return 1.4826 * np.median(np.abs(np.diff(x[:400], 2, axis=0))) / np.sqrt(6)
+
+    # vx (G frame; the noise is isotropic, so its deviation holds) measured; the joint
+    # states as the plant's encoders give them, exact: this plant (no lags) turns each
+    # steering angle by T times its rate command and sets each wheel to its speed command
+    assert noise_of(data.body[:, 3]) == pytest.approx(0.01, rel=0.3)
+    T = mm.PERIOD
+    assert np.abs(np.diff(data.delta, axis=0) - T * data.cmd_s[:-1]).max() < 1e-12
+    assert np.array_equal(data.omega_w[1:], data.cmd_w[:-1])
+    # the identification's cache key names the noise
+    digest = "d"
+    keys = {mm.identify_key(files["tires x1.2"], man, digest, None, n)
+            for n in (None, noise, dict(noise, v=0.02))}
+    assert len(keys) == 3
 
 
 def _own_plant(tmp_path, vehicle: Path, name: str = "my_plant.toml", **tires) -> Path:

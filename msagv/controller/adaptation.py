@@ -31,9 +31,9 @@ from the friction limit for ``f``) is not updated in that period (frozen; its co
 kept). With noisy measurements the prediction's start carries the noise into ``g``
 through the tires' response, correlated with ``J``: a window of about the tires' relaxation
 time (10 periods) keeps it from biasing the factors (docs/CONTROLLER.md, "Noisy odometry");
-:meth:`TireAdaptation.velocity_noise` measures the noise; when it exceeds ``sigma_v``
-the filter restarts with it as ``R`` and a window of ten periods (``noise="auto"``, the
-default), or warns (``"fixed"``). The estimate goes into the model's parameters (and the feed-forward's cornering
+:meth:`TireAdaptation.velocity_noise` measures the noise; when it exceeds 3x ``sigma_v``
+(and 4 mm/s) the filter restarts with it as ``R`` and a window of ten periods
+(``noise="auto"``, the default), or warns (``"fixed"``). The estimate goes into the model's parameters (and the feed-forward's cornering
 slip gain ``m / (n C_alpha)``), so every solve after it predicts with the adapted tires; the
 disturbance then removes what the three factors cannot explain.
 """
@@ -60,12 +60,14 @@ NAMES = ("c_lat", "c_lon", "f")
 # adapt_sigma_v.
 NOISE_SAMPLES, NOISE_MIN, NOISE_WARN = 400, 200, 3.0
 # ``noise="auto"`` (the default): from NOISE_AUTO_MIN samples on (20 periods, 0.2 s), checked
-# every NOISE_AUTO_EVERY periods, measurements noisier than NOISE_WARN times sigma_v switch the
-# filter to the measured noise (R = s^2, followed from then on) and to a window of at least
-# NOISE_AUTO_WINDOW periods, the factors restarted from the prior (what they learnt from the
-# noise with the wrong R is dropped). A noise-free run never switches (its estimate is ~1e-6
-# m/s): its factors are the fixed filter's to the bit.
-NOISE_AUTO_MIN, NOISE_AUTO_EVERY, NOISE_AUTO_WINDOW = 40, 10, 10
+# every NOISE_AUTO_EVERY periods, measurements noisier than NOISE_WARN times sigma_v and than
+# NOISE_AUTO_FLOOR switch the filter to the measured noise (R = s^2, followed from then on)
+# and to a window of at least NOISE_AUTO_WINDOW periods, the factors restarted from the prior
+# (what they learnt from the noise with the wrong R is dropped). The floor is above what a
+# vehicle's own motion puts into the estimate without noise (about 1e-6 m/s at a steady
+# speed, up to a few mm/s starting from rest: tests/test_offset_free.py -k from_rest), so a
+# noise-free run never switches and its factors are the fixed filter's to the bit.
+NOISE_AUTO_MIN, NOISE_AUTO_EVERY, NOISE_AUTO_WINDOW, NOISE_AUTO_FLOOR = 40, 10, 10, 4e-3
 NOISE_MODES = ("auto", "fixed")
 SWITCH_KEYS = ("t", "velocity_noise", "window")  # as_dict()["noise_switch"] once it switched
 # the longest window: its update predicts it seven times within one control period's solve
@@ -104,8 +106,8 @@ class AdaptOptions:
     bounds: the factors stay in [bounds[0], bounds[1]].
     window: the control periods one update compares (the module docstring).
     noise: ``"auto"``: follow the measured velocity noise when it is over NOISE_WARN times
-      ``sigma_v`` (:data:`NOISE_AUTO_MIN`); ``"fixed"``: keep ``sigma_v`` and ``window``,
-      and warn once.
+      ``sigma_v`` and NOISE_AUTO_FLOOR (:data:`NOISE_AUTO_MIN`); ``"fixed"``: keep
+      ``sigma_v`` and ``window``, and warn once.
     """
 
     sigma_v: float = 1e-3
@@ -342,8 +344,9 @@ class TireAdaptation:
 
     def _follow_noise(self, t: float) -> None:
         """``noise="auto"``: switch to the measured noise once it is over NOISE_WARN times
-        ``sigma_v`` (checked every NOISE_AUTO_EVERY periods from NOISE_AUTO_MIN samples on),
-        and follow it from then on (every 50 periods)."""
+        ``sigma_v`` and NOISE_AUTO_FLOOR (checked every NOISE_AUTO_EVERY periods from
+        NOISE_AUTO_MIN samples on), and follow it from then on (every 50 periods; the
+        switch's record keeps the noise that made it)."""
         if self._n_d2 % (50 if self.noisy is not None else NOISE_AUTO_EVERY):
             return
         s = self.velocity_noise(NOISE_AUTO_MIN)
@@ -352,9 +355,8 @@ class TireAdaptation:
         o = self.options
         if self.noisy is not None:
             self.sigma_v = max(o.sigma_v, s)
-            self.noisy["velocity_noise"] = s
             return
-        if s <= NOISE_WARN * o.sigma_v:
+        if s <= max(NOISE_WARN * o.sigma_v, NOISE_AUTO_FLOOR):
             return
         # the factors so far followed the noise with R far too small: back to the prior
         self.theta = np.ones(3)
@@ -369,7 +371,8 @@ class TireAdaptation:
         self.hist = []
         self.noisy = dict(zip(SWITCH_KEYS, (float(t), s, w)))
         self.notice = (f"--adapt: the measured velocities carry about {s:.3g} m/s of noise "
-                       f"(over {NOISE_WARN:g}x adapt_sigma_v {o.sigma_v:g} m/s): the tire "
+                       f"(over {NOISE_WARN:g}x adapt_sigma_v {o.sigma_v:g} m/s and "
+                       f"{NOISE_AUTO_FLOOR:g} m/s): the tire "
                        f"factors restart from the file's, the filter takes that noise and a "
                        f"window of {w} periods (adapt_noise=auto; docs/CONTROLLER.md)")
 
@@ -398,6 +401,7 @@ class TireAdaptation:
         out["sigma_v"] = float(self.sigma_v)
         out["noise"] = self.options.noise
         out["noise_switch"] = None if self.noisy is None else dict(self.noisy)
-        out["velocity_noise"] = self.velocity_noise()
+        out["velocity_noise"] = self.velocity_noise(
+            NOISE_AUTO_MIN if self.options.noise == "auto" else NOISE_MIN)
         out["warning"] = self.warning
         return out

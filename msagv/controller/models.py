@@ -122,9 +122,9 @@ class MPCSettings:
       (10: 0.1 s) keeps the noise of the start state from biasing the factors
       (docs/CONTROLLER.md).
       adapt_noise: 'auto' (default): when the measured velocities' noise (estimated from
-      their second differences) is over 3x adapt_sigma_v, the adaptation restarts from the
-      file's tires with that noise as its R (followed from then on) and a window of at
-      least 10 periods; a noise-free run never switches. 'fixed': adapt_sigma_v and
+      their second differences) is over 3x adapt_sigma_v and 4 mm/s, the adaptation
+      restarts from the file's tires with that noise as its R (followed from then on) and
+      a window of at least 10 periods; a noise-free run never switches. 'fixed': adapt_sigma_v and
       adapt_window as given, and a warning when the noise is over 3x adapt_sigma_v.
     """
 

@@ -266,23 +266,37 @@ def identify_task(name: str, plant_file: str, maneuver_csv: str, out_toml: str,
             "vehicle": out_toml, "wall_s": time.perf_counter() - t0}
 
 
+def identify_key(plant_file: Path, man: Path, digest: str, vehicle: str | None = None,
+                 noise: dict | None = None) -> str:
+    """The cache key of a plant's identified vehicle: its file, the manoeuvre, the code (the
+    plant's and controller's ``digest``, the logged run's and the identification's here,
+    ``experiments/calibrate.py``), the controller's vehicle file and the measurement
+    noise."""
+    import inspect
+
+    h = hashlib.sha256(Path(plant_file).read_bytes() + Path(man).read_bytes() + digest.encode())
+    h.update(Path(vehicle).read_bytes() if vehicle else b"")
+    h.update((inspect.getsource(logged_run) + inspect.getsource(identify_task)).encode())
+    h.update((Path(__file__).parent / "calibrate.py").read_bytes())
+    if noise:
+        h.update(json.dumps(noise, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
 def identify_plants(files: dict[str, Path], man: Path, out: Path, jobs=None, scheduler=None,
                     force: bool = False, progress: bool = True,
                     vehicle: str | None = None, noise: dict | None = None
                     ) -> dict[str, dict]:
     """Every plant's identified vehicle, cached under ``OUT/identified/`` (by the plant's
     file, the manoeuvre, the controller's vehicle file, the measurement noise and the
-    code)."""
+    code: the plant's and controller's (:func:`experiments.runs.code_digest`), the logged
+    run's and the identification's here, and ``experiments/calibrate.py``)."""
     d = out / "identified"
     d.mkdir(parents=True, exist_ok=True)
     digest = code_digest()
-    own = Path(vehicle).read_bytes() if vehicle else b""
-    if noise:
-        own += json.dumps(noise, sort_keys=True).encode()
     have, todo = {}, []
     for name, f in files.items():
-        key = hashlib.sha256(f.read_bytes() + man.read_bytes() + digest.encode() + own
-                             ).hexdigest()[:16]
+        key = identify_key(f, man, digest, vehicle, noise)
         js, toml = d / f"{_plant_slug(name)}.json", d / f"{_plant_slug(name)}.toml"
         if not force and js.is_file() and toml.is_file():
             old = json.loads(js.read_text())

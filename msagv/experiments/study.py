@@ -332,7 +332,8 @@ def run_specs(scenarios: list[StudyScenario], quick: bool = False) -> list[RunSp
                         "plant": sc.plant, "path_key": sc.path_key, "unit": sc.unit_key,
                         "seed": sc.seed}
                 # the feed-forward draws no random numbers: its run is the same at every
-                # annealer seed, so the seeds share one run (one key)
+                # annealer seed, so the seeds share one run (one key; not under measurement
+                # noise, whose stream the annealer's seed seeds: experiments.mismatch)
                 settings = dict(fam.settings_at(x), seed=0 if fam.solver == "ff" else sc.seed)
                 if sc.model is not None:
                     tags["model"] = sc.model
