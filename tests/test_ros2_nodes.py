@@ -1244,6 +1244,9 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
     assert s["parameters"]["plan_speed_kmh"] == 10.0
     assert s["parameters_refused"] == 5 and s["rearms"] == 1 and s["resets"] == 1
     assert s["safe_events"] == 2  # the silence, then no plan after the reset
+    # --adapt's estimate and the disturbance at the end, as msagv controller reports them
+    assert s["adapted_tires"]["noise"] == "auto" and "c_lat" in s["adapted_tires"], s
+    assert set(s["disturbance"]) >= {"d_u", "d_v", "d_r"}, s
     assert s["plans_same_route"] == 1  # the first replan after the speed's change was timed
 
 

@@ -638,12 +638,12 @@ class ControllerNode:
                 "solver": self.mpc.name,
                 "budget": self.mpc.budget(),
                 # the offset-free disturbance and the adapted tires at the end (None: off)
-                "disturbance": _estimate(self.mpc, "disturbance"),
-                "adapted_tires": _estimate(self.mpc, "adapted_tires"),
+                "disturbance": mpc_estimate(self.mpc, "disturbance"),
+                "adapted_tires": mpc_estimate(self.mpc, "adapted_tires"),
                 "settings": dataclasses.asdict(self.mpc.settings)}
 
 
-def _estimate(mpc, name: str):
+def mpc_estimate(mpc, name: str):
     """A controller's estimate by name (``MPC.disturbance``, ``MPC.adapted_tires``); None
     where the controller has none."""
     fn = getattr(mpc, name, None)

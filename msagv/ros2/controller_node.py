@@ -52,6 +52,7 @@ import numpy as np
 
 from msagv.bridge import messages as M
 from msagv.bridge import ros_msgs as R
+from msagv.bridge.controller_node import mpc_estimate
 from msagv.bridge.controller_run import ControllerRun
 from msagv.bridge.loss import RESUME_PERIODS, SAFE, SAFE_DECEL, STALE_MS, CommandWatch
 from msagv.bridge.plant_node import percentiles_ms
@@ -403,6 +404,7 @@ class RosController:
         self.goal_errors: list = []  # (distance [m], heading [deg]) at each goal reached
         self.rej = M.Rejections("ros2 controller", log)
         self.mpc = self.low = None
+        self._estimates = {"disturbance": None, "adapted_tires": None}  # the last MPC's
         self.reference: Reference | None = None
         self._safe = False
         node = self.ctx.node
@@ -554,6 +556,7 @@ class RosController:
                 (self.pub_steer, self.pub_wheel, self.pub_pred, self.pub_wear))
         self.diag.destroy()
         self._timers, self._subs, self._services = [], [], []
+        self._estimates = self.estimates()  # (the summary keeps them past a cleanup)
         self.mpc = self.low = None
         self.configured = False
 
@@ -1069,4 +1072,13 @@ class RosController:
                 "goal_errors": [{"distance_m": d, "yaw_deg": y} for d, y in self.goal_errors],
                 "parameters": self.params, "safe": self._safe,
                 "lifecycle": self.state_label(),
-                "transitions": self.lifecycle.summary()}
+                "transitions": self.lifecycle.summary(),
+                **self.estimates()}
+
+    def estimates(self) -> dict:
+        """The offset-free disturbance and the adapted tires (None: off), as ``msagv
+        controller``'s summary has them: the MPC's now, or the last MPC's after a
+        cleanup."""
+        if self.mpc is None:
+            return dict(self._estimates)
+        return {k: mpc_estimate(self.mpc, k) for k in ("disturbance", "adapted_tires")}
