@@ -166,8 +166,7 @@ def _run(a, progress: bool) -> dict:
                 m = MeasurementNoise.parse(a.measurement_noise)
             except ValueError as e:
                 raise OptionError(f"--measurement-noise: {e}") from None
-            noise = None if m is None else {k: v for k, v in m.as_dict().items()
-                                            if k != "seed"}
+            noise = None if m is None else m.as_dict()  # (run_mismatch drops the seed)
             check_output(a.out or default_out(a.quick, noise), "--out", directory=True)
         return run_mismatch(a.out, plants=parse_plants(a.plants) if a.plants else None,
                             n_paths=a.paths,

@@ -202,13 +202,10 @@ class TireAdaptation:
         self.reset()
 
     def reset(self) -> None:
-        """Back to the file's tires (theta = 1) and the prior covariance."""
-        self.theta = np.ones(3)
-        self.cov = np.eye(3) * self.options.sigma0 ** 2
-        self._apply(self.theta, self.model.P)
-        self.model.S[lay.S_K_ALPHA] = self.k_alpha0
+        """Back to the file's tires (theta = 1) and the prior covariance, the settings'
+        filter and no noise measured."""
+        self._restart()
         self.last.clear()
-        self.hist = []
         self._v = deque(maxlen=2)  # the last measured body velocities (u, v), consecutive
         self._d2 = deque(maxlen=NOISE_SAMPLES)  # |second differences| of u and v
         self._n_d2 = 0
@@ -219,6 +216,15 @@ class TireAdaptation:
         self.notice = None  # ... and what it says of it (logged once)
         if self.window.steps != self.options.window:
             self.window = Window(self.model, self.period, self.options.window)
+
+    def _restart(self) -> None:
+        """The factors back to the file's tires and their prior (the window's periods so
+        far and the counts dropped): at a reset, and when ``noise="auto"`` switches."""
+        self.theta = np.ones(3)
+        self.cov = np.eye(3) * self.options.sigma0 ** 2
+        self._apply(self.theta, self.model.P)
+        self.model.S[lay.S_K_ALPHA] = self.k_alpha0
+        self.hist = []
         self.updates = 0
         self.excited = np.zeros(3, dtype=np.int64)
 
@@ -359,16 +365,10 @@ class TireAdaptation:
         if s <= max(NOISE_WARN * o.sigma_v, NOISE_AUTO_FLOOR):
             return
         # the factors so far followed the noise with R far too small: back to the prior
-        self.theta = np.ones(3)
-        self.cov = np.eye(3) * o.sigma0 ** 2
-        self._apply(self.theta, self.model.P)
-        self.model.S[lay.S_K_ALPHA] = self.k_alpha0
-        self.excited[:] = 0
-        self.updates = 0
+        self._restart()
         self.sigma_v = s
         w = max(o.window, NOISE_AUTO_WINDOW)
         self.window = Window(self.model, self.period, w)
-        self.hist = []
         self.noisy = dict(zip(SWITCH_KEYS, (float(t), s, w)))
         self.notice = (f"--adapt: the measured velocities carry about {s:.3g} m/s of noise "
                        f"(over {NOISE_WARN:g}x adapt_sigma_v {o.sigma_v:g} m/s and "
