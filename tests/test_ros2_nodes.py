@@ -1045,18 +1045,44 @@ def test_the_two_command_topics_are_never_taken_from_two_nodes(procs, ros_env):
 
 
 # ---- a managed node: lifecycle, parameters at run time, diagnostics, services --------------
-def _call(peer, client, request):
-    """A service call by real rclpy: the response (the node answers within 60 s)."""
+LOST_AFTER = 15.0  # s: a node here answers in milliseconds; this long unanswered, the answer
+# was lost (below), not slow
+
+
+def _call(peer, client, request, *, again: bool = False, lost=None):
+    """A service call by real rclpy: the response.
+
+    Fast DDS's server waits 100 ms for the server side to match a new client's response
+    reader and otherwise drops the answer (rclpy warns "failed to send response (timeout)";
+    ros2/rmw_fastrtps#390, the same lost answer Nav2's lifecycle manager meets at start-up):
+    on a loaded machine the first call of a client to a node that just came up can go
+    unanswered although the node served it. Such a call is settled as a robust client
+    settles it: ``lost()`` says what the answer was (a transition, by the state it left);
+    otherwise a request that changes nothing (``again``) is asked again, and one that
+    changes something fails the test rather than being served twice."""
     assert client.wait_for_service(timeout_sec=60), client.srv_name
-    fut = client.call_async(request)
-    assert peer.spin(60, until=fut.done), client.srv_name
-    return fut.result()
+    for _ in range(3):
+        fut = client.call_async(request)
+        if peer.spin(LOST_AFTER, until=fut.done):
+            return fut.result()
+        client.remove_pending_request(fut)
+        if lost is not None:
+            return lost()
+        assert again, f"{client.srv_name}: no answer in {LOST_AFTER:g} s"
+    raise AssertionError(f"{client.srv_name}: three requests, no answer")
+
+
+# the state each transition leads to when it succeeds (lifecycle_msgs/msg/Transition)
+_GOAL = {1: "inactive", 2: "unconfigured", 3: "active", 4: "inactive",
+         5: "finalized", 6: "finalized", 7: "finalized"}
 
 
 def node_calls(peer, name: str):
     """The lifecycle manager's and an operator's calls to the node ``name`` by real rclpy
     (lifecycle_msgs, rcl_interfaces): ``(state(), transition(id) -> success,
-    set_params(*rclpy Parameters) -> [(successful, reason)] one by one)``."""
+    set_params(*rclpy Parameters) -> [(successful, reason)] one by one)``. A transition
+    whose answer was lost (``_call``) succeeded if the node is in the transition's goal
+    state, or, for a shutdown, if the node is gone."""
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
     from rcl_interfaces.srv import SetParameters
@@ -1067,14 +1093,22 @@ def node_calls(peer, name: str):
     setp = n.create_client(SetParameters, f"{name}/set_parameters")
 
     def state() -> str:
-        return _call(peer, get, GetState.Request()).current_state.label
+        return _call(peer, get, GetState.Request(), again=True).current_state.label
+
+    def reached(tid: int):
+        """The answer a lost transition had: the state it left."""
+        if _GOAL[tid] == "finalized" and peer.spin(
+                30, until=lambda: not get.service_is_ready()):
+            return ChangeState.Response(success=True)  # shut down: the node is gone
+        return ChangeState.Response(success=state() == _GOAL[tid])
 
     def transition(tid: int) -> bool:
-        return _call(peer, change, ChangeState.Request(transition=Transition(id=tid))).success
+        return _call(peer, change, ChangeState.Request(transition=Transition(id=tid)),
+                     lost=lambda: reached(tid)).success
 
     def set_params(*params) -> list:
         r = _call(peer, setp, SetParameters.Request(
-            parameters=[p.to_parameter_msg() for p in params]))
+            parameters=[p.to_parameter_msg() for p in params]), again=True)
         return [(x.successful, x.reason) for x in r.results]
 
     return state, transition, set_params
@@ -1120,9 +1154,10 @@ def test_the_managed_controller_goes_through_its_lifecycle(procs, ros_env, three
         peer.spin(seconds)
         return not car.got
 
+    triggers = {srv: n.create_client(Trigger, f"{name}/{srv}") for srv in ("rearm", "reset")}
+
     def trigger(srv: str):
-        c = n.create_client(Trigger, f"{name}/{srv}")
-        return _call(peer, c, Trigger.Request())
+        return _call(peer, triggers[srv], Trigger.Request())
 
     def diag(until):
         """The node's newest status that satisfies ``until`` (values as a dict)."""

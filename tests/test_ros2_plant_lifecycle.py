@@ -18,7 +18,7 @@ import pytest
 
 import test_ros2_nodes as ros_nodes
 from helpers import msagv
-from test_ros2_nodes import Peer, _call, _ros, _yaw, answer_each_state, node_calls
+from test_ros2_nodes import Peer, _ros, _yaw, answer_each_state, node_calls
 
 T = 0.2  # the period, and --stale-ms below: long enough that a loaded machine's stall of the
 # plant's own loop (seen: 380 ms and 1.14 s at a load of 4-10 on 2 cores) is no re-anchor
@@ -40,7 +40,6 @@ def test_the_managed_plant_goes_through_its_lifecycle(procs, ros_env, run_mode):
     on from where it stood. Shut down: the process ends, exit 0, with its summary."""
     _ros()
     from lifecycle_msgs.msg import Transition
-    from lifecycle_msgs.srv import ChangeState, GetState
     from std_msgs.msg import Float64MultiArray
 
     from msagv.experiments.scenario import Scenario
@@ -54,8 +53,7 @@ def test_the_managed_plant_goes_through_its_lifecycle(procs, ros_env, run_mode):
     peer = Peer("lifecycle_manager")
     n = peer.node
     name = "/msagv_plant"
-    change = n.create_client(ChangeState, f"{name}/change_state")
-    get = n.create_client(GetState, f"{name}/get_state")
+    state, transition, _ = node_calls(peer, name)
     steer = n.create_publisher(Float64MultiArray, "steering_controller/commands", 10)
     wheel = n.create_publisher(Float64MultiArray, "wheel_controller/commands", 10)
     def answer(k):
@@ -63,12 +61,6 @@ def test_the_managed_plant_goes_through_its_lifecycle(procs, ros_env, run_mode):
         wheel.publish(Float64MultiArray(data=[2.2 / R_W] * 4))
 
     odoms, joints = answer_each_state(n, T, answer)
-
-    def state() -> str:
-        return _call(peer, get, GetState.Request()).current_state.label
-
-    def transition(tid: int) -> bool:
-        return _call(peer, change, ChangeState.Request(transition=Transition(id=tid))).success
 
     def newest() -> int:
         return max(odoms, default=-1)
@@ -170,20 +162,11 @@ def test_the_managed_plant_refuses_a_wrong_transition_and_waits_only_while_activ
     import signal
 
     from lifecycle_msgs.msg import Transition
-    from lifecycle_msgs.srv import ChangeState, GetState
 
     from msagv.bridge.process import EXIT_OK, EXIT_RUNTIME
 
     peer = Peer("lifecycle_manager")
-    n = peer.node
-    change = n.create_client(ChangeState, "/msagv_plant/change_state")
-    get = n.create_client(GetState, "/msagv_plant/get_state")
-
-    def state() -> str:
-        return _call(peer, get, GetState.Request()).current_state.label
-
-    def transition(tid: int) -> bool:
-        return _call(peer, change, ChangeState.Request(transition=Transition(id=tid))).success
+    state, transition, _ = node_calls(peer, "/msagv_plant")
 
     try:
         for name, signalled in (("waits", False), ("signalled", True)):
