@@ -254,10 +254,16 @@ def test_study_options_refused_elsewhere(tmp_path):
                         "-o", str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT,
                        timeout=120)
     assert r.returncode == 2 and "--paths applies to the mismatch experiment" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "study",
+    r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "case1",
                         "--measurement-noise", "0.01,0.002", "-o", str(tmp_path / "o")],
                        capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert r.returncode == 2 and "--measurement-noise applies to the mismatch" in r.stderr
+    assert r.returncode == 2 and ("--measurement-noise applies to the mismatch experiment "
+                                  "and the study") in r.stderr
+    r = subprocess.run([sys.executable, "-m", "msagv", "experiment", "study",
+                        "--measurement-noise", "0.01,x", "-o", str(tmp_path / "o")],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "--measurement-noise: " in r.stderr and not (tmp_path / "o").exists()
 
 
 def _result(sc, label, aware, e_cm, w, k):

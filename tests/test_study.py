@@ -422,6 +422,44 @@ def test_reduced_study_end_to_end(tmp_path, monkeypatch):
     assert again["runs"]["executed"] == 0  # resumed: every run reused
 
 
+def test_a_study_under_measurement_noise(tmp_path, monkeypatch):
+    """``--measurement-noise`` on the study: every run's controller measures with it, its
+    stream seeded by the instance's annealer seed (the wear-aware and the blind runs read
+    the same noise), so no run is the exact study's; the floors are the paths' own; the
+    report says it; a bad noise is refused before anything is written."""
+    from msagv.experiments import study
+    from msagv.experiments.checks import ScenarioError
+    from msagv.experiments.runs import execute, run_key
+
+    small = [study.StudyScenario("case1", "curve", 30.0, duration=1.0, seed=1)]
+    monkeypatch.setattr(study, "design", lambda quick, vehicle, trajectory, speeds: small)
+    noise = {"v": 0.01, "r": 0.002, "pos": 0.0, "phi": 0.0}
+    with pytest.raises(ScenarioError, match="--measurement-noise: measurement_noise.v"):
+        study.run_study(tmp_path / "bad", quick=True, jobs=1, progress=False,
+                        noise=dict(noise, v=-0.01))
+    assert not (tmp_path / "bad").exists()
+    exact = study.run_specs(small, quick=True)
+    noisy = study.run_specs(study.with_noise(small, noise), quick=True)
+    assert [a.label for a in exact] == [b.label for b in noisy]
+    for a, b in zip(exact, noisy):
+        assert b.extra["measurement_noise"] == dict(noise, seed=1)
+        assert run_key(a) != run_key(b)
+    doc = study.run_study(tmp_path / "n", quick=True, jobs=1, progress=False,
+                          noise=dict(noise, seed=7))  # (a seed given is the run's, not this)
+    assert doc["runs"]["measurement_noise"] == noise
+    rows = doc["rows"]
+    assert all(r["status"] == "ok" for r in rows), [r["error"] for r in rows]
+    # the floors are the exact path's: the same for the noisy runs as the floor function
+    assert len({r["W_tw_floor"] for r in rows}) == 1
+    # the noise reaches the controller: a run of the exact design tracks otherwise
+    spec = next(a for a in exact if a.tags["family"] == "NTWO")
+    ref = execute(spec.to_dict(), run_key(spec))
+    got = next(r for r in rows if r["family"] == "NTWO" and r["level"] == spec.tags["level"])
+    assert ref["metrics"]["e_lat_rms_cm"] != pytest.approx(got["e_lat_rms_cm"], rel=1e-6)
+    md = (tmp_path / "n" / "study.md").read_text()
+    assert "measured the states with noise" in md and "v 0.01 m/s" in md
+
+
 def test_design_names_every_scenario_once_and_repeats_seeds_in_every_class(tmp_path):
     """Runs are grouped by scenario name for the comparison: two paths under one name (the
     4-axle curve and lane at 15 km/h once were) would be compared as one. Every class has

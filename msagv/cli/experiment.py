@@ -107,12 +107,12 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--seeds", type=int, metavar="N",
                     help="mismatch: annealer seeds per scenario (default 3; --quick 1)")
     ap.add_argument("--measurement-noise", metavar="V,R[,POS,PHI]",
-                    help="mismatch: the controller measures the states with this noise, as "
-                         "a real vehicle's odometry has (standard deviations of the body's "
-                         "velocity along and across it [m/s], the yaw rate [rad/s], x and y "
-                         "[m], the heading [rad]; seeded by the annealer's seed; the "
-                         "identified column's logged run measured so too; default output "
-                         "runs/mismatch-noise), e.g. 0.01,0.002")
+                    help="mismatch and study: the controller measures the states with this "
+                         "noise, as a real vehicle's odometry has (standard deviations of the "
+                         "body's velocity along and across it [m/s], the yaw rate [rad/s], x "
+                         "and y [m], the heading [rad]; seeded by the annealer's seed; the "
+                         "mismatch's identified column's logged run measured so too; default "
+                         "output runs/mismatch-noise, runs/study-noise), e.g. 0.01,0.002")
     ap.add_argument("--quick-levels", action="store_true",
                     help="mismatch: each family at its --quick levels (12 runs a scenario "
                          "instead of 25)")
@@ -137,12 +137,27 @@ def _run(a, progress: bool) -> dict:
     if a.experiment != "study" and a.classes is not None:
         raise OptionError("--classes applies to the study")
     if a.experiment != "mismatch":
-        for name in ("plants", "paths", "seeds", "measurement_noise"):
+        for name in ("plants", "paths", "seeds"):
             if getattr(a, name) is not None:
                 raise OptionError(f"--{name.replace('_', '-')} applies to the mismatch "
                                   f"experiment")
         if a.quick_levels:
             raise OptionError("--quick-levels applies to the mismatch experiment")
+    noise = None
+    if a.measurement_noise is not None:
+        if a.experiment not in ("mismatch", "study"):
+            raise OptionError("--measurement-noise applies to the mismatch experiment and "
+                              "the study")
+        from msagv.experiments.study import default_out
+        from msagv.plant.sensors import MeasurementNoise
+
+        try:
+            m = MeasurementNoise.parse(a.measurement_noise)
+        except ValueError as e:
+            raise OptionError(f"--measurement-noise: {e}") from None
+        noise = None if m is None else m.as_dict()  # (the experiment drops the seed)
+        check_output(a.out or default_out(a.experiment, a.quick, noise), "--out",
+                     directory=True)
     if a.experiment == "mismatch":
         from msagv.experiments.mismatch import parse_plants, run_mismatch
 
@@ -157,17 +172,6 @@ def _run(a, progress: bool) -> dict:
             raise OptionError(f"--paths: at least 2 (the interval resamples paths), got {a.paths}")
         if a.seeds is not None and a.seeds < 1:
             raise OptionError(f"--seeds: at least 1, got {a.seeds}")
-        noise = None
-        if a.measurement_noise is not None:
-            from msagv.experiments.mismatch import default_out
-            from msagv.plant.sensors import MeasurementNoise
-
-            try:
-                m = MeasurementNoise.parse(a.measurement_noise)
-            except ValueError as e:
-                raise OptionError(f"--measurement-noise: {e}") from None
-            noise = None if m is None else m.as_dict()  # (run_mismatch drops the seed)
-            check_output(a.out or default_out(a.quick, noise), "--out", directory=True)
         return run_mismatch(a.out, plants=parse_plants(a.plants) if a.plants else None,
                             n_paths=a.paths,
                             seeds=None if a.seeds is None else tuple(range(a.seeds)),
@@ -193,7 +197,7 @@ def _run(a, progress: bool) -> dict:
         return run_study(a.out, quick=a.quick, jobs=a.jobs, scheduler=a.scheduler,
                          force=a.force, progress=progress, vehicle=a.vehicle,
                          trajectory=a.trajectory, speeds=_floats(a.speeds, "--speeds"),
-                         classes=classes)
+                         classes=classes, noise=noise)
     return cases.run_experiment(
         a.experiment, a.out, jobs=a.jobs, force=a.force, progress=progress,
         duration=a.duration, speeds=_floats(a.speeds, "--speeds"),

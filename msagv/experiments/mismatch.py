@@ -48,7 +48,8 @@ import numpy as np
 
 from .checks import ScenarioError
 from .runs import PERIOD, code_digest, dask_map, run_all
-from .study import StudyScenario, run_specs
+from .study import StudyScenario, check_noise, run_specs
+from .study import default_out as study_out
 from .study_analysis import _f, _ratio_text
 
 # the plants unlike the file: factors on the Magic Formula's B and mu (both curves), or the
@@ -79,10 +80,8 @@ QUICK = {"plants": ("tires x0.8", "tires x1.2"), "paths": 2, "seeds": 1}
 
 
 def default_out(quick: bool = False, noise: dict | None = None) -> Path:
-    """``runs/mismatch[-noise][-quick]``: a design under measurement noise keeps its own
-    summary beside the exact one's."""
-    return Path("runs") / ("mismatch" + ("-noise" if noise else "") + ("-quick" if quick
-                                                                        else ""))
+    """``runs/mismatch[-noise][-quick]`` (:func:`experiments.study.default_out`)."""
+    return study_out("mismatch", quick, noise)
 
 
 def _slug(name: str) -> str:
@@ -387,14 +386,7 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
     if not seeds or any(k < 0 for k in seeds):
         raise ScenarioError(f"--seeds: at least one annealer seed >= 0, got {seeds}")
     levels_quick = quick if levels_quick is None else levels_quick
-    if noise is not None:
-        from msagv.plant.sensors import MeasurementNoise
-
-        try:
-            m = MeasurementNoise.from_mapping(dict(noise))
-        except (ValueError, TypeError) as e:
-            raise ScenarioError(f"--measurement-noise: {e}") from None
-        noise = None if m is None else {k: v for k, v in m.as_dict().items() if k != "seed"}
+    noise = check_noise(noise)
     out = Path(out) if out is not None else default_out(quick, noise)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -457,13 +457,49 @@ def select_classes(scenarios: list[StudyScenario], classes) -> list[StudyScenari
     return [sc for sc in scenarios if sc.cls in classes]
 
 
+def check_noise(noise: dict | None) -> dict | None:
+    """The measurement noise of a design (``{v, r, pos, phi}`` of
+    ``Scenario.measurement_noise``), checked: its seed dropped (each run's stream is seeded
+    by its annealer seed, :func:`with_noise`); None without noise (all zero)."""
+    if noise is None:
+        return None
+    from msagv.plant.sensors import MeasurementNoise
+
+    try:
+        m = MeasurementNoise.from_mapping(dict(noise))
+    except (ValueError, TypeError) as e:
+        raise ScenarioError(f"--measurement-noise: {e}") from None
+    return None if m is None else {k: v for k, v in m.as_dict().items() if k != "seed"}
+
+
+def with_noise(scenarios: list[StudyScenario], noise: dict | None) -> list[StudyScenario]:
+    """Every instance's controller measures with ``noise``, its stream seeded by the
+    instance's annealer seed (the wear-aware and the blind families of an instance read the
+    same noise: a paired comparison)."""
+    if not noise:
+        return scenarios
+    from dataclasses import replace
+
+    return [replace(sc, measurement_noise=dict(noise, seed=sc.seed)) for sc in scenarios]
+
+
+def default_out(experiment: str, quick: bool = False, noise: dict | None = None) -> Path:
+    """``runs/<experiment>[-noise][-quick]``: a design under measurement noise keeps its own
+    report beside the exact one's."""
+    return Path("runs") / (experiment + ("-noise" if noise else "") + ("-quick" if quick
+                                                                       else ""))
+
+
 def run_study(out: str | Path | None = None, *, quick: bool = False, jobs: int | None = None,
               scheduler: str | None = None, force: bool = False, progress: bool = True,
               vehicle: str | None = None, trajectory: str | None = None,
-              speeds=None, classes=None) -> dict:
+              speeds=None, classes=None, noise: dict | None = None) -> dict:
     """Run (or resume) the study and write its report; returns the summary (the JSON
     document of :func:`experiments.study_analysis.report_study`). ``classes``: run only
-    the design's scenarios of these classes (the user's scenario is the class ``user``)."""
+    the design's scenarios of these classes (the user's scenario is the class ``user``).
+    ``noise``: every controller measures the states with this noise (``{v, r, pos, phi}``
+    of ``Scenario.measurement_noise``, :func:`with_noise`); the floors stay the paths'
+    own (they are the physics', whatever the controller measures)."""
     from .study_analysis import report_study
 
     for p, what in ((vehicle, "--vehicle"), (trajectory, "--trajectory")):
@@ -472,11 +508,13 @@ def run_study(out: str | Path | None = None, *, quick: bool = False, jobs: int |
     if speeds and not vehicle:
         raise ScenarioError("--speeds: in the study, the speeds of your vehicle's scenario "
                             "(give --vehicle)")
-    out = Path(out) if out is not None else Path("runs") / ("study-quick" if quick else "study")
+    noise = check_noise(noise)
+    out = Path(out) if out is not None else default_out("study", quick, noise)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     scenarios = select_classes(design(quick, vehicle, trajectory, speeds), classes)
     _check_user(scenarios, speeds)
+    scenarios = with_noise(scenarios, noise)
     described = {sc.name: sc.describe() for sc in scenarios}
     floors = compute_floors(scenarios, out, jobs, scheduler, force, progress)
     specs = run_specs(scenarios, quick)
@@ -485,4 +523,6 @@ def run_study(out: str | Path | None = None, *, quick: bool = False, jobs: int |
     summ["total_wall_s"] = time.perf_counter() - t0
     summ["design"] = "quick" if quick else "default"
     summ["scenarios"] = len(scenarios)
+    if noise:
+        summ["measurement_noise"] = noise
     return report_study(results, floors, scenarios, described, out, summ)

@@ -637,6 +637,14 @@ def _md_head(runs: dict, described: dict) -> list[str]:
          "Vehicles: " + "; ".join(f"{v} in {len(n)} instance{'s' * (len(n) > 1)}"
                                   + (f" ({', '.join(n)})" if len(n) <= 3 else "")
                                   for v, n in vehicles.items()) + ".\n"]
+    if runs.get("measurement_noise"):
+        from msagv.plant.sensors import FIELDS as NOISE_FIELDS
+
+        L.append("Every controller measured the states with noise, as a real vehicle's "
+                 "odometry has (standard deviations: " + ", ".join(
+                     f"{k} {v:g} {NOISE_FIELDS[k][1]}" for k, v in runs["measurement_noise"].items()
+                     if v) + "; each instance's stream seeded by its annealer seed, the same "
+                 "for its wear-aware and blind runs). The floors are the paths' own.\n")
     cut = [n for n, d in described.items() if not d["whole_path"]]
     if cut:
         L.append(f"Part of the path ({len(cut)} instances, the design's choice): "
