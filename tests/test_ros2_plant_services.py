@@ -207,7 +207,7 @@ def test_parameters_diagnostics_and_reset_of_the_managed_plant(procs, ros_env):
         assert not ok and why.startswith("use_sim_time: chooses the run's clock"), why
         r = _call(peer, seta, SetParametersAtomically.Request(parameters=[
             Parameter("safe_decel", value=3.0).to_parameter_msg(),
-            Parameter("period", value=0.1).to_parameter_msg()]), again=True).result
+            Parameter("period", value=0.1).to_parameter_msg()])).result
         assert not r.successful and r.reason.startswith("period: state k is stamped k T"), r
         assert get_params("run_mode", "period", "safe_decel", "stale_ms") == [
             "lockstep", T, 2.0, 400.0]

@@ -427,6 +427,8 @@ def test_a_study_under_measurement_noise(tmp_path, monkeypatch):
     stream seeded by the instance's annealer seed (the wear-aware and the blind runs read
     the same noise), so no run is the exact study's; the floors are the paths' own; the
     report says it; a bad noise is refused before anything is written."""
+    import dataclasses
+
     from msagv.experiments import study
     from msagv.experiments.checks import ScenarioError
     from msagv.experiments.runs import execute, run_key
@@ -444,13 +446,24 @@ def test_a_study_under_measurement_noise(tmp_path, monkeypatch):
     for a, b in zip(exact, noisy):
         assert b.extra["measurement_noise"] == dict(noise, seed=1)
         assert run_key(a) != run_key(b)
+    # the feed-forward draws no random numbers: its exact run is one for every seed, its
+    # noisy runs one per seed (the seed draws the noise)
+    two = [dataclasses.replace(small[0], seed=k) for k in (0, 1)]
+
+    def ff_keys(scs):
+        return {run_key(x) for x in study.run_specs(scs, quick=True) if x.settings["seed"] == 0
+                and x.tags["family"] == "FF"}
+    assert len(ff_keys(two)) == 1 and len(ff_keys(study.with_noise(two, noise))) == 2
     doc = study.run_study(tmp_path / "n", quick=True, jobs=1, progress=False,
                           noise=dict(noise, seed=7))  # (a seed given is the run's, not this)
     assert doc["runs"]["measurement_noise"] == noise
     rows = doc["rows"]
     assert all(r["status"] == "ok" for r in rows), [r["error"] for r in rows]
-    # the floors are the exact path's: the same for the noisy runs as the floor function
-    assert len({r["W_tw_floor"] for r in rows}) == 1
+    # the floors are the path's own: those of the exact design, computed apart
+    ref_floors = study.compute_floors(small, tmp_path / "e", jobs=1, progress=False)
+    (k, fl), = ref_floors.items()
+    got_fl = json.loads((tmp_path / "n" / "floors" / f"{k}.json").read_text())
+    assert got_fl["floors"] == fl["floors"]
     # the noise reaches the controller: a run of the exact design tracks otherwise
     spec = next(a for a in exact if a.tags["family"] == "NTWO")
     ref = execute(spec.to_dict(), run_key(spec))

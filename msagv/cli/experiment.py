@@ -127,10 +127,25 @@ def _parser() -> argparse.ArgumentParser:
 
 def _run(a, progress: bool) -> dict:
     """Check the options, run the experiment, return its summary."""
+    from msagv.experiments.study import default_out
+
     if a.jobs is not None and a.jobs < 1:
         raise OptionError("--jobs must be >= 1")
+    noise = None
+    if a.measurement_noise is not None:
+        if a.experiment not in ("mismatch", "study"):
+            raise OptionError("--measurement-noise applies to the mismatch experiment and "
+                              "the study")
+        from msagv.plant.sensors import MeasurementNoise
+
+        try:
+            m = MeasurementNoise.parse(a.measurement_noise)
+        except ValueError as e:
+            raise OptionError(f"--measurement-noise: {e}") from None
+        noise = None if m is None else m.as_dict()  # (the experiment drops the seed)
     # the default output directory too: nothing runs before it is known to be writable
-    check_output(a.out or Path("runs") / a.experiment, "--out", directory=True)
+    a.out_dir = Path(a.out) if a.out else default_out(a.experiment, bool(a.quick), noise)
+    check_output(a.out_dir, "--out", directory=True)
     check_output(a.json_out, "--json-out")
     methods = [m.strip() for m in a.methods.split(",") if m.strip()] if a.methods else None
     masses = _masses_kg(a)
@@ -143,21 +158,6 @@ def _run(a, progress: bool) -> dict:
                                   f"experiment")
         if a.quick_levels:
             raise OptionError("--quick-levels applies to the mismatch experiment")
-    noise = None
-    if a.measurement_noise is not None:
-        if a.experiment not in ("mismatch", "study"):
-            raise OptionError("--measurement-noise applies to the mismatch experiment and "
-                              "the study")
-        from msagv.experiments.study import default_out
-        from msagv.plant.sensors import MeasurementNoise
-
-        try:
-            m = MeasurementNoise.parse(a.measurement_noise)
-        except ValueError as e:
-            raise OptionError(f"--measurement-noise: {e}") from None
-        noise = None if m is None else m.as_dict()  # (the experiment drops the seed)
-        check_output(a.out or default_out(a.experiment, a.quick, noise), "--out",
-                     directory=True)
     if a.experiment == "mismatch":
         from msagv.experiments.mismatch import parse_plants, run_mismatch
 
@@ -220,7 +220,7 @@ def main(argv: list[str]) -> int:
     except (ValueError, FileNotFoundError, RuntimeError) as e:
         return fail(prog, e, a)
     except KeyboardInterrupt:
-        out = Path(a.out) if a.out else Path("runs") / a.experiment
+        out = getattr(a, "out_dir", None) or Path(a.out or Path("runs") / a.experiment)
         done = len(list((out / "runs").glob("*.json"))) if (out / "runs").is_dir() else 0
         print(f"{prog}: interrupted; {done} finished runs are stored in {out / 'runs'} and "
               f"are reused when the same command is run again", file=sys.stderr)

@@ -48,7 +48,7 @@ import numpy as np
 
 from .checks import ScenarioError
 from .runs import PERIOD, code_digest, dask_map, run_all
-from .study import StudyScenario, check_noise, run_specs
+from .study import StudyScenario, check_noise, run_specs, with_noise
 from .study import default_out as study_out
 from .study_analysis import _f, _ratio_text
 
@@ -353,9 +353,8 @@ def design(paths: list[Path], files: dict[str, Path], identified: dict[str, dict
                         "mismatch", "file", None, plant=name, seed=k, duration=duration,
                         vehicle=vehicles[model], trajectory=str(path),
                         plant_vehicle=str(f), model=model,
-                        settings=dict(COLUMN_SETTINGS[model]),
-                        measurement_noise=dict(noise, seed=k) if noise else None))
-    return out
+                        settings=dict(COLUMN_SETTINGS[model])))
+    return with_noise(out, noise)
 
 
 def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | None = None,

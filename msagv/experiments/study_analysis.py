@@ -661,10 +661,14 @@ def _md_head(runs: dict, described: dict) -> list[str]:
     return L
 
 
-def _md_headline(summary: dict, user: str | None) -> list[str]:
+def _md_headline(summary: dict, user: str | None, noisy: bool = False) -> list[str]:
+    """``noisy``: the controllers measured with noise, whose stream each seed also draws
+    afresh: the spread across seeds is then the solver's and the measurement's."""
+    spread = ("solver and measurement noise (SD across seeds)" if noisy
+              else "solver noise (SD across seeds)")
     L = ["| scenarios | scenarios (instances) | unmatched | ratio at equal error [95 % CI] "
          "| below 1 | with the unmatched at their most-accurate ratio [95 % CI] | "
-         "solver noise (SD across seeds) |",
+         f"{spread} |",
          "|---|---:|---:|---|---:|---|---:|"]
     for g, s in summary.items():
         eq = s["equal_error"]
@@ -815,7 +819,9 @@ def markdown(summary: dict, fam: list[dict], comparisons: list[dict], runs: dict
     warn = ([f"**{'Note' if w.startswith('below the floor off') else 'Warning'}: {w}.**\n"
              for w in broken] if broken else [])
     warn += [floor_line + "\n"] if floor_line else []
-    L = (_md_head(runs, described) + warn + _md_headline(summary, user) + _md_forms(summary)
+    noisy = bool(runs.get("measurement_noise"))
+    L = (_md_head(runs, described) + warn + _md_headline(summary, user, noisy)
+         + _md_forms(summary)
          + _md_families(summary) + _md_case2(summary) + _md_unmatched(comparisons)
          + _md_family_table(fam)
          + _md_scenarios(comparisons))
