@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -358,8 +359,15 @@ def test_a_50mb_command_does_not_reach_the_recording(procs, tmp_path):
     assert all(len(r.get("p", b"")) < 64 * 1024 for r in recs)
     # the plant rejected it (recorded as size and hash), or the transport dropped it first
     rej = [r for r in recs if "why" in r and "key" in r]  # (events carry a why, too)
-    assert all(r["size"] == len(big) and r["sha256"] == hashlib.sha256(big).hexdigest()
-               for r in rej)
+    big_rej = [r for r in rej if r["size"] == len(big)]
+    assert all(r["sha256"] == hashlib.sha256(big).hexdigest() for r in big_rej)
+    # any other rejection is the controller's own last answer arriving after its release at
+    # the run's end (seen on a loaded machine: the plant took the release, a query, before
+    # the command queued ahead of it, 1 ms apart): not_owner, after the 'released' event
+    t_released = min((r["ts"] for r in recs if r.get("ev") == "released"), default=math.inf)
+    late = [r for r in rej if r["size"] != len(big)]
+    assert all(r["why"] == "not_owner" and r["ts"] >= t_released and r["size"] < 4096
+               for r in late), (late, t_released)
     print(f"\n50 MB cmd: rejected records {len(rej)}, missed periods {s['missed_periods']}, "
           f"recording {size} bytes")
 
