@@ -48,9 +48,8 @@ import numpy as np
 
 from .checks import ScenarioError
 from .runs import PERIOD, code_digest, dask_map, run_all
-from .study import StudyScenario, check_noise, run_specs, with_noise
-from .study import default_out as study_out
-from .study_analysis import _f, _ratio_text
+from .study import StudyScenario, check_noise, default_out, run_specs, with_noise
+from .study_analysis import _f, _ratio_text, noise_text
 
 # the plants unlike the file: factors on the Magic Formula's B and mu (both curves), or the
 # plant's own options (vehicle file [plant])
@@ -77,11 +76,6 @@ DURATION = 15.0  # s of each path
 PATHS = 10
 SEEDS = (0, 1, 2)
 QUICK = {"plants": ("tires x0.8", "tires x1.2"), "paths": 2, "seeds": 1}
-
-
-def default_out(quick: bool = False, noise: dict | None = None) -> Path:
-    """``runs/mismatch[-noise][-quick]`` (:func:`experiments.study.default_out`)."""
-    return study_out("mismatch", quick, noise)
 
 
 def _slug(name: str) -> str:
@@ -386,7 +380,7 @@ def run_mismatch(out: str | Path | None = None, *, plants=None, n_paths: int | N
         raise ScenarioError(f"--seeds: at least one annealer seed >= 0, got {seeds}")
     levels_quick = quick if levels_quick is None else levels_quick
     noise = check_noise(noise)
-    out = Path(out) if out is not None else default_out(quick, noise)
+    out = Path(out) if out is not None else default_out("mismatch", quick, noise)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     vehicle = None if vehicle is None else str(Path(vehicle).resolve())
@@ -560,9 +554,8 @@ def markdown(summary: dict, identified: dict, design_doc: dict, runs: dict,
          + f"x {_count(len(plants), 'plant')} x "
          f"4 columns x {_count(len(design_doc['seeds']), 'annealer seed')}, the families' "
          f"{design_doc['levels']} levels, every family with the offset-free disturbance"
-         + (", the states measured with noise (" + ", ".join(
-             f"{k} {v:g}" for k, v in design_doc["measurement_noise"].items() if v)
-            + "; SI units), the identified column's logged run too"
+         + (f", the states measured with noise ({noise_text(design_doc['measurement_noise'])})"
+            ", the identified column's logged run too"
             if design_doc.get("measurement_noise") else "") + ".", "",
          f"**{sentence}**", "",
          "Wear-aware / wear-blind tire wear at equal lateral RMS error (the study's rule), "

@@ -624,6 +624,14 @@ def _group_label(g: str, items_desc: dict | None) -> str:
     return g if not items_desc else f"{g} ({items_desc})"
 
 
+def noise_text(noise: dict) -> str:
+    """A design's measurement noise as the reports print it: ``v 0.01 m/s, r 0.002 rad/s``
+    (the nonzero deviations, with their units)."""
+    from msagv.plant.sensors import FIELDS
+
+    return ", ".join(f"{k} {v:g} {FIELDS[k][1]}" for k, v in noise.items() if v)
+
+
 def _md_head(runs: dict, described: dict) -> list[str]:
     vehicles: dict[str, list[str]] = {}
     for name, d in described.items():
@@ -638,13 +646,10 @@ def _md_head(runs: dict, described: dict) -> list[str]:
                                   + (f" ({', '.join(n)})" if len(n) <= 3 else "")
                                   for v, n in vehicles.items()) + ".\n"]
     if runs.get("measurement_noise"):
-        from msagv.plant.sensors import FIELDS as NOISE_FIELDS
-
         L.append("Every controller measured the states with noise, as a real vehicle's "
-                 "odometry has (standard deviations: " + ", ".join(
-                     f"{k} {v:g} {NOISE_FIELDS[k][1]}" for k, v in runs["measurement_noise"].items()
-                     if v) + "; each instance's stream seeded by its annealer seed, the same "
-                 "for its wear-aware and blind runs). The floors are the paths' own.\n")
+                 f"odometry has (standard deviations: {noise_text(runs['measurement_noise'])}; "
+                 "each instance's stream seeded by its annealer seed, the same for its "
+                 "wear-aware and blind runs). The floors are the paths' own.\n")
     cut = [n for n, d in described.items() if not d["whole_path"]]
     if cut:
         L.append(f"Part of the path ({len(cut)} instances, the design's choice): "
